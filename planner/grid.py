@@ -1,0 +1,119 @@
+"""Mission grid, the eight headings and the candidate cells of a fixed-wing UAV (section 2.1, Fig. 1).
+
+The area is ``nx x ny`` square cells of side ``cell_km``; cell ``(ix, iy)`` spans
+``[ix, ix+1) x [iy, iy+1)`` cells and its centre is at ``((ix + 0.5) L, (iy + 0.5) L)`` km, x east,
+y north. A UAV sits at a cell centre and flies one cell per decision step along one of eight
+headings; with a maximum turn of ``phi_max`` it can reach ``2 * floor(phi_max / 45) + 1`` cells
+(three for the paper's 45 degrees): the grey cells of Fig. 1, constraint C_m of eq 5.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+#: Unit moves of the eight headings, counter-clockwise from east (heading index 0..7).
+HEADING_STEPS = np.array(
+    [(1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1), (0, -1), (1, -1)], dtype=np.int64
+)
+HEADING_ANGLES_RAD = np.arange(8) * (np.pi / 4)
+HEADING_LENGTHS = np.hypot(HEADING_STEPS[:, 0], HEADING_STEPS[:, 1])
+
+
+def heading_of_angle(angle_rad: float | np.ndarray) -> np.ndarray:
+    """Nearest of the eight headings to a direction (radians, counter-clockwise from east)."""
+    return np.rint(np.mod(angle_rad, 2 * np.pi) / (np.pi / 4)).astype(np.int64) % 8
+
+
+def heading_change_deg(h_from: np.ndarray | int, h_to: np.ndarray | int) -> np.ndarray:
+    """Absolute heading change between two heading indices, in degrees (0..180)."""
+    diff = np.mod(np.asarray(h_to) - np.asarray(h_from), 8)
+    return np.minimum(diff, 8 - diff) * 45.0
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Geometry of the discrete mission area."""
+
+    nx: int = 100
+    ny: int = 100
+    cell_km: float = 1.0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.nx, self.ny)
+
+    @property
+    def size(self) -> int:
+        return self.nx * self.ny
+
+    def centre_km(self, cells: np.ndarray) -> np.ndarray:
+        """Centres (..., 2) in km of integer cells (..., 2)."""
+        return (np.asarray(cells, dtype=float) + 0.5) * self.cell_km
+
+    def cell_of(self, xy_km: np.ndarray) -> np.ndarray:
+        """Integer cell (..., 2) containing each point (..., 2) in km, clipped into the area."""
+        cells = np.floor(np.asarray(xy_km, dtype=float) / self.cell_km).astype(np.int64)
+        cells[..., 0] = np.clip(cells[..., 0], 0, self.nx - 1)
+        cells[..., 1] = np.clip(cells[..., 1], 0, self.ny - 1)
+        return cells
+
+    def inside(self, cells: np.ndarray) -> np.ndarray:
+        cells = np.asarray(cells)
+        return (
+            (cells[..., 0] >= 0)
+            & (cells[..., 0] < self.nx)
+            & (cells[..., 1] >= 0)
+            & (cells[..., 1] < self.ny)
+        )
+
+    def flat(self, cells: np.ndarray) -> np.ndarray:
+        cells = np.asarray(cells)
+        return cells[..., 0] * self.ny + cells[..., 1]
+
+    @cached_property
+    def centres_x_km(self) -> np.ndarray:
+        return (np.arange(self.nx) + 0.5) * self.cell_km
+
+    @cached_property
+    def centres_y_km(self) -> np.ndarray:
+        return (np.arange(self.ny) + 0.5) * self.cell_km
+
+    def disc_offsets(self, radius_km: float) -> np.ndarray:
+        """Integer offsets (K, 2) of the cells whose centres lie within ``radius_km`` of a centre."""
+        r = int(np.floor(radius_km / self.cell_km + 1e-9))
+        dx, dy = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij")
+        keep = np.hypot(dx, dy) * self.cell_km <= radius_km + 1e-9
+        return np.stack([dx[keep], dy[keep]], axis=1).astype(np.int64)
+
+
+def turn_options(max_turn_deg: float) -> np.ndarray:
+    """Heading changes allowed in one step, e.g. [-1, 0, 1] for 45 degrees (constraint C_m)."""
+    k = int(np.floor(max_turn_deg / 45.0 + 1e-9))
+    k = min(k, 4)
+    options = list(range(-k, k + 1))
+    if k == 4:
+        options.remove(4)  # -4 and +4 are the same reversal
+    return np.array(options, dtype=np.int64)
+
+
+def candidate_moves(
+    cells: np.ndarray, headings: np.ndarray, max_turn_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate next cells and headings for each UAV (the set Omega of eqs 35-37).
+
+    Args:
+        cells: (N, 2) current cells.
+        headings: (N,) current heading indices.
+        max_turn_deg: phi_max.
+
+    Returns:
+        ``(next_cells (N, C, 2), next_headings (N, C))``, C = number of allowed turns; cells may lie
+        outside the area (the caller masks them).
+    """
+    turns = turn_options(max_turn_deg)
+    next_headings = np.mod(np.asarray(headings)[:, None] + turns[None, :], 8)
+    next_cells = np.asarray(cells)[:, None, :] + HEADING_STEPS[next_headings]
+    return next_cells, next_headings

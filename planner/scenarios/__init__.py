@@ -1,0 +1,1 @@
+"""Built-in scenarios of the paper's experiments (TOML data files)."""

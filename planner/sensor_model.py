@@ -1,0 +1,47 @@
+"""The sensor of section 3.1.2: distance-dependent detection probability (eq 17) and the
+Bayesian cell update (eq 18).
+
+One look of one UAV covers the cells whose centres lie within the detection radius R of the
+UAV; each of them reports a detection bit b. The planner treats eq 17's probability as the
+cell's P_D when it applies eq 18, so a look at the edge of the footprint (where p(b=1|d) falls
+to P_F) carries no information, and one straight below the UAV carries the most.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from planner.config import PlannerConfig
+
+
+@dataclass(frozen=True)
+class SensorReport:
+    """One look of one UAV's sensor: the cells in its footprint and a detection bit for each."""
+
+    cells: np.ndarray  # (K, 2) int cells in the footprint
+    detected: np.ndarray  # (K,) bool, b_k of eq 17 for each cell
+
+
+def detection_probability(distance_km: np.ndarray | float, cfg: PlannerConfig) -> np.ndarray:
+    """p(b_k = 1 | d_k) of eq 17: P_D up to d_in, falling linearly to P_F at d_out = R."""
+    d = np.asarray(distance_km, dtype=float)
+    d_in, d_out = cfg.sensor_d_in_km, cfg.detection_radius_km
+    ramp = cfg.p_detect - (cfg.p_detect - cfg.p_false) * (d - d_in) / (d_out - d_in)
+    return np.where(d <= d_in, cfg.p_detect, np.where(d <= d_out, ramp, cfg.p_false))
+
+
+def bayes_update(
+    prior: np.ndarray, detected: np.ndarray, p_detect: np.ndarray | float, p_false: float
+) -> np.ndarray:
+    """Posterior existence probability of a cell after one look (eq 18, observed cases).
+
+    ``detected`` true:  P_D p / (P_F + (P_D - P_F) p)
+    ``detected`` false: (1 - P_D) p / (1 - P_F + (P_F - P_D) p)
+    """
+    p = np.clip(prior, 0.0, 1.0)
+    pd = np.asarray(p_detect, dtype=float)
+    positive = pd * p / (p_false + (pd - p_false) * p)
+    negative = (1.0 - pd) * p / (1.0 - p_false + (p_false - pd) * p)
+    return np.where(detected, positive, negative)
