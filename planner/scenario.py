@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from planner.config import ConfigError, PlannerConfig
+from planner.errors import UserError
 
 #: The four kinds of time-sensitive target of section 3.1.1, by what the swarm knows of them.
 TARGET_KINDS = ("unknown_position", "known_position", "known_speed", "known_velocity")
@@ -25,7 +26,7 @@ TARGET_KINDS = ("unknown_position", "known_position", "known_speed", "known_velo
 BUILTIN_SCENARIOS = ("paper-2uav", "paper-10uav", "paper-20uav")
 
 
-class ScenarioError(ValueError):
+class ScenarioError(UserError, ValueError):
     """A scenario cannot be used; the message names the problem and the fix."""
 
 

@@ -20,22 +20,14 @@ At the area's edge a target is reflected back inside and its heading mirrored.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from planner.engagement import EngagementOutcome
 from planner.grid import Grid
 from planner.scenario import Scenario
 from planner.sensor_model import SensorReport, detection_probability
 
 KIND_CODES = {"unknown_position": 0, "known_position": 1, "known_speed": 2, "known_velocity": 3}
-
-
-@dataclass(frozen=True)
-class EngagementOutcome:
-    success: bool
-    target_id: int = 0
-    value: float = 0.0
 
 
 def reflect_into(positions: np.ndarray, headings: np.ndarray, size: tuple[float, float]) -> None:

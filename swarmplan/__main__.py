@@ -1,0 +1,5 @@
+import sys
+
+from swarmplan.cli import main
+
+sys.exit(main())

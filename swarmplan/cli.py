@@ -1,0 +1,67 @@
+"""``swarmplan``: the one command-line entry point. It only composes the packages' commands.
+
+Each subcommand lives in the package it belongs to, as a module with ``HELP`` (one line),
+``add_arguments(parser)`` and ``main(args) -> int``. A command that fails because of the user's
+input raises ``planner.errors.UserError``; it is printed here as one line, exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+# MAVLink 2 everywhere: pymavlink reads this once, at import, for the whole process.
+os.environ.setdefault("MAVLINK20", "1")
+
+from planner.errors import UserError  # noqa: E402
+
+#: (name, module) of every subcommand, in the order --help lists them.
+SUBCOMMANDS = (
+    ("run", "swarmplan.run_command"),
+    ("demo", "swarmplan.demo"),
+    ("sim", "sim_gateway.cli"),
+    ("daemon", "mavlink_bridge.cli"),
+    ("export", "mavlink_bridge.export_command"),
+    ("experiment", "swarmplan.experiment_command"),
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="swarmplan",
+        description="HAPF-ACO cooperative UAV-swarm search planner (offline, simulator, MAVLink).",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module_name in SUBCOMMANDS:
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name == module_name:
+                continue  # a command not built yet
+            raise
+        command = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(command)
+        command.set_defaults(handler=module.main)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "handler", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.handler(args) or 0)
+    except UserError as exc:
+        print(f"swarmplan {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"swarmplan {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
