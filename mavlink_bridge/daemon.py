@@ -1,0 +1,485 @@
+"""The planner daemon: flies a swarm of MAVLink vehicles with the HAPF-ACO planner.
+
+One mission, in order:
+
+1. open the endpoints and wait for a heartbeat of every expected system id (``discovery``);
+2. wait until each autopilot reports STANDBY (initialisation over);
+3. upload the threat zones as fence exclusion circles (``mission_upload``);
+4. arm, TAKEOFF mode, wait for the climb, GUIDED;
+5. every decision step: take each vehicle's newest sensor look and telemetry as that UAV's
+   planner inputs, run the planner, check the next cells against the safety envelope, send the
+   engagement requests (camera capture) and the guided targets (COMMAND_INT DO_REPOSITION), each
+   with acknowledgement and retry;
+6. RTL every vehicle.
+
+A vehicle silent for ``lost_after_s`` is lost (inactive to the planner; the others go on) and
+rejoins when heard again. What is recorded comes from what came back over MAVLink: positions from
+the looks / telemetry, engagements from their acknowledged outcomes.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mavlink_bridge.discovery import wait_for_vehicles, wait_until_ready
+from mavlink_bridge.guided_commands import (
+    Command,
+    CommandRefused,
+    arm_command,
+    engagement_command,
+    reposition_command,
+    require_accepted,
+    send_commands,
+    set_mode_command,
+)
+from mavlink_bridge.mission_upload import FenceCircle, upload_fence
+from mavlink_bridge.protocol import (
+    PLANE_MODE_GUIDED,
+    PLANE_MODE_RTL,
+    PLANE_MODE_TAKEOFF,
+    mavlink,
+    result_name,
+)
+from mavlink_bridge.safety_envelope import SafetyEnvelope
+from mavlink_bridge.sensor_looks import look_report
+from mavlink_bridge.swarm_link import SwarmLink
+from mavlink_bridge.tlog import TlogWriter
+from mavlink_bridge.vehicle_state import Look, VehicleState
+from planner.engagement import EngagementOutcome
+from planner.errors import UserError
+from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
+from planner.grid import Grid, heading_of_angle
+from planner.scenario import Scenario, UavStart
+from planner.sensor_model import SensorReport
+
+ALGORITHM = "hapf-aco"
+
+
+@dataclass
+class DaemonOptions:
+    """Everything a mission run needs besides the scenario."""
+
+    connect: list[str]
+    seed: int = 0
+    expect: int | None = None  # vehicles expected (system ids 1..N); default: the scenario's UAVs
+    steps: int | None = None  # decision steps; default: the scenario's
+    discovery_timeout_s: float = 60.0
+    ready_timeout_s: float = 120.0
+    lost_after_s: float = 3.0  # wall seconds of silence before a vehicle counts as lost
+    takeoff_altitude_m: float = 30.0  # climb (above home) that ends the TAKEOFF phase
+    takeoff_timeout_s: float = 60.0
+    threat_margin_km: float = 0.25
+    time_scale: float = 1.0  # vehicles' clock speed; paces steps only when no looks arrive
+    command_retry_s: float = 0.3
+    command_attempts: int = 5
+    tlog_path: Path | None = None
+    progress: Callable[[str], None] | None = None
+    on_step: Callable[[StepStatus], None] | None = None
+
+
+@dataclass
+class StepStatus:
+    """What one decision step did (for a progress display)."""
+
+    step: int
+    steps: int
+    active: int
+    lost: list[int]
+    coverage: float
+    engaged: int
+    engaged_value: float
+    overrides: int
+
+
+@dataclass
+class LinkEvent:
+    step: int
+    uav: int
+    event: str  # "lost" or "rejoined"
+    wall_s: float
+
+
+@dataclass
+class MissionReport:
+    """The result dict (same fields as ``swarmplan run``) and the daemon's own account."""
+
+    result: dict[str, Any]
+    events: list[LinkEvent] = field(default_factory=list)
+
+
+def _import_planner() -> tuple[Any, Any]:
+    from planner.hapf_aco import HapfAcoPlanner
+    from planner.metrics import MissionRecorder
+
+    return HapfAcoPlanner, MissionRecorder
+
+
+class MissionDaemon:
+    """Runs one mission over MAVLink (see the module docstring)."""
+
+    def __init__(self, scenario: Scenario, options: DaemonOptions) -> None:
+        self.scenario = scenario
+        self.options = options
+        cfg = scenario.config
+        self.grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
+        self.n = options.expect or scenario.uav_count
+        if self.n <= 0:
+            raise UserError("--expect must be at least 1")
+        self.system_ids = list(range(1, self.n + 1))
+        self.steps = options.steps or scenario.steps
+        self.envelope = SafetyEnvelope.for_scenario(scenario, options.threat_margin_km)
+        self.events: list[LinkEvent] = []
+        self.tlog: TlogWriter | None = None
+        self.link: SwarmLink | None = None
+        self.overrides = {"area": 0, "threat": 0, "separation": 0, "range": 0}
+        self._look_gaps: list[float] = []
+        self._last_step_wall = 0.0
+        self._target_values = {t.id: t.value for t in scenario.targets}
+
+    # ------------------------------------------------------------------ helpers
+
+    def say(self, text: str) -> None:
+        if self.options.progress is not None:
+            self.options.progress(text)
+
+    def vehicle(self, uav: int) -> VehicleState:
+        assert self.link is not None
+        return self.link.vehicles[uav + 1]
+
+    def local_km(self, lat: float, lon: float) -> np.ndarray:
+        x, y = geodetic_to_local_km(lat, lon, self.scenario.origin)
+        return np.array([x[0], y[0]])
+
+    def geodetic(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        xy = self.grid.centre_km(cells)
+        return local_km_to_geodetic(xy[:, 0], xy[:, 1], self.scenario.origin)
+
+    def send(self, commands: list[Command]) -> list[Command]:
+        assert self.link is not None
+        return send_commands(
+            self.link, commands, self.options.command_retry_s, self.options.command_attempts
+        )
+
+    # ------------------------------------------------------------------ phases
+
+    def connect(self) -> SwarmLink:
+        if self.options.tlog_path is not None:
+            self.tlog = TlogWriter(self.options.tlog_path)
+        expected = set(self.system_ids)
+        self.link = SwarmLink.open(
+            self.options.connect, self.tlog, accept_system_id=lambda s: s in expected
+        )
+        return self.link
+
+    def discover(self) -> None:
+        assert self.link is not None
+        self.say(f"listening on {self.link.describe()} for {self.n} vehicles")
+        wait_for_vehicles(self.link, self.system_ids, self.options.discovery_timeout_s, self.say)
+        self.say(f"all {self.n} vehicles heard; waiting for them to finish initialising")
+        wait_until_ready(self.link, self.system_ids, self.options.ready_timeout_s)
+
+    def upload_threats(self) -> None:
+        assert self.link is not None
+        threats = self.scenario.threats
+        lat, lon = local_km_to_geodetic(
+            [t.x_km for t in threats], [t.y_km for t in threats], self.scenario.origin
+        )
+        circles = [
+            FenceCircle(float(la), float(lo), t.radius_km * 1000.0)
+            for la, lo, t in zip(lat, lon, threats, strict=True)
+        ] if threats else []  # fmt: skip
+        upload_fence(self.link, [self.vehicle(i) for i in range(self.n)], circles)
+        self.say(f"fence uploaded: {len(circles)} exclusion circles to each vehicle")
+
+    def arm(self, attempts: int = 3) -> None:
+        """Arm every vehicle; a refusal is retried, then reported with the prearm reasons."""
+        assert self.link is not None
+        todo = [self.vehicle(i) for i in range(self.n) if not self.vehicle(i).armed]
+        for attempt in range(attempts):
+            started = time.monotonic()
+            results = self.send([arm_command(v) for v in todo])
+            todo = [c.vehicle for c in results if not c.accepted]
+            if not todo:
+                break
+            self.link.pump_until(lambda: False, 0.3)  # let the STATUSTEXTs arrive
+            if attempt == attempts - 1:
+                cmd = next(c for c in results if not c.accepted)
+                reasons = cmd.vehicle.prearm_reasons(since_s=started - 0.5)
+                because = "; ".join(reasons) if reasons else "no PreArm message"
+                result = result_name(cmd.ack.result) if cmd.ack else "no answer"
+                raise CommandRefused(
+                    f"vehicle {cmd.vehicle.system_id} refused to arm ({result}): {because}"
+                )
+            self.link.pump_until(lambda: False, 1.0)
+        self.say(f"armed {self.n} vehicles")
+
+    def take_off(self) -> None:
+        """TAKEOFF mode, wait for the climb, then GUIDED."""
+        assert self.link is not None
+        vehicles = [self.vehicle(i) for i in range(self.n)]
+        require_accepted(self.send([set_mode_command(v, PLANE_MODE_TAKEOFF) for v in vehicles]))
+        climb = min(self.options.takeoff_altitude_m, self.scenario.altitude_m)
+        if not self.link.pump_until(
+            lambda: all(v.relative_alt_m >= climb for v in vehicles), self.options.takeoff_timeout_s
+        ):
+            low = [str(v.system_id) for v in vehicles if v.relative_alt_m < climb]
+            raise UserError(
+                f"vehicle {', '.join(low)} did not climb to {climb:g} m within "
+                f"{self.options.takeoff_timeout_s:g} s of TAKEOFF; check the autopilot's takeoff setup"
+            )
+        require_accepted(self.send([set_mode_command(v, PLANE_MODE_GUIDED) for v in vehicles]))
+        self.say("airborne, GUIDED")
+
+    def return_to_launch(self) -> list[str]:
+        """RTL every vehicle still heard; returns one line per vehicle that did not accept."""
+        if self.link is None:
+            return []
+        vehicles = [v for v in self.link.vehicles.values() if not v.lost]
+        results = self.send([set_mode_command(v, PLANE_MODE_RTL) for v in vehicles])
+        return [c.describe_failure() for c in results if not c.accepted]
+
+    # ------------------------------------------------------------------ the decision loop
+
+    def starts_from_telemetry(self) -> tuple[UavStart, ...]:
+        """Each UAV's start: the cell centre of its home (launch) position, heading from its
+        course (nearest of the eight); a vehicle without position falls back to the scenario's."""
+        fallback = self.scenario.starts_for_seed(self.options.seed)
+        starts = []
+        for i in range(self.n):
+            v = self.vehicle(i)
+            if not v.has_position and v.home is None:
+                starts.append(fallback[i] if i < len(fallback) else UavStart(0.5, 0.5, 0.0))
+                continue
+            lat, lon = (v.home[0], v.home[1]) if v.home is not None else (v.lat_deg, v.lon_deg)
+            cell = self.grid.cell_of(self.local_km(lat, lon))
+            centre = self.grid.centre_km(cell)
+            heading = self._course_heading(v)
+            if heading is None:
+                heading = int(heading_of_angle(math.radians(fallback[i].heading_deg))) if i < len(
+                    fallback) else 0  # fmt: skip
+            starts.append(UavStart(float(centre[0]), float(centre[1]), heading * 45.0))
+        return tuple(starts)
+
+    @staticmethod
+    def _course_heading(v: VehicleState) -> int | None:
+        """Heading index of the vehicle's velocity (or compass heading), None if unknown."""
+        if math.hypot(v.vn_mps, v.ve_mps) > 1.0:
+            return int(heading_of_angle(math.atan2(v.vn_mps, v.ve_mps)))
+        if v.heading_cdeg != 65535:
+            compass = v.heading_cdeg / 100.0
+            return int(heading_of_angle(math.radians(90.0 - compass)))
+        return None
+
+    def _update_links(self, step: int) -> None:
+        now = time.monotonic()
+        for i in range(self.n):
+            v = self.vehicle(i)
+            silent = v.silent_for(now)
+            if not v.lost and silent > self.options.lost_after_s:
+                v.lost = True
+                self.events.append(LinkEvent(step, i, "lost", now))
+                self.say(f"vehicle {v.system_id} lost at step {step} (silent {silent:.1f} s)")
+            elif v.lost and silent < min(1.0, self.options.lost_after_s / 2):
+                v.lost = False
+                self.events.append(LinkEvent(step, i, "rejoined", now))
+                self.say(f"vehicle {v.system_id} rejoined at step {step}")
+
+    def _step_gap_s(self) -> float:
+        if self._look_gaps:
+            return statistics.median(self._look_gaps[-20:])
+        return self.scenario.config.step_s / max(self.options.time_scale, 1e-6)
+
+    def wait_for_step(self, step: int, consumed: list[int]) -> dict[int, Look]:
+        """Pump until every active vehicle has sent a new look (or a straggler deadline passes).
+
+        Vehicles that send no looks at all (e.g. ArduPlane SITL) are paced by the wall clock:
+        one step per ``step_s / time_scale`` seconds."""
+        assert self.link is not None
+        start = time.monotonic()
+        first_fresh: float | None = None
+        any_looks = any(self.vehicle(i).latest_look >= 0 for i in range(self.n))
+        gap = self._step_gap_s()
+        limit = max(gap * 3, self.options.lost_after_s + 0.5) if any_looks else gap
+        while True:
+            self.link.pump(0.003)
+            self._update_links(step)
+            now = time.monotonic()
+            fresh = {
+                i: self.vehicle(i).looks[self.vehicle(i).latest_look]
+                for i in range(self.n)
+                if self.vehicle(i).latest_look > consumed[i] and not self.vehicle(i).lost
+            }
+            if any_looks:
+                waiting = [i for i in range(self.n) if i not in fresh and not self.vehicle(i).lost]
+                if fresh and first_fresh is None:
+                    first_fresh = now
+                if fresh and not waiting:
+                    break
+                if first_fresh is not None and now - first_fresh > max(0.05, 0.4 * gap):
+                    break  # stragglers miss this step's look
+            elif fresh:
+                any_looks = True
+                limit = max(gap * 3, self.options.lost_after_s + 0.5)
+                continue
+            if now - start > limit:
+                break
+        if self._last_step_wall:
+            self._look_gaps.append(time.monotonic() - self._last_step_wall)
+        self._last_step_wall = time.monotonic()
+        for i, look in fresh.items():
+            consumed[i] = look.index
+        return fresh
+
+    def fly(self) -> MissionReport:
+        """Run discovery to RTL and return the result measured over MAVLink."""
+        HapfAcoPlanner, MissionRecorder = _import_planner()
+        started = time.monotonic()
+        self.connect()
+        try:
+            self.discover()
+            self.upload_threats()
+            self.arm()
+            self.take_off()
+            result = self._decision_loop(HapfAcoPlanner, MissionRecorder, started)
+        except BaseException:
+            failures = self.return_to_launch() if self.link is not None else []
+            for line in failures:
+                self.say(f"warning: {line}")
+            self.close()
+            raise
+        failures = self.return_to_launch()
+        for line in failures:
+            self.say(f"warning: {line}")
+        self.say("mission over: RTL sent to every vehicle")
+        self.close()
+        return MissionReport(result, self.events)
+
+    def close(self) -> None:
+        if self.link is not None:
+            self.link.close()
+        if self.tlog is not None:
+            self.tlog.close()
+
+    def _decision_loop(self, planner_cls: Any, recorder_cls: Any, started: float) -> dict[str, Any]:
+        assert self.link is not None
+        scenario, n, cfg = self.scenario, self.n, self.scenario.config
+        starts = self.starts_from_telemetry()
+        planner = planner_cls(scenario, starts, self.options.seed)
+        recorder = recorder_cls(scenario, starts)
+        home_km = np.array([[s.x_km, s.y_km] for s in starts])
+        cells = self.grid.cell_of(home_km)
+        headings = np.array([int(heading_of_angle(math.radians(s.heading_deg))) for s in starts])
+        commanded_cells, commanded_headings = cells.copy(), headings.copy()
+        last_target: list[tuple[int, int] | None] = [None] * n
+        consumed = [self.vehicle(i).latest_look for i in range(n)]
+        flown_km = np.zeros(n)
+        engagements: list[EngagementOutcome | None] = [None] * n
+        engage_seq = [0] * n
+        observed = np.zeros(self.grid.shape, dtype=bool)
+        engaged_ids: set[int] = set()
+        engaged_value = 0.0
+        positions = self.grid.centre_km(cells)
+        for step in range(self.steps):
+            looks = self.wait_for_step(step, consumed) if step > 0 else {}
+            active = np.array([not self.vehicle(i).lost for i in range(n)])
+            reports: list[SensorReport | None] = [None] * n
+            for i in range(n):
+                v = self.vehicle(i)
+                if not active[i]:
+                    continue
+                look = looks.get(i)
+                if look is not None:
+                    positions[i] = self.local_km(look.lat_deg, look.lon_deg)
+                    reports[i] = look_report(look, self.grid, scenario.origin, cfg.detection_radius_km)
+                    observed[reports[i].cells[:, 0], reports[i].cells[:, 1]] = True
+                elif v.has_position and step > 0:
+                    positions[i] = self.local_km(v.lat_deg, v.lon_deg)
+                cell = self.grid.cell_of(positions[i])
+                if step > 0:
+                    if np.array_equal(cell, commanded_cells[i]):
+                        headings[i] = commanded_headings[i]
+                    else:
+                        course = self._course_heading(v)
+                        headings[i] = commanded_headings[i] if course is None else course
+                cells[i] = cell
+            recorder.record_step(step, positions.copy(), headings.copy(), active.copy())
+            decision = planner.step(cells.copy(), headings.copy(), reports, engagements, active.copy())
+            engagements = [None] * n
+            done = np.asarray(decision.done, dtype=bool)
+            proposed = np.where(done[:, None], cells, np.asarray(decision.next_cells))
+            proposed_h = np.where(done, headings, np.asarray(decision.next_headings))
+            checked = self.envelope.check(cells, headings, proposed, proposed_h, flown_km, home_km, active)
+            for o in checked.overrides:
+                self.overrides[o.reason] += 1
+            # engagements first: the vehicle is where the planner asked for it
+            requests = [
+                (i, engagement_command(self.vehicle(i), engage_seq[i] + 1))
+                for i in range(n) if active[i] and bool(decision.engage[i])
+            ]  # fmt: skip
+            for i, _ in requests:
+                engage_seq[i] += 1
+            for i, cmd in zip([r[0] for r in requests], self.send([c for _, c in requests]), strict=True):
+                if cmd.ack is None:
+                    continue  # unanswered: the planner sees no outcome and may ask again
+                target = int(cmd.ack.result_param2) if cmd.accepted else 0
+                value = float(self._target_values.get(target, 0.0)) if target else 0.0
+                engagements[i] = EngagementOutcome(target != 0, target, value)
+                if target and target not in engaged_ids:
+                    engaged_ids.add(target)
+                    engaged_value += value
+                    recorder.record_engagement(step, i, target, value)
+            # guided targets
+            lat, lon = self.geodetic(checked.next_cells)
+            moves = []
+            for i in range(n):
+                if not active[i]:
+                    continue
+                target_cell = (int(checked.next_cells[i, 0]), int(checked.next_cells[i, 1]))
+                if target_cell == last_target[i] and step % 5:
+                    continue  # already flying there (re-sent every 5 steps all the same)
+                moves.append((i, reposition_command(
+                    self.vehicle(i), float(lat[i]), float(lon[i]), scenario.altitude_m)))  # fmt: skip
+            for (i, _), cmd in zip(moves, self.send([c for _, c in moves]), strict=True):
+                if cmd.ack is not None and not cmd.accepted:
+                    raise CommandRefused(cmd.describe_failure())
+                if cmd.accepted:
+                    last_target[i] = (int(checked.next_cells[i, 0]), int(checked.next_cells[i, 1]))
+            for i in range(n):
+                if active[i]:
+                    leg = self.grid.centre_km(checked.next_cells[i]) - self.grid.centre_km(cells[i])
+                    flown_km[i] += float(np.hypot(*leg))
+            commanded_cells = checked.next_cells.copy()
+            commanded_headings = checked.next_headings.copy()
+            if self.options.on_step is not None:
+                self.options.on_step(StepStatus(
+                    step, self.steps, int(active.sum()),
+                    [i + 1 for i in range(n) if not active[i]],
+                    float(observed.mean()), len(engaged_ids), engaged_value,
+                    sum(self.overrides.values()),
+                ))  # fmt: skip
+            if done.all():
+                break
+        extra = {
+            "source": "mavlink",
+            "endpoints": self.link.describe(),
+            "envelope_overrides": dict(self.overrides),
+            "link_events": [
+                {"step": e.step, "uav": e.uav, "system_id": e.uav + 1, "event": e.event}
+                for e in self.events
+            ],
+            "lost_uavs": sorted({e.uav for e in self.events if e.event == "lost"}),
+            "frames_received": self.link.messages_received,
+            "tlog": str(self.options.tlog_path) if self.options.tlog_path else None,
+        }
+        return recorder.result(self.options.seed, ALGORITHM, time.monotonic() - started, extra=extra)
+
+
+__all__ = ["MissionDaemon", "DaemonOptions", "MissionReport", "StepStatus", "mavlink"]

@@ -1,0 +1,173 @@
+"""The safety envelope: every guided target is checked here, independently of the planner,
+before it is sent to a vehicle.
+
+A proposed move (current cell -> next cell) is safe when
+
+* the next cell lies inside the mission area;
+* the straight leg between the two cell centres keeps ``threat_margin_km`` clear of every
+  threat circle (the operator's threat list, all of it, known or not to the planner);
+* the next cell centre is at least ``min_separation_km`` from every other active UAV's next cell;
+* the distance flown so far, plus the leg, plus the straight line home stays within
+  ``max_range_km`` (constraint C_r).
+
+An unsafe move is replaced by the safe move closest to it among the turns the airframe can make
+in one step (``max_turn_deg``), and if none is safe, by holding (loitering over) the current cell.
+Every replacement is reported with its reason.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from planner.grid import HEADING_STEPS, Grid, turn_options
+from planner.scenario import Scenario
+
+
+@dataclass(frozen=True)
+class Override:
+    """A move the envelope replaced."""
+
+    uav: int
+    reason: str  # "area", "threat", "separation" or "range"
+    proposed: tuple[int, int]
+    chosen: tuple[int, int]
+
+
+@dataclass
+class EnvelopeDecision:
+    """The checked next cells and headings, and what was changed."""
+
+    next_cells: np.ndarray
+    next_headings: np.ndarray
+    overrides: list[Override] = field(default_factory=list)
+
+
+def segment_point_distance(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> float:
+    """Distance from point ``p`` to the segment ``a``-``b`` (all in km)."""
+    ab = b - a
+    denom = float(ab @ ab)
+    t = 0.0 if denom == 0 else float(np.clip((p - a) @ ab / denom, 0.0, 1.0))
+    return float(np.hypot(*(a + t * ab - p)))
+
+
+@dataclass(frozen=True)
+class SafetyEnvelope:
+    """Limits every guided target must respect."""
+
+    grid: Grid
+    threat_xy_km: np.ndarray  # (M, 2)
+    threat_radius_km: np.ndarray  # (M,)
+    threat_margin_km: float = 0.25
+    min_separation_km: float = 1.0
+    max_range_km: float = math.inf
+    max_turn_deg: float = 45.0
+
+    @classmethod
+    def for_scenario(cls, scenario: Scenario, threat_margin_km: float = 0.25) -> SafetyEnvelope:
+        cfg = scenario.config
+        return cls(
+            grid=Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km),
+            threat_xy_km=np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(-1, 2),
+            threat_radius_km=np.array([t.radius_km for t in scenario.threats], float),
+            threat_margin_km=threat_margin_km,
+            min_separation_km=cfg.min_separation_km,
+            max_range_km=cfg.max_range_km,
+            max_turn_deg=cfg.max_turn_deg,
+        )
+
+    # ------------------------------------------------------------------ single rules
+
+    def leg_clear_of_threats(self, cell_from: np.ndarray, cell_to: np.ndarray) -> bool:
+        a, b = self.grid.centre_km(cell_from), self.grid.centre_km(cell_to)
+        for centre, radius in zip(self.threat_xy_km, self.threat_radius_km, strict=True):
+            if segment_point_distance(a, b, centre) < radius + self.threat_margin_km:
+                return False
+        return True
+
+    def within_range(self, cell_from: np.ndarray, cell_to: np.ndarray, flown_km: float,
+                     home_km: np.ndarray) -> bool:  # fmt: skip
+        if not math.isfinite(self.max_range_km):
+            return True
+        a, b = self.grid.centre_km(cell_from), self.grid.centre_km(cell_to)
+        leg = float(np.hypot(*(b - a)))
+        home = float(np.hypot(*(home_km - b)))
+        # staying put (or moving closer to home) is never refused for range: it only helps
+        if leg == 0 or home + leg <= float(np.hypot(*(home_km - a))) + 1e-9:
+            return True
+        return flown_km + leg + home <= self.max_range_km + 1e-9
+
+    def static_reason(self, cell_from: np.ndarray, cell_to: np.ndarray, flown_km: float,
+                      home_km: np.ndarray) -> str | None:  # fmt: skip
+        """The first rule (other than separation) a move breaks, or None."""
+        if not bool(self.grid.inside(cell_to)):
+            return "area"
+        if not self.leg_clear_of_threats(cell_from, cell_to):
+            return "threat"
+        if not self.within_range(cell_from, cell_to, flown_km, home_km):
+            return "range"
+        return None
+
+    def separated(self, cell: np.ndarray, others: np.ndarray) -> bool:
+        if len(others) == 0:
+            return True
+        d = np.hypot(*(self.grid.centre_km(others) - self.grid.centre_km(cell)).T)
+        return bool(np.all(d >= self.min_separation_km - 1e-9))
+
+    # ------------------------------------------------------------------ the whole swarm
+
+    def check(
+        self,
+        cells: np.ndarray,
+        headings: np.ndarray,
+        next_cells: np.ndarray,
+        next_headings: np.ndarray,
+        flown_km: np.ndarray,
+        home_km: np.ndarray,
+        active: np.ndarray,
+    ) -> EnvelopeDecision:
+        """Check (and where needed replace) the proposed moves of every active UAV."""
+        cells = np.asarray(cells, dtype=np.int64)
+        out_cells = np.array(next_cells, dtype=np.int64, copy=True)
+        out_headings = np.array(next_headings, dtype=np.int64, copy=True)
+        overrides: list[Override] = []
+        n = len(cells)
+        settled: list[int] = []
+        for i in range(n):
+            if not active[i]:
+                continue
+            others = out_cells[settled] if settled else np.empty((0, 2), np.int64)
+            proposed = out_cells[i].copy()
+            reason = self.static_reason(cells[i], proposed, float(flown_km[i]), home_km[i])
+            if reason is None and not self.separated(proposed, others):
+                reason = "separation"
+            if reason is not None:
+                cell, heading = self._alternative(
+                    cells[i], int(headings[i]), proposed, float(flown_km[i]), home_km[i], others
+                )
+                out_cells[i], out_headings[i] = cell, heading
+                overrides.append(
+                    Override(i, reason, (int(proposed[0]), int(proposed[1])), (int(cell[0]), int(cell[1])))
+                )
+            settled.append(i)
+        return EnvelopeDecision(out_cells, out_headings, overrides)
+
+    def _alternative(self, cell: np.ndarray, heading: int, proposed: np.ndarray, flown_km: float,
+                     home_km: np.ndarray, others: np.ndarray) -> tuple[np.ndarray, int]:  # fmt: skip
+        """The safe reachable cell nearest the proposed one, else the current cell (hold)."""
+        best: tuple[float, np.ndarray, int] | None = None
+        for turn in turn_options(self.max_turn_deg):
+            h = int((heading + turn) % 8)
+            candidate = cell + HEADING_STEPS[h]
+            if self.static_reason(cell, candidate, flown_km, home_km) is not None:
+                continue
+            if not self.separated(candidate, others):
+                continue
+            miss = float(np.hypot(*(candidate - proposed)))
+            if best is None or miss < best[0]:
+                best = (miss, candidate, h)
+        if best is not None:
+            return best[1], best[2]
+        return cell.copy(), heading

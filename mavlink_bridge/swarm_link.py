@@ -1,0 +1,146 @@
+"""All the daemon's endpoints and the vehicles heard on them, pumped from one loop.
+
+``SwarmLink.pump(timeout)`` waits for datagrams on every endpoint, parses them, logs every frame
+to the .tlog, routes each message to the ``VehicleState`` of its system id (a new vehicle is
+registered by its autopilot's HEARTBEAT), and sends the daemon's own GCS heartbeat at 1 Hz.
+"""
+
+from __future__ import annotations
+
+import selectors
+import time
+from collections.abc import Callable, Iterable
+
+from mavlink_bridge.protocol import AUTOPILOT_COMPONENT_ID, mavlink
+from mavlink_bridge.tlog import TlogWriter
+from mavlink_bridge.vehicle_link import Address, Endpoint, VehicleLink, open_endpoint
+from mavlink_bridge.vehicle_state import VehicleState
+
+#: Vehicle kinds that are not vehicles (ground stations, cameras, gimbals...).
+_NOT_VEHICLES = {
+    mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_CAMERA, mavlink.MAV_TYPE_GIMBAL,
+    mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_ADSB,
+}  # fmt: skip
+
+
+class SwarmLink:
+    """The endpoints, the vehicles by system id, and the receive loop."""
+
+    def __init__(
+        self,
+        endpoints: list[Endpoint],
+        tlog: TlogWriter | None = None,
+        heartbeat_period_s: float = 1.0,
+        accept_system_id: Callable[[int], bool] | None = None,
+    ) -> None:
+        self.endpoints = endpoints
+        self.tlog = tlog
+        self.heartbeat_period_s = heartbeat_period_s
+        self.accept_system_id = accept_system_id or (lambda sysid: 1 <= sysid < 250)
+        self.vehicles: dict[int, VehicleState] = {}
+        self._selector = selectors.DefaultSelector()
+        for endpoint in endpoints:
+            self._selector.register(endpoint.fileno(), selectors.EVENT_READ, endpoint)
+        self._last_heartbeat_s = -1e9
+        # udpout peers that wait for our first word get their own GCS link until a vehicle answers
+        self._openers = [
+            VehicleLink(0, e, None, tlog) for e in endpoints if e.needs_first_word
+        ]
+        self.messages_received = 0
+
+    @classmethod
+    def open(cls, specs: Iterable[str], tlog: TlogWriter | None = None, **kwargs: object) -> SwarmLink:
+        """Open every endpoint (closing those already opened if one fails)."""
+        opened: list[Endpoint] = []
+        try:
+            for spec in specs:
+                opened.append(open_endpoint(spec))
+        except Exception:
+            for endpoint in opened:
+                endpoint.close()
+            raise
+        return cls(opened, tlog, **kwargs)  # type: ignore[arg-type]
+
+    def describe(self) -> str:
+        """The endpoints as the user gave them, with the real port of udpin:...:0."""
+        parts = []
+        for e in self.endpoints:
+            kind = e.spec.split(":")[0]
+            parts.append(f"{kind}:{e.host}:{e.port}")
+        return ", ".join(parts)
+
+    # ------------------------------------------------------------------ receive
+
+    def pump(self, timeout_s: float = 0.0) -> int:
+        """Receive and dispatch whatever arrives within ``timeout_s``; returns the message count."""
+        self.send_heartbeat_if_due()
+        count = 0
+        for key, _ in self._selector.select(max(0.0, timeout_s)):
+            endpoint: Endpoint = key.data
+            now = time.monotonic()
+            for msg, address in endpoint.receive():
+                self._dispatch(msg, endpoint, address, now)
+                count += 1
+        self.messages_received += count
+        self.send_heartbeat_if_due()
+        return count
+
+    def pump_until(self, done: Callable[[], bool], timeout_s: float, poll_s: float = 0.05) -> bool:
+        """Pump until ``done()`` is true (returns True) or ``timeout_s`` passes (returns False)."""
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            self.pump(min(poll_s, left))
+        return True
+
+    def _dispatch(
+        self, msg: mavlink.MAVLink_message, endpoint: Endpoint, address: Address | None, now: float
+    ) -> None:
+        if self.tlog is not None:
+            self.tlog.write(msg.get_msgbuf())
+        sysid = msg.get_srcSystem()
+        vehicle = self.vehicles.get(sysid)
+        if vehicle is None:
+            if not self._is_new_vehicle(msg):
+                return
+            link = VehicleLink(sysid, endpoint, address, self.tlog)
+            vehicle = VehicleState(sysid, link)
+            self.vehicles[sysid] = vehicle
+        elif address is not None and (
+            vehicle.link.endpoint is not endpoint or vehicle.link.address != address
+        ):
+            vehicle.link.moved(endpoint, address)
+        vehicle.handle(msg, now)
+
+    def _is_new_vehicle(self, msg: mavlink.MAVLink_message) -> bool:
+        return (
+            msg.get_type() == "HEARTBEAT"
+            and msg.get_srcComponent() == AUTOPILOT_COMPONENT_ID
+            and msg.type not in _NOT_VEHICLES
+            and self.accept_system_id(msg.get_srcSystem())
+        )
+
+    # ------------------------------------------------------------------ send
+
+    def send_heartbeat_if_due(self) -> None:
+        now = time.monotonic()
+        if now - self._last_heartbeat_s >= self.heartbeat_period_s:
+            self._last_heartbeat_s = now
+            self.send_heartbeat()
+
+    def send_heartbeat(self) -> None:
+        """Our GCS heartbeat to every vehicle (and to udpout peers not heard from yet)."""
+        links = [v.link for v in self.vehicles.values()]
+        served = {id(v.link.endpoint) for v in self.vehicles.values()}
+        links += [o for o in self._openers if id(o.endpoint) not in served]
+        for link in links:
+            link.mav.heartbeat_send(
+                mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
+            )
+
+    def close(self) -> None:
+        self._selector.close()
+        for endpoint in self.endpoints:
+            endpoint.close()

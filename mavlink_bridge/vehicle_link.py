@@ -1,0 +1,310 @@
+"""Transport endpoints of the daemon and the per-vehicle link that sends on them.
+
+Three kinds of endpoint, named the way MAVProxy and pymavlink name them:
+
+* ``udpin:HOST:PORT``: a UDP port the daemon listens on, shared by any number of vehicles (each
+  simulator vehicle or ArduPilot SITL sends to it). Vehicles are told apart by system id; the
+  address each one sends from is remembered per vehicle, so replies go to the right socket.
+* ``udpout:HOST:PORT``: a UDP peer the daemon sends to first (e.g. PX4 SITL's offboard port
+  14540 + i); the daemon's heartbeat opens the conversation.
+* ``tcp:HOST:PORT``: a TCP server to connect to (ArduPilot SITL instance i: 5760 + 10 i).
+
+A UDP datagram is parsed on its own with a fresh parser, so a corrupt datagram can never swallow
+the frames of the next one; frames that parse as ``UNKNOWN_<id>`` (not CRC-checkable) and
+``BAD_DATA`` are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import errno
+import socket
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from mavlink_bridge.protocol import GCS_COMPONENT_ID, GCS_SYSTEM_ID, mavlink
+from mavlink_bridge.tlog import TlogWriter
+from planner.errors import UserError
+
+Address = tuple[str, int]
+
+#: Largest number of datagrams read from one socket in one pass, so one busy socket cannot
+#: starve the others.
+MAX_DATAGRAMS_PER_PASS = 2000
+
+
+class EndpointError(UserError):
+    """An endpoint cannot be opened (bad form, port in use, nothing listening)."""
+
+
+@dataclass
+class LinkStats:
+    """Counters of what one endpoint received."""
+
+    datagrams: int = 0
+    frames: int = 0
+    bad_frames: int = 0
+    unknown_frames: int = 0
+
+
+def _fresh_parser() -> mavlink.MAVLink:
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True  # junk comes back as BAD_DATA instead of raising
+    return parser
+
+
+def _keep(msg: mavlink.MAVLink_message, stats: LinkStats) -> bool:
+    kind = msg.get_type()
+    if kind == "BAD_DATA":
+        stats.bad_frames += 1
+        return False
+    if kind.startswith("UNKNOWN_"):
+        stats.unknown_frames += 1
+        return False
+    stats.frames += 1
+    return True
+
+
+@dataclass
+class Endpoint(ABC):
+    """One socket the daemon talks to vehicles through."""
+
+    spec: str
+    host: str
+    port: int
+    stats: LinkStats = field(default_factory=LinkStats)
+
+    @abstractmethod
+    def fileno(self) -> int: ...
+
+    @abstractmethod
+    def receive(self) -> list[tuple[mavlink.MAVLink_message, Address | None]]:
+        """Every frame waiting on the socket now (non-blocking), with the address it came from."""
+
+    @abstractmethod
+    def send_to(self, frame: bytes, address: Address | None) -> None:
+        """Send one frame to a vehicle at ``address`` (ignored by connected endpoints)."""
+
+    @property
+    def needs_first_word(self) -> bool:
+        """True if the vehicle waits to hear from us before it talks (udpout)."""
+        return False
+
+    def default_address(self) -> Address | None:
+        return None
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+
+@dataclass
+class UdpInEndpoint(Endpoint):
+    """A UDP port the daemon listens on; any number of vehicles send to it."""
+
+    sock: socket.socket | None = None
+
+    def open(self) -> UdpInEndpoint:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((self.host, self.port))
+        except OSError as exc:
+            sock.close()
+            if exc.errno == errno.EADDRINUSE:
+                raise EndpointError(
+                    f"UDP port {self.port} is already in use ({self.spec}): another ground station "
+                    f"or daemon listens there; stop it or give another --connect udpin:HOST:PORT"
+                ) from None
+            raise EndpointError(f"cannot listen on {self.spec}: {exc.strerror}") from None
+        sock.setblocking(False)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        self.sock = sock
+        self.port = sock.getsockname()[1]  # the real port when 0 was asked for
+        return self
+
+    def fileno(self) -> int:
+        assert self.sock is not None
+        return self.sock.fileno()
+
+    def receive(self) -> list[tuple[mavlink.MAVLink_message, Address | None]]:
+        out: list[tuple[mavlink.MAVLink_message, Address | None]] = []
+        assert self.sock is not None
+        for _ in range(MAX_DATAGRAMS_PER_PASS):
+            try:
+                data, address = self.sock.recvfrom(65535)
+            except (BlockingIOError, InterruptedError):
+                break
+            except ConnectionRefusedError:
+                continue  # an ICMP error from an earlier send to a vehicle that went away
+            self.stats.datagrams += 1
+            for msg in _fresh_parser().parse_buffer(data) or ():
+                if _keep(msg, self.stats):
+                    out.append((msg, address))
+        return out
+
+    def send_to(self, frame: bytes, address: Address | None) -> None:
+        if address is None or self.sock is None:
+            return
+        try:
+            self.sock.sendto(frame, address)
+        except (BlockingIOError, ConnectionRefusedError):
+            pass  # UDP: a lost datagram is what retries are for
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+
+
+@dataclass
+class UdpOutEndpoint(UdpInEndpoint):
+    """A UDP peer the daemon speaks to first (it answers to our source address)."""
+
+    def open(self) -> UdpOutEndpoint:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("0.0.0.0", 0))
+        sock.setblocking(False)
+        self.sock = sock
+        return self
+
+    @property
+    def needs_first_word(self) -> bool:
+        return True
+
+    def default_address(self) -> Address | None:
+        return (self.host, self.port)
+
+    def send_to(self, frame: bytes, address: Address | None) -> None:
+        super().send_to(frame, address or self.default_address())
+
+
+@dataclass
+class TcpEndpoint(Endpoint):
+    """A TCP server (ArduPilot SITL) the daemon connects to; one byte stream, one parser."""
+
+    sock: socket.socket | None = None
+    parser: mavlink.MAVLink = field(default_factory=_fresh_parser)
+    connect_timeout_s: float = 5.0
+
+    def open(self) -> TcpEndpoint:
+        try:
+            sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
+        except ConnectionRefusedError:
+            raise EndpointError(
+                f"nothing listens on {self.spec} (connection refused); start the vehicle or SITL "
+                f"first, or check the address"
+            ) from None
+        except (TimeoutError, socket.timeout):
+            raise EndpointError(
+                f"{self.spec} is unreachable (no answer in {self.connect_timeout_s:g} s); "
+                f"check the address and the network"
+            ) from None
+        except OSError as exc:
+            raise EndpointError(f"cannot connect to {self.spec}: {exc.strerror or exc}") from None
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.sock = sock
+        return self
+
+    def fileno(self) -> int:
+        assert self.sock is not None
+        return self.sock.fileno()
+
+    def receive(self) -> list[tuple[mavlink.MAVLink_message, Address | None]]:
+        out: list[tuple[mavlink.MAVLink_message, Address | None]] = []
+        assert self.sock is not None
+        while True:
+            try:
+                data = self.sock.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                data = b""
+            if not data:
+                raise EndpointError(f"{self.spec} closed the connection; the vehicle went away")
+            self.stats.datagrams += 1
+            for msg in self.parser.parse_buffer(data) or ():
+                if _keep(msg, self.stats):
+                    out.append((msg, None))
+        return out
+
+    def send_to(self, frame: bytes, address: Address | None) -> None:
+        if self.sock is None:
+            return
+        try:
+            self.sock.sendall(frame)
+        except BlockingIOError:
+            pass
+        except OSError as exc:
+            raise EndpointError(f"{self.spec}: send failed ({exc.strerror or exc})") from None
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+
+
+def parse_endpoint(spec: str) -> Endpoint:
+    """An (unopened) endpoint from ``udpin:HOST:PORT``, ``udpout:HOST:PORT`` or ``tcp:HOST:PORT``."""
+    parts = spec.split(":")
+    kinds = {"udpin": UdpInEndpoint, "udp": UdpInEndpoint, "udpout": UdpOutEndpoint, "tcp": TcpEndpoint}
+    if len(parts) != 3 or parts[0] not in kinds:
+        raise EndpointError(
+            f"--connect {spec!r} is not an endpoint; use udpin:HOST:PORT, udpout:HOST:PORT or "
+            f"tcp:HOST:PORT (e.g. udpin:0.0.0.0:14550, tcp:127.0.0.1:5760)"
+        )
+    try:
+        port = int(parts[2])
+    except ValueError:
+        port = -1
+    if not 0 <= port <= 65535:
+        raise EndpointError(f"--connect {spec!r}: port {parts[2]!r} must be a number 0..65535")
+    return kinds[parts[0]](spec=spec, host=parts[1] or "0.0.0.0", port=port)
+
+
+def open_endpoint(spec: str) -> Endpoint:
+    """Parse and open an endpoint; raises EndpointError with a one-line message."""
+    endpoint = parse_endpoint(spec)
+    return endpoint.open()  # type: ignore[attr-defined]
+
+
+class _FrameWriter:
+    """File-like sink pymavlink's encoder writes packed frames into."""
+
+    def __init__(self, link: VehicleLink) -> None:
+        self.link = link
+
+    def write(self, frame: bytes) -> None:
+        self.link.transmit(frame)
+
+
+class VehicleLink:
+    """The daemon's side of the conversation with one vehicle: where it is, and an encoder with
+    its own sequence counter, so each vehicle sees an unbroken sequence of our frames."""
+
+    def __init__(
+        self,
+        system_id: int,
+        endpoint: Endpoint,
+        address: Address | None,
+        tlog: TlogWriter | None = None,
+        on_send: Callable[[bytes], None] | None = None,
+    ) -> None:
+        self.system_id = system_id
+        self.endpoint = endpoint
+        self.address = address if address is not None else endpoint.default_address()
+        self.tlog = tlog
+        self.on_send = on_send
+        self.mav = mavlink.MAVLink(_FrameWriter(self), GCS_SYSTEM_ID, GCS_COMPONENT_ID)
+        self.frames_sent = 0
+
+    def transmit(self, frame: bytes) -> None:
+        """Send one packed frame to the vehicle and log it."""
+        self.endpoint.send_to(frame, self.address)
+        self.frames_sent += 1
+        if self.tlog is not None:
+            self.tlog.write(frame)
+
+    def moved(self, endpoint: Endpoint, address: Address | None) -> None:
+        """The vehicle was heard from another endpoint or address (e.g. it rebooted)."""
+        self.endpoint = endpoint
+        self.address = address if address is not None else endpoint.default_address()

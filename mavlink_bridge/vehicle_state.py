@@ -1,0 +1,205 @@
+"""What the daemon knows of one vehicle, kept up to date by one small handler per message.
+
+Handlers are named after the message they handle (``on_heartbeat``, ``on_global_position_int``,
+``on_command_ack``, ``on_camera_image_captured``, ...). ``handle(msg)`` dispatches; messages the
+daemon has no use for are ignored.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from mavlink_bridge.protocol import AUTOPILOT_COMPONENT_ID, CAMERA_COMPONENT_ID, mavlink
+from mavlink_bridge.vehicle_link import VehicleLink
+
+
+@dataclass
+class Look:
+    """One sensor look reported as CAMERA_IMAGE_CAPTURED (see docs/daemon.md)."""
+
+    index: int
+    lat_deg: float
+    lon_deg: float
+    offsets: list[tuple[int, int]]  # detected cells relative to the look cell
+    received_s: float  # wall clock (monotonic) when the first part arrived
+
+
+@dataclass
+class CommandAck:
+    """The latest COMMAND_ACK for one (component, command) of a vehicle."""
+
+    command: int
+    result: int
+    result_param2: int
+    received_s: float
+    serial: int  # increases with every ack, so a waiter can tell a new one from an old one
+
+
+@dataclass
+class VehicleState:
+    """Telemetry, status and protocol state of one vehicle (system id = UAV index + 1)."""
+
+    system_id: int
+    link: VehicleLink
+    last_heard_s: float = field(default_factory=time.monotonic)
+    heartbeats: int = 0
+    vehicle_type: int = -1
+    autopilot: int = -1
+    base_mode: int = 0
+    custom_mode: int = -1
+    system_status: int = mavlink.MAV_STATE_UNINIT
+    # position (GLOBAL_POSITION_INT)
+    has_position: bool = False
+    lat_deg: float = 0.0
+    lon_deg: float = 0.0
+    relative_alt_m: float = 0.0
+    vn_mps: float = 0.0
+    ve_mps: float = 0.0
+    heading_cdeg: int = 65535
+    time_boot_ms: int = 0
+    position_s: float = 0.0
+    # home (HOME_POSITION)
+    home: tuple[float, float, float] | None = None
+    # status texts (STATUSTEXT), newest last
+    statustexts: deque[tuple[float, int, str]] = field(default_factory=lambda: deque(maxlen=50))
+    # command acks by (component, command)
+    acks: dict[tuple[int, int], CommandAck] = field(default_factory=dict)
+    ack_serial: int = 0
+    # sensor looks by image index
+    looks: dict[int, Look] = field(default_factory=dict)
+    latest_look: int = -1
+    # mission protocol (fence upload)
+    mission_requests: deque[tuple[int, int]] = field(default_factory=deque)  # (seq, mission_type)
+    mission_ack: tuple[int, int] | None = None  # (type, mission_type)
+    lost: bool = False
+
+    # ------------------------------------------------------------------ derived
+
+    @property
+    def armed(self) -> bool:
+        return bool(self.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+
+    @property
+    def standby_or_active(self) -> bool:
+        """Initialisation finished: the autopilot is ready to upload and arm (or already flying)."""
+        return self.system_status in (mavlink.MAV_STATE_STANDBY, mavlink.MAV_STATE_ACTIVE)
+
+    def silent_for(self, now_s: float | None = None) -> float:
+        return (time.monotonic() if now_s is None else now_s) - self.last_heard_s
+
+    def prearm_reasons(self, since_s: float = 0.0) -> list[str]:
+        """STATUSTEXTs that explain an arming refusal (``PreArm: ...``, ``Arm: ...``)."""
+        reasons = []
+        for when, _severity, text in self.statustexts:
+            if when >= since_s and text.lower().startswith(("prearm", "arm")):
+                if text not in reasons:
+                    reasons.append(text)
+        return reasons
+
+    # ------------------------------------------------------------------ dispatch
+
+    def handle(self, msg: mavlink.MAVLink_message, now_s: float | None = None) -> None:
+        """Update the state from one message of this vehicle (any of its components)."""
+        self.last_heard_s = time.monotonic() if now_s is None else now_s
+        handler: Callable[[VehicleState, mavlink.MAVLink_message], None] | None = _HANDLERS.get(
+            msg.get_type()
+        )
+        if handler is not None:
+            handler(self, msg)
+
+    # ------------------------------------------------------------------ handlers
+
+    def on_heartbeat(self, msg: mavlink.MAVLink_heartbeat_message) -> None:
+        if msg.get_srcComponent() != AUTOPILOT_COMPONENT_ID:
+            return  # the camera's (or another component's) heartbeat says nothing of the vehicle
+        self.heartbeats += 1
+        self.vehicle_type = msg.type
+        self.autopilot = msg.autopilot
+        self.base_mode = msg.base_mode
+        self.custom_mode = msg.custom_mode
+        self.system_status = msg.system_status
+
+    def on_global_position_int(self, msg: mavlink.MAVLink_global_position_int_message) -> None:
+        self.has_position = True
+        self.lat_deg = msg.lat * 1e-7
+        self.lon_deg = msg.lon * 1e-7
+        self.relative_alt_m = msg.relative_alt * 1e-3
+        self.vn_mps = msg.vx * 1e-2
+        self.ve_mps = msg.vy * 1e-2
+        self.heading_cdeg = msg.hdg
+        self.time_boot_ms = msg.time_boot_ms
+        self.position_s = self.last_heard_s
+
+    def on_home_position(self, msg: mavlink.MAVLink_home_position_message) -> None:
+        self.home = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+
+    def on_statustext(self, msg: mavlink.MAVLink_statustext_message) -> None:
+        text = msg.text if isinstance(msg.text, str) else msg.text.decode("utf-8", "replace")
+        self.statustexts.append((self.last_heard_s, msg.severity, text.strip("\x00 ")))
+
+    def on_command_ack(self, msg: mavlink.MAVLink_command_ack_message) -> None:
+        self.ack_serial += 1
+        self.acks[(msg.get_srcComponent(), msg.command)] = CommandAck(
+            msg.command, msg.result, msg.result_param2, self.last_heard_s, self.ack_serial
+        )
+
+    def on_camera_image_captured(self, msg: mavlink.MAVLink_camera_image_captured_message) -> None:
+        if msg.get_srcComponent() != CAMERA_COMPONENT_ID or msg.capture_result != 1:
+            return
+        url = msg.file_url if isinstance(msg.file_url, str) else msg.file_url.decode("ascii", "replace")
+        url = url.rstrip("\x00")
+        if url.startswith("look+:"):
+            look = self.looks.get(msg.image_index)
+            if look is not None:
+                look.offsets.extend(parse_look_offsets(url[len("look+:") :]))
+            return
+        if not url.startswith("look:"):
+            return  # an ordinary photo, not a sensor look
+        self.looks[msg.image_index] = Look(
+            msg.image_index, msg.lat * 1e-7, msg.lon * 1e-7,
+            parse_look_offsets(url[len("look:") :]), self.last_heard_s,
+        )  # fmt: skip
+        self.latest_look = max(self.latest_look, msg.image_index)
+        for old in [k for k in self.looks if k < msg.image_index - 20]:
+            del self.looks[old]
+
+    def on_mission_request_int(self, msg: mavlink.MAVLink_mission_request_int_message) -> None:
+        self.mission_requests.append((msg.seq, msg.mission_type))
+
+    def on_mission_request(self, msg: mavlink.MAVLink_mission_request_message) -> None:
+        self.mission_requests.append((msg.seq, msg.mission_type))  # legacy, answered with _INT
+
+    def on_mission_ack(self, msg: mavlink.MAVLink_mission_ack_message) -> None:
+        self.mission_ack = (msg.type, msg.mission_type)
+
+
+def parse_look_offsets(text: str) -> list[tuple[int, int]]:
+    """Cells of a look's ``file_url`` after the prefix: ``"0,1;-2,0"`` -> ``[(0, 1), (-2, 0)]``.
+
+    Malformed pairs are skipped (a damaged report must not stop the mission)."""
+    offsets: list[tuple[int, int]] = []
+    for pair in text.split(";"):
+        parts = pair.strip().split(",")
+        if len(parts) != 2:
+            continue
+        try:
+            offsets.append((int(parts[0]), int(parts[1])))
+        except ValueError:
+            continue
+    return offsets
+
+
+_HANDLERS: dict[str, Callable[[VehicleState, mavlink.MAVLink_message], None]] = {
+    "HEARTBEAT": VehicleState.on_heartbeat,
+    "GLOBAL_POSITION_INT": VehicleState.on_global_position_int,
+    "HOME_POSITION": VehicleState.on_home_position,
+    "STATUSTEXT": VehicleState.on_statustext,
+    "COMMAND_ACK": VehicleState.on_command_ack,
+    "CAMERA_IMAGE_CAPTURED": VehicleState.on_camera_image_captured,
+    "MISSION_REQUEST_INT": VehicleState.on_mission_request_int,
+    "MISSION_REQUEST": VehicleState.on_mission_request,
+    "MISSION_ACK": VehicleState.on_mission_ack,
+}

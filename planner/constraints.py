@@ -1,0 +1,119 @@
+"""The constraints of eq 5, as the planner enforces them and as the metrics count them.
+
+- C_m (turn): only the candidate cells of ``planner.grid.candidate_moves`` are ever offered.
+- C_t (threats): a move is allowed only if its straight segment stays outside every known threat
+  circle (plus ``threat_margin_km``) and ends in a *viable* state: one from which some
+  turn-limited path stays safe for ever (a viability kernel over (heading, cell) computed by
+  fixed-point iteration, so a UAV never flies into a pocket it cannot turn out of). The area's
+  edge is treated the same way.
+- C_r (range): a move is allowed only if, after it, the distance flown plus the shortest
+  threat-avoiding path home (Dijkstra on the 8-connected grid, scipy.sparse.csgraph) plus a
+  reserve for turns stays within L_max.
+- C_c (separation) is resolved in ``planner.transition`` where the UAVs claim their next cells.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from planner.grid import HEADING_LENGTHS, HEADING_STEPS, Grid, turn_options
+
+
+def segment_clearance(p0: np.ndarray, p1: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Smallest (distance to centre - radius) over threats along segments p0->p1 (..., 2) km;
+    +inf when there are no threats. Negative means the segment enters a threat."""
+    if len(radii) == 0:
+        return np.full(np.shape(p0)[:-1], np.inf)
+    a = np.asarray(p0, float)[..., None, :]
+    b = np.asarray(p1, float)[..., None, :]
+    ab = b - a
+    ap = centres - a
+    denom = np.maximum(np.sum(ab * ab, axis=-1), 1e-12)
+    t = np.clip(np.sum(ap * ab, axis=-1) / denom, 0.0, 1.0)
+    closest = a + t[..., None] * ab
+    d = np.hypot(*(closest - centres).transpose(np.roll(np.arange(closest.ndim), 1)))
+    return np.min(d - radii, axis=-1)
+
+
+class SafetyModel:
+    """Move safety and viability for one set of known threats (cached by the planner)."""
+
+    def __init__(self, grid: Grid, threat_xy: np.ndarray, threat_r: np.ndarray, margin_km: float,
+                 max_turn_deg: float) -> None:  # fmt: skip
+        self.grid = grid
+        self.threat_xy = threat_xy.reshape(-1, 2)
+        self.threat_r = threat_r + margin_km
+        self.turns = turn_options(max_turn_deg)
+        ix, iy = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny), indexing="ij")
+        cells = np.stack([ix, iy], axis=-1)
+        start = grid.centre_km(cells)
+        safe = np.zeros((8, grid.nx, grid.ny), dtype=bool)
+        for h in range(8):
+            nxt = cells + HEADING_STEPS[h]
+            clearance = segment_clearance(start, grid.centre_km(nxt), self.threat_xy, self.threat_r)
+            safe[h] = grid.inside(nxt) & (clearance > 0)
+        #: edge_safe[h, x, y]: the move from (x, y) along heading h is inside and clear of threats.
+        self.edge_safe = safe
+        self.viable = self._viability_kernel()
+
+    def _shifted(self, viable_h: np.ndarray, h: int) -> np.ndarray:
+        """value[x, y] = viable_h[(x, y) + step(h)] (False outside the area)."""
+        dx, dy = HEADING_STEPS[h]
+        out = np.zeros_like(viable_h)
+        nx, ny = viable_h.shape
+        xs = slice(max(0, -dx), nx - max(0, dx))
+        ys = slice(max(0, -dy), ny - max(0, dy))
+        xd = slice(max(0, dx), nx - max(0, -dx))
+        yd = slice(max(0, dy), ny - max(0, -dy))
+        out[xs, ys] = viable_h[xd, yd]
+        return out
+
+    def _viability_kernel(self) -> np.ndarray:
+        """viable[h, x, y]: having arrived at (x, y) with heading h, some turn-limited path of
+        safe moves goes on for ever. Greatest fixed point of V = OR_turns(safe & V(next))."""
+        viable = np.ones((8, self.grid.nx, self.grid.ny), dtype=bool)
+        for _ in range(4 * (self.grid.nx + self.grid.ny)):
+            can_go = np.stack([self.edge_safe[h] & self._shifted(viable[h], h) for h in range(8)])
+            new = np.zeros_like(viable)
+            for h in range(8):
+                for t in self.turns:
+                    new[h] |= can_go[(h + t) % 8]
+            if np.array_equal(new, viable):
+                break
+            viable = new
+        return viable
+
+    def move_allowed(self, cells: np.ndarray, headings: np.ndarray) -> np.ndarray:
+        """C_t and the area: the move from ``cells`` along ``headings`` (next heading) is safe and
+        lands in a viable state. Shapes (..., 2) and (...)."""
+        inside = self.grid.inside(cells)
+        x = np.clip(cells[..., 0], 0, self.grid.nx - 1)
+        y = np.clip(cells[..., 1], 0, self.grid.ny - 1)
+        nxt = cells + HEADING_STEPS[headings]
+        nx_ = np.clip(nxt[..., 0], 0, self.grid.nx - 1)
+        ny_ = np.clip(nxt[..., 1], 0, self.grid.ny - 1)
+        return inside & self.edge_safe[headings, x, y] & self.grid.inside(nxt) & self.viable[headings, nx_, ny_]
+
+    @lru_cache(maxsize=64)  # noqa: B019 - one model per threat set, few homes
+    def distance_home_km(self, home_flat: int) -> np.ndarray:
+        """Shortest threat-avoiding path length (km) from every cell to ``home_flat``, (nx, ny)."""
+        grid = self.grid
+        rows, cols, weights = [], [], []
+        ix, iy = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny), indexing="ij")
+        cells = np.stack([ix, iy], axis=-1)
+        for h in range(8):
+            ok = self.edge_safe[h]
+            src = grid.flat(cells[ok])
+            dst = grid.flat(cells[ok] + HEADING_STEPS[h])
+            rows.append(dst)  # reversed edges: distance *to* home
+            cols.append(src)
+            weights.append(np.full(len(src), HEADING_LENGTHS[h] * grid.cell_km))
+        graph = csr_matrix(
+            (np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(grid.size, grid.size),
+        )
+        return dijkstra(graph, indices=home_flat).reshape(grid.shape)

@@ -1,0 +1,402 @@
+"""HAPF-ACO (section 3.5, Fig. 2): one decision step for every UAV of the swarm.
+
+Each UAV keeps its own beliefs (TPM, pheromone map, coverage it knows of, the threats and the
+swarm members it has heard of); only the states and looks of the neighbours inside its
+cooperative radius reach it. ``HapfAcoPlanner.step`` takes what the UAVs report at step k
+(cells, headings, sensor looks, engagement outcomes) and returns the next cell of each UAV:
+
+1. topology (eqs 1-3) and what each UAV hears;
+2. probe update of the TPMs with own and neighbours' looks (eqs 17-18), renormalised (eq 16);
+3. confirmation of targets and the engagement choice (section 3.2.1);
+4. pheromone: local decrement around predicted swarm positions, periodic global increment
+   (eqs 28-34);
+5. potential field at the UAV and over its sensor footprint (eqs 23-27);
+6. transition: engage, return (C_r), escape after N_t steps without coverage gain, or the
+   deterministic / heuristic rules (eqs 35-37), all over the candidate cells allowed by C_m and
+   C_t; then C_c by claiming cells in priority order;
+7. forecast of the TPMs to the next step (eqs 19-22).
+
+Nothing here does I/O; randomness comes from one seeded generator.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from planner.config import PlannerConfig
+from planner.constraints import SafetyModel
+from planner.engagement import EngagementOutcome
+from planner.grid import HEADING_LENGTHS, HEADING_STEPS, Grid, candidate_moves, heading_of_angle
+from planner.pheromone import PheromoneMaps
+from planner.potential_field import attraction, morse_repulsion, threat_repulsion
+from planner.scenario import Scenario, UavStart
+from planner.sensor_model import SensorReport
+from planner.target_probability_map import TargetProbabilityMaps
+from planner.topology import adapt_radius, adjacency, pairwise_distances
+from planner.transition import (
+    claim_cells,
+    deterministic_scores,
+    heuristic_choice,
+    range_scores,
+    transition_weights,
+    use_deterministic,
+)
+
+#: Why a UAV chose its move (reported per step, for analysis and figures).
+MODES = ("hold", "return", "engage", "escape", "deterministic", "heuristic")
+
+
+@dataclass(frozen=True)
+class StepDecision:
+    next_cells: np.ndarray  # (N, 2) int
+    next_headings: np.ndarray  # (N,) int
+    engage: np.ndarray  # (N,) bool: request an engagement now, at the current position
+    done: np.ndarray  # (N,) bool: back home (or finished); hold
+    modes: np.ndarray  # (N,) int index into MODES
+
+
+class HapfAcoPlanner:
+    """The swarm's planners, batched. ``step`` once per decision period."""
+
+    algorithm = "hapf-aco"
+
+    def __init__(self, scenario: Scenario, starts: Sequence[UavStart], seed: int) -> None:
+        cfg = scenario.config
+        self.cfg: PlannerConfig = cfg
+        self.scenario = scenario
+        self.grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
+        n = len(starts)
+        self.n = n
+        self.rng = np.random.default_rng([seed, 0xAC0])
+        xy = np.array([[s.x_km, s.y_km] for s in starts], dtype=float)
+        self.home = self.grid.cell_of(xy)
+        self.home_flat = self.grid.flat(self.home)
+        self.cells = self.home.copy()
+        self.headings = heading_of_angle(np.radians([s.heading_deg for s in starts]))
+        self.distance_km = np.zeros(n)
+        self.done = np.zeros(n, dtype=bool)
+        self.returning = np.zeros(n, dtype=bool)
+        self.radius_km = np.full(n, min(cfg.coop_radius_init_km, cfg.sensing_radius_km))
+        # What UAV i last heard of UAV j (eqs 30-31): cell, heading, step.
+        self.info_cells = np.repeat(self.home[None, :, :], n, axis=0)
+        self.info_headings = np.repeat(self.headings[None, :], n, axis=0)
+        self.info_step = np.full((n, n), -(10**9))
+        np.fill_diagonal(self.info_step, 0)
+        self.threat_xy = np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(-1, 2)
+        self.threat_r = np.array([t.radius_km for t in scenario.threats], float)
+        self.known_threats = np.full((n, len(self.threat_r)), scenario.threats_known)
+        self.tpm = TargetProbabilityMaps(scenario.targets, cfg, n)
+        self.pheromone = PheromoneMaps(n, cfg)
+        self.coverage = np.zeros((n, cfg.grid_nx, cfg.grid_ny), dtype=bool)
+        self.coverage_count = np.zeros(n, dtype=np.int64)
+        self.stall_steps = np.zeros(n, dtype=np.int64)
+        self.escape_goal = np.full((n, 2), -1, dtype=np.int64)
+        self.track = np.full((n, 2), -1, dtype=np.int64)  # confirmed target each UAV goes for
+        self.target_ids = np.array([t.id for t in scenario.targets], dtype=np.int64)
+        self.known_engaged = np.zeros((n, len(self.target_ids)), dtype=bool)
+        self.engaged_applied = self.known_engaged.copy()  # removed from that UAV's TPM already
+        self.engaged_cells = np.full((len(self.target_ids), 2), -1, dtype=np.int64)
+        self.footprint = self.grid.disc_offsets(cfg.detection_radius_km)
+        self.centre_index = int(np.flatnonzero((self.footprint == 0).all(axis=1))[0])
+        self.k = 0
+        self._safety: dict[tuple[bool, ...], SafetyModel] = {}
+
+    # ------------------------------------------------------------------ helpers
+
+    def safety_model(self, known: np.ndarray) -> SafetyModel:
+        key = tuple(bool(b) for b in known)
+        if key not in self._safety:
+            self._safety[key] = SafetyModel(
+                self.grid, self.threat_xy[known], self.threat_r[known], self.cfg.threat_margin_km,
+                self.cfg.max_turn_deg,
+            )  # fmt: skip
+        return self._safety[key]
+
+    def _positions_km(self) -> np.ndarray:
+        return self.grid.centre_km(self.cells)
+
+    # ------------------------------------------------------------------ the step
+
+    def step(
+        self,
+        cells: np.ndarray,
+        headings: np.ndarray,
+        reports: Sequence[SensorReport | None],
+        engagements: Sequence[EngagementOutcome | None] | None = None,
+        active: np.ndarray | None = None,
+    ) -> StepDecision:
+        """One decision step. ``cells``/``headings`` are where the UAVs are now (from telemetry
+        or the offline world), ``reports`` their looks, ``engagements`` the outcomes of the
+        engagements requested at the previous step, ``active`` which UAVs can be reached."""
+        cfg, n = self.cfg, self.n
+        active = np.ones(n, dtype=bool) if active is None else np.asarray(active, dtype=bool)
+        cells = np.asarray(cells, dtype=np.int64).reshape(n, 2)
+        moved = np.hypot(*((cells - self.cells) * cfg.cell_km).T)
+        self.distance_km += np.where(active, moved, 0.0)
+        self.cells = cells
+        self.headings = np.asarray(headings, dtype=np.int64).reshape(n) % 8
+        flying = active & ~self.done
+
+        # 1. topology (eqs 1-3) and the swarm information of eqs 30-31
+        positions = self._positions_km()
+        distances = pairwise_distances(positions)
+        hears = adjacency(distances, self.radius_km, flying)
+        self.radius_km = np.where(flying, adapt_radius(self.radius_km, hears.sum(axis=1), cfg), self.radius_km)
+        listen = hears | np.eye(n, dtype=bool)
+        listen &= flying[:, None]
+        listen &= active[None, :]
+        self.info_cells = np.where(listen[:, :, None], cells[None, :, :], self.info_cells)
+        self.info_headings = np.where(listen, self.headings[None, :], self.info_headings)
+        self.info_step = np.where(listen, self.k, self.info_step)
+
+        # threats: detected within R + R_t, then shared with neighbours
+        if len(self.threat_r):
+            seen = distances_to_threats(positions, self.threat_xy) <= self.threat_r + cfg.detection_radius_km
+            self.known_threats |= seen & flying[:, None]
+            self.known_threats |= (hears.astype(np.int64) @ self.known_threats.astype(np.int64)) > 0
+
+        # engagement outcomes and what the swarm knows of serviced targets
+        self._take_engagements(engagements, hears)
+
+        # 2. probe update (eqs 17-18) with own and heard looks, then eq 16
+        self._apply_looks(reports, listen, positions)
+
+        # 3. confirmation and the engagement choice
+        self._update_tracks(reports, listen)
+
+        # 4. pheromone (eqs 30-34)
+        self._update_pheromone(flying)
+
+        # 5-6. potential field and transition
+        decision = self._decide(flying, hears, positions)
+
+        # 7. forecast (eqs 19-22) to the next decision step
+        self.tpm.forecast()
+        self.k += 1
+        return decision
+
+    # ------------------------------------------------------------------ beliefs
+
+    def _take_engagements(self, engagements: Sequence[EngagementOutcome | None] | None, hears: np.ndarray) -> None:
+        if engagements is not None:
+            for i, outcome in enumerate(engagements):
+                if outcome is None:
+                    continue
+                if outcome.success:
+                    index = np.flatnonzero(self.target_ids == outcome.target_id)
+                    if index.size:
+                        self.engaged_cells[index[0]] = self.cells[i]
+                        self.known_engaged[i, index[0]] = True
+                else:
+                    # nothing within the engage radius: a certain negative look at this cell
+                    self.tpm.apply_looks(
+                        np.array([i]), [self.cells[i][None, :]], [np.array([False])], self.cells[i][None, :]
+                    )
+                self.track[i] = -1
+        self.known_engaged |= (hears.astype(np.int64) @ self.known_engaged.astype(np.int64)) > 0
+        for i, t in zip(*np.nonzero(self.known_engaged & ~self.engaged_applied), strict=True):
+            self.tpm.remove_target(int(i), int(self.target_ids[t]), self.engaged_cells[t])
+        self.engaged_applied = self.known_engaged.copy()
+
+    def _apply_looks(self, reports: Sequence[SensorReport | None], listen: np.ndarray, positions: np.ndarray) -> None:
+        have = np.array([r is not None and len(r.cells) > 0 for r in reports], dtype=bool)
+        pairs = listen & have[None, :]  # receiver i gets look j
+        receivers, sources = np.nonzero(pairs)
+        if receivers.size == 0:
+            self.tpm.renormalise()
+            return
+        # Rounds so that one receiver gets at most one look per batched update (exact sequential
+        # Bayes when footprints overlap); a receiver's own look comes first.
+        own_first = np.lexsort((sources != receivers, receivers))
+        receivers, sources = receivers[own_first], sources[own_first]
+        starts = np.flatnonzero(np.r_[True, receivers[1:] != receivers[:-1]])
+        counts = np.diff(np.r_[starts, len(receivers)])
+        rank = np.arange(len(receivers)) - np.repeat(starts, counts)
+        origins = self.grid.cell_of(positions)
+        for r in range(int(rank.max()) + 1):
+            sel = rank == r
+            rec, src = receivers[sel], sources[sel]
+            self.tpm.apply_looks(
+                rec, [reports[j].cells for j in src], [reports[j].detected for j in src], origins[src]
+            )
+        # coverage each UAV knows of
+        before = self.coverage_count.copy()
+        for i, j in zip(receivers, sources, strict=True):
+            c = reports[j].cells
+            self.coverage[i, c[:, 0], c[:, 1]] = True
+        self.coverage_count = self.coverage.reshape(self.n, -1).sum(axis=1)
+        gained = self.coverage_count > before
+        self.stall_steps = np.where(gained, 0, self.stall_steps + 1)
+        self.escape_goal[gained] = -1
+        self.tpm.decay_unobserved(self.coverage_this_step(receivers, sources, reports))
+        self.tpm.renormalise()
+
+    def coverage_this_step(self, receivers: np.ndarray, sources: np.ndarray, reports: Sequence[SensorReport | None]) -> np.ndarray:
+        if self.cfg.tpm_decay_tau >= 1.0:
+            return np.zeros(0, dtype=bool)
+        observed = np.zeros(self.coverage.shape, dtype=bool)
+        for i, j in zip(receivers, sources, strict=True):
+            c = reports[j].cells
+            observed[i, c[:, 0], c[:, 1]] = True
+        return observed
+
+    def _update_tracks(self, reports: Sequence[SensorReport | None], listen: np.ndarray) -> None:
+        """Confirm targets (existence >= threshold) in the cells each UAV just heard about; keep
+        following a confirmed target as its TPM peak moves; drop it when the peak fades."""
+        cfg = self.cfg
+        window = self.grid.disc_offsets(2.0 * cfg.cell_km)
+        for i in np.flatnonzero(~self.done):
+            heard = [reports[j].cells for j in np.flatnonzero(listen[i]) if reports[j] is not None]
+            best_cell, best_value = None, -1.0
+            if self.track[i, 0] >= 0:
+                around = self.track[i] + window
+                around = around[self.grid.inside(around)]
+                p = self.tpm.existence_at(np.full(len(around), i), around)
+                k = int(np.argmax(p))
+                if p[k] >= cfg.confirm_threshold / 3:
+                    best_cell = around[k]
+                    best_value = self.tpm.value_at(i, best_cell)
+                self.track[i] = -1
+            if heard:
+                cand = np.unique(np.concatenate(heard), axis=0)
+                p = self.tpm.existence_at(np.full(len(cand), i), cand)
+                for cell in cand[p >= cfg.confirm_threshold]:
+                    value = self.tpm.value_at(i, cell)
+                    if value > best_value:
+                        best_cell, best_value = cell, value
+            if best_cell is not None:
+                self.track[i] = best_cell
+
+    def _update_pheromone(self, flying: np.ndarray) -> None:
+        cfg = self.cfg
+        age = self.k - self.info_step
+        known = (age >= 0) & (age <= cfg.info_max_age_steps) & flying[:, None]
+        owners, members = np.nonzero(known)
+        steps = HEADING_STEPS[self.info_headings[owners, members]] * age[owners, members][:, None]
+        predicted = self.info_cells[owners, members] + steps  # eq 31, dead reckoning
+        predicted[:, 0] = np.clip(predicted[:, 0], 0, self.grid.nx - 1)
+        predicted[:, 1] = np.clip(predicted[:, 1], 0, self.grid.ny - 1)
+        self.pheromone.local_update(owners, predicted)
+        if self.k > 0 and self.k % cfg.global_update_period_steps == 0:
+            self.pheromone.global_update()
+
+    # ------------------------------------------------------------------ decision
+
+    def _forces(self, points: np.ndarray, positions: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+        """Total APF force (N, K, 2) at cells ``points`` (N, K, 2) for each UAV (eqs 24, 25, 27)."""
+        cfg = self.cfg
+        patch = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], indexing="ij"), axis=-1)  # (3, 3, 2)
+        around = points[:, :, None, None, :] + patch[None, None]
+        existence = self.tpm.existence_at(np.arange(self.n)[:, None, None, None], around)
+        centres = self.grid.centre_km(points)
+        force = attraction(existence, cfg)
+        force = force + threat_repulsion(centres, self.threat_xy, self.threat_r, self.known_threats, cfg)
+        force = force + morse_repulsion(centres, positions, neighbours, cfg)
+        return force
+
+    def _decide(self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray) -> StepDecision:
+        cfg, grid, n = self.cfg, self.grid, self.n
+        cand, cand_head = candidate_moves(self.cells, self.headings, cfg.max_turn_deg)  # (N, C, 2)
+        moves = (cand - self.cells[:, None, :]).astype(float)
+        step_len = HEADING_LENGTHS[cand_head] * cfg.cell_km
+        allowed = np.zeros(cand_head.shape, dtype=bool)
+        home_dist = np.zeros(cand_head.shape)
+        for i in range(n):
+            model = self.safety_model(self.known_threats[i])
+            allowed[i] = model.move_allowed(np.repeat(self.cells[i][None], cand.shape[1], 0), cand_head[i])
+            field = model.distance_home_km(int(self.home_flat[i]))
+            inside = grid.inside(cand[i])
+            home_dist[i] = np.where(
+                inside, field[np.clip(cand[i, :, 0], 0, grid.nx - 1), np.clip(cand[i, :, 1], 0, grid.ny - 1)], np.inf
+            )
+        slack = cfg.max_range_km - (self.distance_km[:, None] + step_len + home_dist + cfg.return_reserve_km)
+        in_range = slack >= 0
+        feasible = allowed & in_range
+        # If range cannot be kept (it always can unless the start is boxed in), keep safety only.
+        feasible = np.where(feasible.any(axis=1, keepdims=True), feasible, allowed)
+
+        # C_r: the return term takes over once the slack is nearly spent (eqs 35/37, omega_2 = 1)
+        bounded = np.isfinite(cfg.max_range_km)
+        past_half = self.distance_km + step_len.min(axis=1) > cfg.max_range_km / 2
+        best_slack = np.where(feasible, slack, -np.inf).max(axis=1)
+        self.returning |= bounded & past_half & (best_slack < cfg.return_margin_km) & flying
+        near_home = np.abs(self.cells - self.home).max(axis=1) <= 1
+        self.done |= self.returning & near_home & flying
+
+        # potential field at the UAV and over its footprint (eqs 23-27)
+        points = self.cells[:, None, :] + self.footprint[None, :, :]
+        force = self._forces(points, positions, hears | (pairwise_distances(positions) <= cfg.separation_sense_km))
+        norms = np.hypot(force[..., 0], force[..., 1])
+        inside_fp = grid.inside(points)
+        force_max = np.where(inside_fp, norms, 0.0).max(axis=1)
+        force_here = force[:, self.centre_index]
+        q = self.rng.random(n)
+        q1 = self.rng.random(n)
+        u = self.rng.random(n)
+
+        # heuristic information: unsearched share and target probability in the candidate's footprint
+        fp = cand[:, :, None, :] + self.footprint[None, None, :, :]  # (N, C, K, 2)
+        fp_inside = grid.inside(fp)
+        fx = np.clip(fp[..., 0], 0, grid.nx - 1)
+        fy = np.clip(fp[..., 1], 0, grid.ny - 1)
+        unsearched = ~self.coverage[np.arange(n)[:, None, None], fx, fy] & fp_inside
+        new_share = unsearched.sum(axis=2) / len(self.footprint)
+        mass = (self.tpm.existence_at(np.arange(n)[:, None, None], fp) * fp_inside).sum(axis=2)
+        mass_share = mass / np.maximum(mass.max(axis=1, keepdims=True), 1e-12)
+        eta = cfg.eta_floor + new_share + cfg.eta_tpm_weight * mass_share
+        tau = self.pheromone.at(np.arange(n)[:, None], cand)
+        weights = transition_weights(tau, eta, feasible, cfg)
+
+        # escape after N_t steps without coverage gain: head for the nearest unsearched cell
+        stalled = (self.stall_steps >= cfg.escape_steps) & flying
+        for i in np.flatnonzero(stalled & (self.escape_goal[:, 0] < 0)):
+            _, (ix, iy) = ndimage.distance_transform_edt(self.coverage[i], return_indices=True)
+            self.escape_goal[i] = (ix[tuple(self.cells[i])], iy[tuple(self.cells[i])])
+
+        modes = np.full(n, MODES.index("heuristic"))
+        scores = np.where(feasible, np.log(np.maximum(weights, 1e-300)), -np.inf)
+        choice = heuristic_choice(weights, q1, u, cfg)
+        deterministic = use_deterministic(np.hypot(*force_here.T), force_max, q, cfg)
+        det_scores = deterministic_scores(moves, force_here, feasible)
+        scores = np.where(deterministic[:, None], det_scores, scores)
+        modes[deterministic] = MODES.index("deterministic")
+        escaping = stalled & (self.escape_goal[:, 0] >= 0) & ~deterministic
+        if escaping.any():
+            esc = deterministic_scores(moves, (self.escape_goal - self.cells).astype(float), feasible)
+            scores = np.where(escaping[:, None], esc, scores)
+            modes[escaping] = MODES.index("escape")
+        engaging = (self.track[:, 0] >= 0) & flying
+        if engaging.any():
+            eng = deterministic_scores(moves, (self.track - self.cells).astype(float), feasible)
+            scores = np.where(engaging[:, None], eng, scores)
+            modes[engaging] = MODES.index("engage")
+        returning = self.returning & flying
+        if returning.any():
+            scores = np.where(returning[:, None], range_scores(home_dist, feasible), scores)
+            modes[returning] = MODES.index("return")
+
+        chosen_first = np.where(modes == MODES.index("heuristic"), choice, np.argmax(scores, axis=1))
+        # rank: the rule's choice first, then the others by score
+        order = np.argsort(-np.where(np.isfinite(scores), scores, -1e300), axis=1, kind="stable")
+        ranked = np.concatenate([chosen_first[:, None], order], axis=1)
+        ranked = np.array([list(dict.fromkeys(r)) for r in ranked])
+        pick = claim_cells(
+            ranked, cand, feasible, positions, flying, cfg.cell_km, cfg.min_separation_km, cfg.separation_sense_km
+        )
+        rows = np.arange(n)
+        next_cells = np.where(flying[:, None], cand[rows, pick], self.cells)
+        next_headings = np.where(flying, cand_head[rows, pick], self.headings)
+        modes[~flying] = MODES.index("hold")
+
+        dist_track = np.hypot(*((self.track - self.cells) * cfg.cell_km).T)
+        engage = engaging & (dist_track <= cfg.engage_radius_km)
+        return StepDecision(next_cells, next_headings, engage, self.done.copy(), modes)
+
+
+def distances_to_threats(positions_km: np.ndarray, threat_xy: np.ndarray) -> np.ndarray:
+    diff = positions_km[:, None, :] - threat_xy[None, :, :]
+    return np.hypot(diff[..., 0], diff[..., 1])

@@ -1,0 +1,173 @@
+"""Mission metrics and safety accounting (eqs 4-5), from positions as they really were.
+
+The offline runner feeds it the world's positions; the MAVLink daemon feeds it telemetry. Both
+get the same result dictionary (the ``result.json`` of a run):
+
+- J_T: value of the targets engaged (``engaged_value``), and how many (``engaged_count``);
+- J_E: the share of cells that were ever inside a sensor footprint (``coverage``), after each
+  step (``coverage_curve[k]`` after k steps, k = 0 is the start) and the slope of its first 50
+  steps (``coverage_slope_50``, share per step);
+- separation: minimum pairwise distance of the airborne UAVs, per step and overall;
+- distance flown per UAV, whether it came back to its start;
+- violations of C_t (inside a threat, or a leg crossing one), C_c (pair closer than d_min),
+  C_m (turn over phi_max between consecutive legs) and C_r (distance over L_max).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import stats
+
+from planner.constraints import segment_clearance
+from planner.grid import Grid
+from planner.scenario import Scenario, UavStart
+
+
+class MissionRecorder:
+    def __init__(self, scenario: Scenario, starts: Sequence[UavStart], turn_tolerance_deg: float = 1e-6) -> None:
+        cfg = scenario.config
+        self.scenario = scenario
+        self.cfg = cfg
+        self.grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
+        self.n = len(starts)
+        self.starts = np.array([[s.x_km, s.y_km] for s in starts], float)
+        self.turn_tolerance_deg = turn_tolerance_deg
+        self.covered = np.zeros(self.grid.shape, dtype=bool)
+        self.footprint = self.grid.disc_offsets(cfg.detection_radius_km)
+        self.threat_xy = np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(-1, 2)
+        self.threat_r = np.array([t.radius_km for t in scenario.threats], float)
+        self.tracks: list[list[list[float]]] = [[] for _ in range(self.n)]
+        self.planned: list[list[list[float]]] = [[] for _ in range(self.n)]
+        self.distance_km = np.zeros(self.n)
+        self.coverage_curve: list[float] = []
+        self.engaged_curve: list[int] = []
+        self.min_separation_curve: list[float] = []
+        self.mean_min_separation_curve: list[float] = []
+        self.engagements: list[dict] = []
+        self.violations = {"threat": 0, "separation": 0, "turn": 0, "range": 0}
+        self._last = np.full((self.n, 2), np.nan)
+        self._last_leg = np.full((self.n, 2), np.nan)
+        self._done = np.zeros(self.n, dtype=bool)
+        self.steps = 0
+
+    def record_step(self, positions_km: np.ndarray, airborne: np.ndarray | None = None,
+                    planned_km: np.ndarray | None = None, done: np.ndarray | None = None) -> None:  # fmt: skip
+        """Positions (N, 2) of the UAVs at one decision step. ``airborne`` marks the UAVs that
+        count (lost or landed ones do not); ``planned_km`` is where the planner sent them next."""
+        cfg = self.cfg
+        pos = np.asarray(positions_km, dtype=float).reshape(self.n, 2)
+        airborne = np.ones(self.n, dtype=bool) if airborne is None else np.asarray(airborne, dtype=bool)
+        if done is not None:
+            self._done |= np.asarray(done, dtype=bool)
+        for i in range(self.n):
+            self.tracks[i].append([round(float(pos[i, 0]), 4), round(float(pos[i, 1]), 4)])
+            if planned_km is not None:
+                self.planned[i].append([round(float(planned_km[i][0]), 4), round(float(planned_km[i][1]), 4)])
+        # coverage J_E (eq 4)
+        cells = self.grid.cell_of(pos[airborne])[:, None, :] + self.footprint[None]
+        cells = cells[self.grid.inside(cells)]
+        self.covered[cells[:, 0], cells[:, 1]] = True
+        self.coverage_curve.append(float(self.covered.mean()))
+        self.engaged_curve.append(len(self.engagements))
+        # legs: distance, turns, threat crossings
+        has_last = ~np.isnan(self._last[:, 0]) & airborne
+        legs = pos - self._last
+        lengths = np.where(has_last, np.hypot(legs[:, 0], legs[:, 1]), 0.0)
+        self.distance_km += lengths
+        moving = has_last & (lengths > 1e-9)
+        if len(self.threat_r):
+            inside = segment_clearance(np.where(moving[:, None], self._last, pos), pos, self.threat_xy, self.threat_r)
+            self.violations["threat"] += int(np.sum((inside < -1e-9) & airborne))
+        prev_ok = moving & ~np.isnan(self._last_leg[:, 0])
+        if prev_ok.any():
+            a = np.arctan2(self._last_leg[prev_ok, 1], self._last_leg[prev_ok, 0])
+            b = np.arctan2(legs[prev_ok, 1], legs[prev_ok, 0])
+            turn = np.degrees(np.abs(np.mod(b - a + np.pi, 2 * np.pi) - np.pi))
+            self.violations["turn"] += int(np.sum(turn > cfg.max_turn_deg + self.turn_tolerance_deg))
+        self._last_leg = np.where(moving[:, None], legs, self._last_leg)
+        self._last = np.where(airborne[:, None], pos, self._last)
+        if math.isfinite(cfg.max_range_km):
+            over = self.distance_km > cfg.max_range_km + 1e-6
+            self.violations["range"] += int(np.sum(over & moving))
+        # separation C_c among airborne UAVs that have not landed back home
+        flying = airborne & ~self._done
+        if flying.sum() >= 2:
+            p = pos[flying]
+            d = np.hypot(*(p[:, None, :] - p[None, :, :]).transpose(2, 0, 1))
+            np.fill_diagonal(d, np.inf)
+            nearest = d.min(axis=1)
+            self.min_separation_curve.append(float(nearest.min()))
+            self.mean_min_separation_curve.append(float(nearest.mean()))
+            close = np.triu(d < cfg.min_separation_km - 1e-9, 1)
+            self.violations["separation"] += int(close.sum())
+        else:
+            self.min_separation_curve.append(math.inf)
+            self.mean_min_separation_curve.append(math.inf)
+        self.steps += 1
+
+    def record_engagement(self, step: int, uav: int, target_id: int, value: float) -> None:
+        self.engagements.append({"step": int(step), "uav": int(uav), "target_id": int(target_id), "value": float(value)})
+        if self.engaged_curve:
+            self.engaged_curve[-1] = len(self.engagements)
+
+    def returned(self) -> np.ndarray:
+        """UAVs whose last position is within one cell of their start and that did fly."""
+        if not self.steps:
+            return np.zeros(self.n, dtype=bool)
+        last = np.array([t[-1] for t in self.tracks])
+        near = np.abs(self.grid.cell_of(last) - self.grid.cell_of(self.starts)).max(axis=1) <= 1
+        return near & (self.distance_km > 2 * self.cfg.step_km)
+
+    def result(self, seed: int, algorithm: str, wall_time_s: float, extra: dict | None = None) -> dict:
+        curve = np.array(self.coverage_curve)
+        first = curve[: min(50, len(curve))]
+        slope = float(stats.linregress(np.arange(len(first)), first).slope) if len(first) >= 2 else 0.0
+        finite_sep = [s for s in self.min_separation_curve if math.isfinite(s)]
+        returned = self.returned()
+        sc = self.scenario
+        result = {
+            "scenario": sc.name,
+            "algorithm": algorithm,
+            "seed": int(seed),
+            "steps": max(int(self.steps) - 1, 0),  # records are the start plus one per step
+            "coverage": float(curve[-1]) if len(curve) else 0.0,
+            "coverage_curve": [round(float(c), 6) for c in curve],
+            "coverage_slope_50": slope,
+            "engaged_count": len(self.engagements),
+            "engaged_value": float(sum(e["value"] for e in self.engagements)),
+            "engaged_curve": list(self.engaged_curve),
+            "min_separation_km": float(min(finite_sep)) if finite_sep else None,
+            "min_separation_curve": [None if not math.isfinite(s) else round(s, 4) for s in self.min_separation_curve],
+            "mean_min_separation_curve": [
+                None if not math.isfinite(s) else round(s, 4) for s in self.mean_min_separation_curve
+            ],
+            "returned_count": int(returned.sum()),
+            "violations": dict(self.violations),
+            "wall_time_s": float(wall_time_s),
+            "uav_count": self.n,
+            "min_separation_limit_km": sc.config.min_separation_km,
+            "max_range_km": sc.config.max_range_km if math.isfinite(sc.config.max_range_km) else None,
+            "origin": {"lat": sc.origin.lat_deg, "lon": sc.origin.lon_deg, "alt_m": sc.origin.alt_m},
+            "altitude_m": sc.altitude_m,
+            "area_km": list(sc.config.area_km),
+            "threats": [{"x_km": t.x_km, "y_km": t.y_km, "radius_km": t.radius_km} for t in sc.threats],
+            "targets": [{"id": t.id, "kind": t.kind, "x_km": t.x_km, "y_km": t.y_km, "value": t.value} for t in sc.targets],
+            "engagements": list(self.engagements),
+            "uavs": [
+                {
+                    "id": i + 1,
+                    "start_km": [float(self.starts[i, 0]), float(self.starts[i, 1])],
+                    "track_km": self.tracks[i],
+                    "planned_km": self.planned[i],
+                    "distance_km": round(float(self.distance_km[i]), 4),
+                    "returned": bool(returned[i]),
+                }
+                for i in range(self.n)
+            ],
+        }
+        if extra:
+            result.update(extra)
+        return result

@@ -1,0 +1,62 @@
+"""Artificial potential field (section 3.2, eqs 23-27): TPM attraction, threat repulsion and
+generalized-Morse repulsion between UAVs, evaluated at any set of points for every UAV at once.
+
+Symbols: k_att -> ``cfg.k_att``; k_rep -> ``cfg.k_rep``; d_0 -> threat radius + ``cfg.threat_margin_km``;
+d^t_max -> threat radius + R (a threat is felt once detected, section 3.2.2); b, c ->
+``cfg.morse_b``, ``cfg.morse_c_km``; ||x||_min -> ``cfg.morse_r0_km``; [d_min, d^v_max] ->
+``cfg.min_separation_km``, ``cfg.uav_repulsion_range_km``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from planner.config import PlannerConfig
+
+
+def attraction(existence: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
+    """Eqs 23-24: k_att times the gradient of the TPM at the centre of a 3x3 patch.
+
+    ``existence`` is (..., 3, 3) existence probabilities around each point (x first axis);
+    returns (..., 2) forces (per km) by central differences."""
+    gx = (existence[..., 2, 1] - existence[..., 0, 1]) / 2.0
+    gy = (existence[..., 1, 2] - existence[..., 1, 0]) / 2.0
+    return cfg.k_att * np.stack([gx, gy], axis=-1) / cfg.cell_km
+
+
+def threat_repulsion(
+    points_km: np.ndarray, threat_xy: np.ndarray, threat_r: np.ndarray, known: np.ndarray, cfg: PlannerConfig
+) -> np.ndarray:
+    """Eq 25 for points (N, K, 2) and the threats each UAV knows (``known`` (N, T) bool).
+
+    The paper's ``1/||x||^2 - 1/(d_max - d_0)^2`` turns attractive near d_max; we measure the
+    distance from the safe boundary d_0 (docs/parameters.md): ``k_rep (1/(||x|| - d_0)^2 -
+    1/(d_max - d_0)^2)`` for d_0 < ||x|| <= d_max, pointing away from the threat."""
+    if threat_xy.size == 0:
+        return np.zeros(points_km.shape)
+    x = points_km[:, :, None, :] - threat_xy[None, None, :, :]  # (N, K, T, 2)
+    dist = np.maximum(np.hypot(x[..., 0], x[..., 1]), 1e-9)
+    d0 = threat_r + cfg.threat_margin_km
+    d_max = threat_r + cfg.detection_radius_km
+    gap = np.maximum(dist - d0[None, None, :], 1e-3)
+    magnitude = cfg.k_rep * (1.0 / gap**2 - 1.0 / (d_max - d0)[None, None, :] ** 2)
+    magnitude = np.where((dist <= d_max[None, None, :]) & known[:, None, :], np.maximum(magnitude, 0), 0.0)
+    return np.sum(magnitude[..., None] * x / dist[..., None], axis=2)
+
+
+def morse_repulsion(
+    points_km: np.ndarray, others_km: np.ndarray, neighbours: np.ndarray, cfg: PlannerConfig
+) -> np.ndarray:
+    """Eq 27: F = sum_j (b/c) e^{||x||/c} / (e^{||x||/c} - e^{r0/c})^2 x_hat over neighbours j
+    with ||x_ij|| in [d_min, d^v_max] (closer than d_min it is held at its d_min value).
+
+    ``points_km`` (N, K, 2), ``others_km`` (N, 2) UAV positions, ``neighbours`` (N, N) bool."""
+    x = points_km[:, :, None, :] - others_km[None, None, :, :]  # (N, K, N, 2)
+    dist = np.hypot(x[..., 0], x[..., 1])
+    c, r0 = cfg.morse_c_km, cfg.morse_r0_km
+    d = np.maximum(dist, cfg.min_separation_km)
+    magnitude = (cfg.morse_b / c) * np.exp(d / c) / (np.exp(d / c) - np.exp(r0 / c)) ** 2
+    in_range = (dist <= cfg.uav_repulsion_range_km) & (dist > 1e-9) & neighbours[:, None, :]
+    magnitude = np.where(in_range, magnitude, 0.0)
+    unit = x / np.maximum(dist, 1e-9)[..., None]
+    return np.sum(magnitude[..., None] * unit, axis=2)

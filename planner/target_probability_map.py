@@ -1,0 +1,393 @@
+"""Target probability maps (TPM, section 3.1): initialisation (eqs 9-16), probe update (eqs 17-18)
+and forecast update (eqs 19-22), kept per UAV and batched across the swarm.
+
+How several targets share one map (the paper is silent): the map is split into *layers*, one
+per group of targets that move under the same forecast kernel (all unknown-position targets;
+all known-position targets; known-speed targets of one speed; each known-velocity target). A
+layer holds the expected number of its targets in each cell, so it sums to the number of its
+targets still at large. Eq 18 is applied cell by cell to each layer, each layer is renormalised
+to its count (eq 16), and the cell's target existence probability ``p_mn`` used by the rest of
+the planner is ``1 - prod_layers (1 - layer_mn)``.
+
+Arrays are ``(L, N, nx, ny)``: layer, UAV, cell. Each UAV owns its slice (its own beliefs).
+
+Symbols: delta_0 -> ``cfg.delta_0_km``; delta_e -> ``cfg.delta_e_km_per_sqrt_s``; t_0 ->
+``cfg.t0_s``; tau -> ``cfg.tpm_decay_tau``; Delta t -> ``cfg.step_s``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.special import ndtr
+
+from planner.config import PlannerConfig
+from planner.grid import Grid
+from planner.scenario import TargetSpec
+from planner.sensor_model import bayes_update, detection_probability
+
+#: Quadrature sizes for the ring integrals and the cell-to-cell motion kernels.
+RING_ANGLES = 128
+CELL_SAMPLES = 16
+
+
+# ----------------------------------------------------------------------------- initialisation
+
+
+def _cell_gaussian_mass(centre_x: np.ndarray, centre_y: np.ndarray, sigma: float, grid: Grid) -> np.ndarray:
+    """Mass of isotropic Gaussians N(centre, sigma^2) in each cell, integrated exactly (eq 15).
+
+    ``centre_x``/``centre_y`` are (A,) arrays; the result is (nx, ny), the average over the A
+    Gaussians (the A points of a ring quadrature, or one point)."""
+    edges_x = np.arange(grid.nx + 1) * grid.cell_km
+    edges_y = np.arange(grid.ny + 1) * grid.cell_km
+    cdf_x = ndtr((edges_x[None, :] - np.asarray(centre_x)[:, None]) / sigma)  # (A, nx+1)
+    cdf_y = ndtr((edges_y[None, :] - np.asarray(centre_y)[:, None]) / sigma)
+    mass_x = np.diff(cdf_x, axis=1)  # (A, nx)
+    mass_y = np.diff(cdf_y, axis=1)
+    return np.einsum("ai,aj->ij", mass_x, mass_y) / len(mass_x)
+
+
+def uniform_prior(grid: Grid) -> np.ndarray:
+    """Eq 9: unknown position, the same probability in every cell."""
+    return np.full(grid.shape, 1.0 / grid.size)
+
+
+def wiener_prior(target: TargetSpec, cfg: PlannerConfig, grid: Grid) -> np.ndarray:
+    """Eq 11: known position, unknown velocity; N(x*, delta_0^2 + delta_e^2 t_0)."""
+    sigma = np.sqrt(cfg.delta_0_km**2 + cfg.delta_e_km_per_sqrt_s**2 * cfg.t0_s)
+    return _cell_gaussian_mass(np.array([target.x_km]), np.array([target.y_km]), sigma, grid)
+
+
+def ring_prior(target: TargetSpec, cfg: PlannerConfig, grid: Grid) -> np.ndarray:
+    """Eqs 12-13: known speed v, unknown heading; the Gaussian of eq 10 averaged over the circle
+    of radius v t_0 around x* (angular quadrature, each Gaussian integrated over cells)."""
+    radius = target.speed_mps / 1000.0 * cfg.t0_s
+    theta = (np.arange(RING_ANGLES) + 0.5) * (2 * np.pi / RING_ANGLES)
+    return _cell_gaussian_mass(
+        target.x_km + radius * np.cos(theta), target.y_km + radius * np.sin(theta), cfg.delta_0_km, grid
+    )
+
+
+def shifted_prior(target: TargetSpec, cfg: PlannerConfig, grid: Grid) -> np.ndarray:
+    """Eq 14: known velocity; N(x* + v t_0 (cos theta, sin theta), delta_0^2)."""
+    shift = target.speed_mps / 1000.0 * cfg.t0_s
+    return _cell_gaussian_mass(
+        np.array([target.x_km + shift * np.cos(target.heading_rad)]),
+        np.array([target.y_km + shift * np.sin(target.heading_rad)]),
+        cfg.delta_0_km,
+        grid,
+    )
+
+
+def normalised(mass: np.ndarray) -> np.ndarray:
+    """Eq 16: divide by the total so the map sums to one."""
+    return mass / mass.sum()
+
+
+# ----------------------------------------------------------------------------- forecast kernels
+
+
+def wiener_kernel_1d(sigma_cells: float) -> np.ndarray:
+    """Cell-to-cell kernel of eq 20 along one axis: P(target moves o cells) for a target uniform
+    in its cell displaced by N(0, sigma^2) (exact in the displacement, quadrature over the cell)."""
+    if sigma_cells <= 0:
+        return np.array([1.0])
+    half = int(np.ceil(4 * sigma_cells)) + 1
+    offsets = np.arange(-half, half + 1)
+    u = (np.arange(CELL_SAMPLES) + 0.5) / CELL_SAMPLES
+    upper = ndtr((offsets[None, :] + 1 - u[:, None]) / sigma_cells)
+    lower = ndtr((offsets[None, :] - u[:, None]) / sigma_cells)
+    kernel = (upper - lower).mean(axis=0)
+    kernel = kernel[kernel > 1e-4 * kernel.max()]  # drop the far tails (symmetric)
+    return kernel / kernel.sum()
+
+
+def displacement_kernel(dx_cells: np.ndarray, dy_cells: np.ndarray) -> np.ndarray:
+    """2-D cell-to-cell kernel of a set of equally likely displacements (cells): a target uniform
+    in its cell moved by one of them lands in cell offset (a, b) with the kernel's probability."""
+    u = (np.arange(CELL_SAMPLES) + 0.5) / CELL_SAMPLES
+    ux, uy = np.meshgrid(u, u, indexing="ij")
+    land_x = np.floor(ux.ravel()[:, None] + np.asarray(dx_cells)[None, :]).astype(int).ravel()
+    land_y = np.floor(uy.ravel()[:, None] + np.asarray(dy_cells)[None, :]).astype(int).ravel()
+    half = int(max(np.abs(land_x).max(), np.abs(land_y).max()))
+    kernel = np.zeros((2 * half + 1, 2 * half + 1))
+    np.add.at(kernel, (land_x + half, land_y + half), 1.0)
+    return kernel / kernel.sum()
+
+
+def ring_kernel(radius_cells: float) -> np.ndarray:
+    """Eq 21 on the grid: displacement uniform on the circle of radius v Delta t."""
+    theta = (np.arange(RING_ANGLES) + 0.5) * (2 * np.pi / RING_ANGLES)
+    return displacement_kernel(radius_cells * np.cos(theta), radius_cells * np.sin(theta))
+
+
+def convolve_reflect(maps: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """Convolve each (nx, ny) map of ``maps`` (..., nx, ny) with a 2-D kernel, edges reflected.
+
+    The 3x3 kernels of eq 21 at the paper's speeds have the symmetry of the square, so they are
+    applied as a 9-point stencil on an edge-padded copy (twice as fast as ``ndimage.correlate``);
+    any other kernel goes through ``scipy.ndimage.convolve``."""
+    k = kernel
+    symmetric = k.shape == (3, 3) and np.allclose(k, k.T) and np.allclose(k, k[::-1]) and np.allclose(k, k[:, ::-1])
+    if not symmetric:
+        full = k.reshape((1,) * (maps.ndim - 2) + k.shape)
+        return ndimage.convolve(maps, full, mode="reflect")
+    pad = [(0, 0)] * (maps.ndim - 2) + [(1, 1), (1, 1)]
+    p = np.pad(maps, pad, mode="symmetric")
+    columns = p[..., :-2, :] + p[..., 2:, :]  # the cells above and below, padded sideways
+    centre, edge, corner = float(k[1, 1]), float(k[0, 1]), float(k[0, 0])  # keep the maps' dtype
+    out = centre * maps
+    out += edge * (columns[..., 1:-1] + p[..., 1:-1, :-2] + p[..., 1:-1, 2:])
+    out += corner * (columns[..., :-2] + columns[..., 2:])
+    return out
+
+
+def shift_with_reflection(maps: np.ndarray, shift: int, axis: int) -> np.ndarray:
+    """Move every map ``shift`` whole cells along ``axis``; mass pushed over the edge is folded
+    back (targets reflect at the area's edge). Mass is conserved."""
+    if shift == 0:
+        return maps
+    n = maps.shape[axis]
+    s = min(abs(shift), n)
+    out = np.zeros_like(maps)
+    src = [slice(None)] * maps.ndim
+    dst = [slice(None)] * maps.ndim
+    if shift > 0:
+        src[axis], dst[axis] = slice(0, n - s), slice(s, n)
+        out[tuple(dst)] += maps[tuple(src)]
+        src[axis], dst[axis] = slice(n - s, n), slice(n - 1, n - s - 1 if n - s - 1 >= 0 else None, -1)
+    else:
+        src[axis], dst[axis] = slice(s, n), slice(0, n - s)
+        out[tuple(dst)] += maps[tuple(src)]
+        src[axis], dst[axis] = slice(0, s), slice(s - 1, None, -1)
+    out[tuple(dst)] += maps[tuple(src)]
+    return out
+
+
+# ----------------------------------------------------------------------------- layers
+
+
+@dataclass(frozen=True)
+class LayerSpec:
+    """A group of targets that share a forecast kernel (one layer of the TPM)."""
+
+    kind: str  # one of planner.scenario.TARGET_KINDS
+    target_ids: tuple[int, ...]
+    mean_value: float
+    speed_mps: float = 0.0
+    heading_rad: float = 0.0
+
+
+def layer_specs(targets: tuple[TargetSpec, ...]) -> list[LayerSpec]:
+    """Group the scenario's targets into layers that move alike."""
+    groups: dict[tuple, list[TargetSpec]] = {}
+    for t in targets:
+        if t.kind in ("unknown_position", "known_position"):
+            key: tuple = (t.kind,)
+        elif t.kind == "known_speed":
+            key = (t.kind, t.speed_mps)
+        else:
+            key = (t.kind, t.id)
+        groups.setdefault(key, []).append(t)
+    specs = []
+    for members in groups.values():
+        first = members[0]
+        specs.append(
+            LayerSpec(
+                kind=first.kind,
+                target_ids=tuple(m.id for m in members),
+                mean_value=float(np.mean([m.value for m in members])),
+                speed_mps=first.speed_mps,
+                heading_rad=first.heading_rad,
+            )
+        )
+    return specs
+
+
+def initial_layers(targets: tuple[TargetSpec, ...], cfg: PlannerConfig) -> tuple[list[LayerSpec], np.ndarray]:
+    """Eqs 9-16 for every target, summed into layers: ``(specs, maps (L, nx, ny))``; each
+    target contributes a normalised map, so layer l sums to its number of targets."""
+    grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
+    prior_of = {
+        "unknown_position": lambda t: uniform_prior(grid),
+        "known_position": lambda t: wiener_prior(t, cfg, grid),
+        "known_speed": lambda t: ring_prior(t, cfg, grid),
+        "known_velocity": lambda t: shifted_prior(t, cfg, grid),
+    }
+    by_id = {t.id: t for t in targets}
+    specs = layer_specs(targets)
+    maps = np.zeros((len(specs), grid.nx, grid.ny))
+    for index, spec in enumerate(specs):
+        for tid in spec.target_ids:
+            maps[index] += normalised(prior_of[spec.kind](by_id[tid]))
+    return specs, maps
+
+
+class TargetProbabilityMaps:
+    """The TPMs of the whole swarm: layer l of UAV i's map is ``maps[l, i] * scale[l, i]``.
+
+    The maps are stored in float32 with a per-(layer, UAV) scale, so eq 16's renormalisation is
+    a change of ``scale`` (the forecast kernels conserve mass) rather than a pass over every
+    cell; ``totals`` tracks each stored map's sum and is recomputed exactly every
+    ``RESUM_PERIOD`` steps.
+    """
+
+    RESUM_PERIOD = 25
+
+    def __init__(self, targets: tuple[TargetSpec, ...], cfg: PlannerConfig, n_uavs: int) -> None:
+        self.cfg = cfg
+        self.grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
+        self.specs, prior = initial_layers(targets, cfg)
+        self.maps = np.repeat(prior[:, None, :, :], n_uavs, axis=1).astype(np.float32)
+        # Targets of each layer still at large, as each UAV believes (L, N).
+        self.counts = np.repeat(
+            np.array([len(s.target_ids) for s in self.specs], float)[:, None], n_uavs, axis=1
+        )
+        self.totals = self.maps.sum(axis=(2, 3), dtype=np.float64)
+        self.scale = np.ones_like(self.totals)
+        self.renormalise()
+        self.layer_of_target = {tid: l for l, s in enumerate(self.specs) for tid in s.target_ids}
+        self.layer_values = np.array([s.mean_value for s in self.specs])
+        self.steps = 0
+        self._build_forecast()
+
+    # -------------------------------------------------------------- forecast (eqs 19-22)
+
+    def _build_forecast(self) -> None:
+        cfg = self.cfg
+        dt = cfg.step_s
+        self.wiener_1d = wiener_kernel_1d(cfg.delta_e_km_per_sqrt_s * np.sqrt(dt) / cfg.cell_km)
+        self.ring_kernels: dict[int, np.ndarray] = {}
+        self.shift_rate = np.zeros((len(self.specs), 2))  # cells per step
+        self.shift_accum = np.zeros((len(self.specs), 2))
+        for l, spec in enumerate(self.specs):
+            step_cells = spec.speed_mps / 1000.0 * dt / cfg.cell_km
+            if spec.kind == "known_speed":
+                self.ring_kernels[l] = ring_kernel(step_cells)
+            elif spec.kind == "known_velocity":
+                self.shift_rate[l] = step_cells * np.array(
+                    [np.cos(spec.heading_rad), np.sin(spec.heading_rad)]
+                )
+
+    def forecast(self) -> None:
+        """Propagate every UAV's map over one decision period (eq 19 with the kernels of eqs
+        20-22); the ``reflect`` boundary keeps the mass of targets bouncing off the edge."""
+        for l, spec in enumerate(self.specs):
+            layer = self.maps[l]
+            if spec.kind == "known_position":
+                for axis in (1, 2):
+                    layer = ndimage.convolve1d(layer, self.wiener_1d, axis=axis, mode="reflect")
+                self.maps[l] = layer
+            elif spec.kind == "known_speed":
+                self.maps[l] = convolve_reflect(layer, self.ring_kernels[l])
+            elif spec.kind == "known_velocity":
+                # Exact sub-cell bookkeeping: move whole cells once the drift reaches half a cell,
+                # so the map is not blurred by repeated interpolation.
+                self.shift_accum[l] += self.shift_rate[l]
+                whole = np.rint(self.shift_accum[l]).astype(int)
+                if whole.any():
+                    self.shift_accum[l] -= whole
+                    layer = shift_with_reflection(layer, int(whole[0]), axis=1)
+                    self.maps[l] = shift_with_reflection(layer, int(whole[1]), axis=2)
+            # unknown_position targets are stationary: nothing moves.
+        self.steps += 1
+        if self.steps % self.RESUM_PERIOD == 0:
+            self.totals = self.maps.sum(axis=(2, 3), dtype=np.float64)
+            self.renormalise()
+
+    # -------------------------------------------------------------- probe update (eqs 17-18)
+
+    def apply_looks(
+        self,
+        receivers: np.ndarray,
+        look_cells: list[np.ndarray],
+        look_detected: list[np.ndarray],
+        look_origin_cells: np.ndarray,
+    ) -> None:
+        """Apply one look per receiving UAV with eq 18 (detection probability from eq 17).
+
+        ``receivers`` (M,) are distinct UAV indices; look m covers ``look_cells[m]`` (K_m, 2)
+        with bits ``look_detected[m]`` and was taken from ``look_origin_cells[m]``.
+        """
+        if len(receivers) == 0:
+            return
+        cfg, grid = self.cfg, self.grid
+        sizes = np.array([len(c) for c in look_cells])
+        cells = np.concatenate(look_cells)
+        detected = np.concatenate(look_detected).astype(bool)
+        uav = np.repeat(receivers, sizes)
+        origin = np.repeat(np.asarray(look_origin_cells), sizes, axis=0)
+        distance = np.hypot(*((cells - origin) * grid.cell_km).T)
+        p_d = detection_probability(distance, cfg)
+        flat = grid.flat(cells)
+        view = self.maps.reshape(len(self.specs), -1, grid.size)
+        scale = self.scale[:, uav]  # (L, P)
+        prior = view[:, uav, flat] * scale
+        posterior = bayes_update(prior, detected[None, :], p_d[None, :], cfg.p_false)
+        stored = (posterior / scale).astype(np.float32)
+        change = stored.astype(np.float64) - view[:, uav, flat]
+        view[:, uav, flat] = stored
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        self.totals[:, receivers] += np.add.reduceat(change, starts, axis=1)
+
+    def decay_unobserved(self, observed: np.ndarray) -> None:
+        """Eq 18, first case: cells no UAV looked at this step are multiplied by tau.
+        ``observed`` is (N, nx, ny) bool."""
+        if self.cfg.tpm_decay_tau < 1.0:
+            self.maps *= np.where(observed[None], 1.0, self.cfg.tpm_decay_tau).astype(np.float32)
+            self.totals = self.maps.sum(axis=(2, 3), dtype=np.float64)
+
+    def renormalise(self) -> None:
+        """Eq 16: scale every layer of every UAV to its count of targets at large."""
+        self.scale = np.divide(
+            self.counts, self.totals, out=np.zeros_like(self.totals), where=self.totals > 0
+        )
+
+    # -------------------------------------------------------------- reading the maps
+
+    def existence_at(self, uavs: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """Target existence probability p_mn as UAV ``uavs`` believes it, at ``cells`` (..., 2);
+        ``uavs`` broadcasts against ``cells.shape[:-1]`` (e.g. (N, 1) with (N, K, 2)). Cells
+        outside the area read 0."""
+        grid = self.grid
+        inside = grid.inside(cells)
+        clipped = np.stack(
+            [np.clip(cells[..., 0], 0, grid.nx - 1), np.clip(cells[..., 1], 0, grid.ny - 1)], axis=-1
+        )
+        flat = grid.flat(clipped)
+        view = self.maps.reshape(len(self.specs), -1, grid.size)
+        layers = np.clip(view[:, uavs, flat] * self.scale[:, uavs], 0.0, 1.0)
+        existence = 1.0 - np.prod(1.0 - layers, axis=0)
+        return np.where(inside, existence, 0.0)
+
+    def value_at(self, uav: int, cell: np.ndarray) -> float:
+        """Expected value of a target in a cell: layer masses weighting the layers' mean values."""
+        masses = self.maps[:, uav, cell[0], cell[1]] * self.scale[:, uav]
+        total = masses.sum()
+        return float(masses @ self.layer_values / total) if total > 0 else 0.0
+
+    def existence_map(self, uav: int) -> np.ndarray:
+        """The whole existence-probability map of one UAV (for figures and tests)."""
+        layers = self.maps[:, uav].astype(np.float64) * self.scale[:, uav, None, None]
+        return 1.0 - np.prod(1.0 - np.clip(layers, 0.0, 1.0), axis=0)
+
+    def layer_map(self, layer: int, uav: int) -> np.ndarray:
+        """Expected number of layer ``layer``'s targets in each cell, as UAV ``uav`` believes."""
+        return self.maps[layer, uav].astype(np.float64) * self.scale[layer, uav]
+
+    def remove_target(self, uav: int, target_id: int, cell: np.ndarray, radius_cells: int = 2) -> None:
+        """A UAV learns that a target was serviced at ``cell``: its layer loses one target and the
+        mass around the cell, and is renormalised."""
+        l = self.layer_of_target.get(target_id)
+        if l is None or self.counts[l, uav] <= 0:
+            return
+        self.counts[l, uav] -= 1
+        x0, y0 = max(cell[0] - radius_cells, 0), max(cell[1] - radius_cells, 0)
+        self.maps[l, uav, x0 : cell[0] + radius_cells + 1, y0 : cell[1] + radius_cells + 1] = 0.0
+        if self.counts[l, uav] <= 0:
+            self.maps[l, uav] = 0.0
+        self.totals[l, uav] = self.maps[l, uav].sum(dtype=np.float64)
+        self.renormalise()

@@ -1,0 +1,91 @@
+"""State transition rules (section 3.4, eqs 35-37), batched over UAVs and their candidate cells.
+
+Each function scores the C candidate cells of every UAV (higher is better, ``-inf`` where a
+constraint forbids the cell); ``choose`` turns scores into one choice per UAV, and
+``claim_cells`` resolves C_c (minimum separation) between UAVs in priority order.
+
+Symbols: Omega -> the candidate axis; theta_j -> ``angle_to``; tau_ij -> ``tau``; eta_ij ->
+``eta``; alpha, beta, q_0, lambda -> ``cfg.alpha``, ``cfg.beta``, ``cfg.q0``,
+``cfg.env_perception_lambda``; F / F_max -> ``force_norm`` / ``force_max``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from planner.config import PlannerConfig
+
+
+def angle_to(moves: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """theta_j of eq 35: angle (rad) between each candidate move (N, C, 2) and a direction (N, 2)."""
+    move_angle = np.arctan2(moves[..., 1], moves[..., 0])
+    target_angle = np.arctan2(direction[:, 1], direction[:, 0])[:, None]
+    diff = np.abs(np.mod(move_angle - target_angle + np.pi, 2 * np.pi) - np.pi)
+    return diff
+
+
+def deterministic_scores(moves: np.ndarray, direction: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    """Eq 35 with omega_1 = 1: the smallest angle to the potential-field force wins."""
+    return np.where(allowed, -angle_to(moves, direction), -np.inf)
+
+
+def use_deterministic(force_norm: np.ndarray, force_max: np.ndarray, q: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
+    """The switch of eqs 35/37: deterministic when q < lambda F / F_max (and the field is not flat)."""
+    ratio = np.divide(force_norm, force_max, out=np.zeros_like(force_norm), where=force_max > 0)
+    return (force_max > cfg.force_floor) & (q < cfg.env_perception_lambda * ratio)
+
+
+def transition_weights(tau: np.ndarray, eta: np.ndarray, allowed: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
+    """Eq 36's numerator tau^alpha eta^beta (0 where the move is not allowed)."""
+    return np.where(allowed, tau**cfg.alpha * eta**cfg.beta, 0.0)
+
+
+def heuristic_choice(weights: np.ndarray, q1: np.ndarray, u: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
+    """Eq 37 with omega_1 = 1: argmax of tau^alpha eta^beta when q_1 <= q_0, else a draw S from
+    the probabilities of eq 36 (``u`` uniform in [0, 1) per UAV)."""
+    best = np.argmax(weights, axis=1)
+    total = weights.sum(axis=1, keepdims=True)
+    probs = np.divide(weights, total, out=np.full_like(weights, 1.0 / weights.shape[1]), where=total > 0)
+    cumulative = np.cumsum(probs, axis=1)
+    drawn = np.minimum((cumulative < u[:, None]).sum(axis=1), weights.shape[1] - 1)
+    return np.where(q1 <= cfg.q0, best, drawn)
+
+
+def range_scores(distance_home_km: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    """Eqs 35/37 with omega_2 = 1: once the return slack is spent, the candidate that keeps
+    |L_max - L_past(k+1) - D_left(k+1)| smallest among the feasible ones is the one that heads
+    home along the shortest safe path."""
+    return np.where(allowed, -distance_home_km, -np.inf)
+
+
+def claim_cells(
+    ranked: np.ndarray,
+    candidates: np.ndarray,
+    allowed: np.ndarray,
+    positions_km: np.ndarray,
+    movers: np.ndarray,
+    cell_km: float,
+    min_separation_km: float,
+    sense_km: float,
+) -> np.ndarray:
+    """C_c: every moving UAV in index order takes the first of its ranked candidates that keeps
+    ``min_separation_km`` from the cells already claimed by UAVs it can sense (within
+    ``sense_km``) and from the UAVs that hold still. Returns the chosen candidate index per UAV
+    (its first choice when nothing satisfies the constraint, so the metrics see the breach)."""
+    n = len(ranked)
+    choice = ranked[:, 0].copy()
+    claimed = np.full((n, 2), np.nan)
+    claimed[~movers] = positions_km[~movers]
+    for i in np.flatnonzero(movers):
+        near = np.hypot(*(positions_km - positions_km[i]).T) <= sense_km
+        near[i] = False
+        others = claimed[near & ~np.isnan(claimed[:, 0])]
+        for c in ranked[i]:
+            if not allowed[i, c] and c != ranked[i, 0]:
+                continue
+            spot = (candidates[i, c] + 0.5) * cell_km
+            if len(others) == 0 or np.min(np.hypot(*(others - spot).T)) >= min_separation_km - 1e-9:
+                choice[i] = c
+                break
+        claimed[i] = (candidates[i, choice[i]] + 0.5) * cell_km
+    return choice
