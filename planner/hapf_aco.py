@@ -313,7 +313,9 @@ class HapfAcoPlanner:
             home_dist[i] = np.where(
                 inside, field[np.clip(cand[i, :, 0], 0, grid.nx - 1), np.clip(cand[i, :, 1], 0, grid.ny - 1)], np.inf
             )
-        slack = cfg.max_range_km - (self.distance_km[:, None] + step_len + home_dist + cfg.return_reserve_km)
+        needed = self.distance_km[:, None] + step_len + home_dist + cfg.return_reserve_km
+        slack = np.inf if not np.isfinite(cfg.max_range_km) else cfg.max_range_km - needed
+        slack = np.where(np.isfinite(home_dist), slack, -np.inf)
         in_range = slack >= 0
         feasible = allowed & in_range
         # If range cannot be kept (it always can unless the start is boxed in), keep safety only.

@@ -327,7 +327,7 @@ class TargetProbabilityMaps:
         scale = self.scale[:, uav]  # (L, P)
         prior = view[:, uav, flat] * scale
         posterior = bayes_update(prior, detected[None, :], p_d[None, :], cfg.p_false)
-        stored = (posterior / scale).astype(np.float32)
+        stored = np.divide(posterior, scale, out=np.zeros_like(posterior), where=scale > 0).astype(np.float32)
         change = stored.astype(np.float64) - view[:, uav, flat]
         view[:, uav, flat] = stored
         starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])

@@ -37,7 +37,10 @@ def use_deterministic(force_norm: np.ndarray, force_max: np.ndarray, q: np.ndarr
 
 def transition_weights(tau: np.ndarray, eta: np.ndarray, allowed: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
     """Eq 36's numerator tau^alpha eta^beta (0 where the move is not allowed)."""
-    return np.where(allowed, tau**cfg.alpha * eta**cfg.beta, 0.0)
+    weights = np.where(allowed, tau**cfg.alpha * eta**cfg.beta, 0.0)
+    if not np.all(np.isfinite(weights)):
+        raise FloatingPointError("non-finite transition weight: a belief map holds NaN or inf")
+    return weights
 
 
 def heuristic_choice(weights: np.ndarray, q1: np.ndarray, u: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
@@ -47,7 +50,9 @@ def heuristic_choice(weights: np.ndarray, q1: np.ndarray, u: np.ndarray, cfg: Pl
     total = weights.sum(axis=1, keepdims=True)
     probs = np.divide(weights, total, out=np.full_like(weights, 1.0 / weights.shape[1]), where=total > 0)
     cumulative = np.cumsum(probs, axis=1)
-    drawn = np.minimum((cumulative < u[:, None]).sum(axis=1), weights.shape[1] - 1)
+    drawn = (cumulative < u[:, None] * cumulative[:, -1:]).sum(axis=1)
+    drawn = np.where(weights[np.arange(len(weights)), np.minimum(drawn, weights.shape[1] - 1)] > 0,
+                     np.minimum(drawn, weights.shape[1] - 1), best)  # fmt: skip
     return np.where(q1 <= cfg.q0, best, drawn)
 
 

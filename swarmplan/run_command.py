@@ -1,0 +1,93 @@
+"""``swarmplan run``: fly a scenario offline (world + planner in-process) and write its result."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from planner.errors import UserError
+from planner.scenario import BUILTIN_SCENARIOS, load_scenario
+from sim_gateway.offline_runner import PLANNERS, run_offline
+
+HELP = "fly a scenario offline (no MAVLink) and write result.json and figures"
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be at least 1")
+    return value
+
+
+def seed_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be 0 or more")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scenario", help=f"a built-in scenario ({', '.join(BUILTIN_SCENARIOS)}) or a TOML file")
+    parser.add_argument("--seed", type=seed_int, default=1, help="random seed of the run (default 1)")
+    parser.add_argument("--steps", type=positive_int, default=None, help="decision steps (default: the scenario's)")
+    parser.add_argument("--algorithm", default="hapf-aco", choices=sorted(PLANNERS), help="planner to fly")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default runs/<scenario>-seed<S>)")
+    parser.add_argument("--json", action="store_true", help="print only the result JSON on stdout")
+
+
+def write_outputs(result: dict, out_dir: Path) -> list[Path]:
+    """result.json, the figures and the waypoint files of a run, in ``out_dir``."""
+    from swarmplan.figures import write_figures
+
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        path = out_dir / "result.json"
+        path.write_text(json.dumps(result, indent=1))
+    except OSError as exc:
+        raise UserError(f"cannot write to {out_dir} ({exc.strerror}); choose another --out folder") from None
+    written = [path, *write_figures(result, out_dir)]
+    try:
+        from mavlink_bridge.waypoint_export import export_all
+    except ImportError:
+        return written
+    return written + list(export_all(result, out_dir))
+
+
+def summary(result: dict) -> str:
+    v = result["violations"]
+    sep = result["min_separation_km"]
+    return "\n".join([
+        f"scenario {result['scenario']}  algorithm {result['algorithm']}  seed {result['seed']}  steps {result['steps']}",
+        f"coverage        {100 * result['coverage']:.1f} %  (slope over the first 50 steps {100 * result['coverage_slope_50']:.3f} %/step)",
+        f"engaged         {result['engaged_count']} targets, value {result['engaged_value']:g}",
+        f"min separation  {'n/a' if sep is None else f'{sep:.2f} km'}",
+        f"returned home   {result['returned_count']} of {result['uav_count']}",
+        f"violations      threat {v['threat']}, separation {v['separation']}, turn {v['turn']}, range {v['range']}",
+        f"wall time       {result['wall_time_s']:.2f} s",
+    ])  # fmt: skip
+
+
+def main(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario)
+    steps = args.steps or scenario.steps
+    out_dir = args.out or Path("runs") / f"{scenario.name}-seed{args.seed}"
+    with tqdm(total=steps, desc=f"{scenario.name} seed {args.seed}", unit="step", disable=args.json,
+              file=sys.stderr, leave=False) as bar:  # fmt: skip
+        result = run_offline(scenario, args.seed, steps, args.algorithm, progress=lambda k: bar.update(1))
+    written = write_outputs(result, out_dir)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(summary(result))
+        print(f"written: {', '.join(str(p) for p in written)}")
+    return 0
