@@ -1,0 +1,75 @@
+import pytest
+
+from planner.scenario import BUILTIN_SCENARIOS, ScenarioError, load_scenario, parse_scenario
+
+GOOD = """
+name = "small"
+steps = 20
+[uavs]
+count = 1
+[[uavs.start]]
+x_km = 5
+y_km = 5
+[[targets]]
+kind = "unknown_position"
+x_km = 50
+y_km = 50
+value = 1
+"""
+
+
+def test_builtin_scenarios_match_the_paper():
+    two = load_scenario("paper-2uav")
+    assert two.uav_count == 2 and not two.threats and two.config.n_topo == 1
+    assert [(s.x_km, s.y_km) for s in two.uav_starts] == [(10.5, 10.5), (90.5, 90.5)]
+    ten = load_scenario("paper-10uav")
+    assert ten.uav_count == 10 and len(ten.threats) == 5 and ten.config.max_range_km == 330
+    assert len(ten.targets) == 16 and sum(t.value for t in ten.targets) == 42
+    assert {t.kind for t in ten.targets} == {"unknown_position", "known_position", "known_speed", "known_velocity"}
+    assert load_scenario("paper-20uav").uav_count == 20
+    assert set(BUILTIN_SCENARIOS) == {"paper-2uav", "paper-10uav", "paper-20uav"}
+
+
+def test_random_starts_are_reproducible_and_safe():
+    s = load_scenario("paper-20uav")
+    a, b = s.starts_for_seed(4), s.starts_for_seed(4)
+    assert a == b and a != s.starts_for_seed(5)
+    for start in a:
+        for t in s.threats:
+            assert ((start.x_km - t.x_km) ** 2 + (start.y_km - t.y_km) ** 2) ** 0.5 > t.radius_km + 3
+
+
+def test_good_file_parses():
+    s = parse_scenario(GOOD, "small.toml")
+    assert s.steps == 20 and s.uav_count == 1
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (("x_km = 50\ny_km = 50", "x_km = 150\ny_km = 50"), "outside the 100 x 100 km area"),
+        (('kind = "unknown_position"', 'kind = "flying"'), "use one of"),
+        (("value = 1", 'value = "high"'), "must be a number"),
+        (("value = 1", "value = -2"), "value must be > 0"),
+        (("count = 1", "count = 2"), "make them agree"),
+        (("steps = 20", "steps = 0"), "positive integer"),
+        (("[uavs]", "[uavs]\nwingspan = 3"), "unknown key 'wingspan'"),
+        (("steps = 20", "steps = 20\n[parameters]\np_detect = 2.0"), "p_detect"),
+        (("steps = 20", "steps = 20\n[parameters]\nwarp = 2.0"), "unknown parameter 'warp'"),
+        (("steps = 20", "steps = 20 ]]"), "not valid TOML"),
+        (("value = 1", "value = 1\n[[threats]]\nx_km = 5\ny_km = 5\nradius_km = 2"), "starts inside threats"),
+        (("value = 1", "value = 1\n[[threats]]\nx_km = 50\ny_km = 50\nradius_km = -1"), "radius_km must be > 0"),
+        (("x_km = 50\ny_km = 50", "y_km = 50"), "x_km is missing"),
+    ],
+)
+def test_broken_scenarios_give_one_clear_line(change, message):
+    old, new = change
+    assert old in GOOD
+    with pytest.raises(ScenarioError, match=message) as info:
+        parse_scenario(GOOD.replace(old, new, 1), "broken.toml")
+    assert "\n" not in str(info.value) and "broken.toml" in str(info.value)
+
+
+def test_missing_file_names_the_builtins(tmp_path):
+    with pytest.raises(ScenarioError, match="neither a built-in"):
+        load_scenario(tmp_path / "nope.toml")

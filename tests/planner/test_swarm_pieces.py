@@ -1,0 +1,142 @@
+"""Grid, topology, potential field, pheromone, constraints and transition rules."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from planner.config import ConfigError, PlannerConfig
+from planner.constraints import SafetyModel, segment_clearance
+from planner.grid import Grid, candidate_moves, heading_change_deg
+from planner.pheromone import PheromoneMaps
+from planner.potential_field import attraction, morse_repulsion, threat_repulsion
+from planner.topology import adapt_radius, adjacency, pairwise_distances
+from planner.transition import claim_cells, heuristic_choice, use_deterministic
+
+CFG = PlannerConfig()
+GRID = Grid()
+
+
+@given(st.integers(0, 99), st.integers(0, 99), st.integers(0, 7))
+def test_no_candidate_cell_violates_the_turn_limit(x, y, h):
+    cells, headings = candidate_moves(np.array([[x, y]]), np.array([h]), 45.0)
+    assert cells.shape == (1, 3, 2)
+    assert np.all(heading_change_deg(h, headings[0]) <= 45.0)
+    steps = np.abs(cells[0] - [x, y])
+    assert np.all(steps.max(axis=1) == 1)  # one cell per step
+
+
+def test_footprint_of_radius_3_has_29_cells():
+    assert len(GRID.disc_offsets(3.0)) == 29
+
+
+def test_adjacency_and_radius_adaptation_follow_eqs_1_to_3():
+    pos = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, 10.0], [40.0, 40.0]])
+    d = pairwise_distances(pos)
+    a = adjacency(d, np.array([5.0, 5.0, 5.0, 5.0]), np.ones(4, bool))
+    assert a[0, 1] and a[1, 0] and not a[0, 2] and not a[0, 0] and not a[3].any()
+    cfg = CFG.replace(n_topo=2, topology_rate=0.1, sensing_radius_km=50.0)
+    r = adapt_radius(np.array([5.0, 5.0]), np.array([0, 4]), cfg)
+    assert r[0] == pytest.approx(5.0 + 0.1 * 50 * 1.0)  # too few neighbours: grow
+    assert r[1] == pytest.approx(max(5.0 - 0.1 * 50 * 1.0, cfg.coop_radius_min_km))
+    assert adapt_radius(np.array([49.0]), np.array([0]), cfg)[0] == 50.0  # capped by R_sen
+
+
+def test_attraction_points_up_the_tpm_gradient():
+    patch = np.array([[0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [0.5, 0.5, 0.5]])  # grows with x
+    f = attraction(patch[None], CFG)[0]
+    assert f[0] == pytest.approx(0.2) and f[1] == pytest.approx(0.0)
+
+
+def test_threat_repulsion_grows_toward_the_threat_and_vanishes_outside():
+    threat = np.array([[50.0, 50.0]])
+    radius = np.array([4.0])
+    pts = np.array([[[55.0, 50.0], [56.0, 50.0], [60.0, 50.0]]])
+    f = threat_repulsion(pts, threat, radius, np.array([[True]]), CFG)[0]
+    assert f[0, 0] > f[1, 0] > 0  # away from the centre (+x), stronger closer
+    assert f[2, 0] == 0  # beyond R_t + R
+    unknown = threat_repulsion(pts, threat, radius, np.array([[False]]), CFG)
+    assert np.all(unknown == 0)
+
+
+def test_morse_repulsion_matches_eq27():
+    cfg = CFG
+    others = np.array([[0.0, 0.0], [2.0, 0.0]])
+    f = morse_repulsion(np.array([[[0.0, 0.0]]]), others, np.array([[False, True], [True, False]]), cfg)[0, 0]
+    d, c, b, r0 = 2.0, cfg.morse_c_km, cfg.morse_b, cfg.morse_r0_km
+    expected = (b / c) * np.exp(d / c) / (np.exp(d / c) - np.exp(r0 / c)) ** 2
+    assert f[0] == pytest.approx(-expected) and f[1] == pytest.approx(0.0)
+
+
+def test_pheromone_stays_clamped_and_follows_eqs_32_to_34():
+    cfg = CFG
+    ph = PheromoneMaps(2, cfg)
+    for _ in range(40):
+        ph.local_update(np.array([0, 0]), np.array([[50, 50], [51, 50]]))
+    assert ph.tau.min() >= cfg.tau_min and ph.tau.max() <= cfg.tau_max
+    assert ph.tau[0, 50, 50] == cfg.tau_min and ph.tau[1, 50, 50] == cfg.tau_max
+    ph2 = PheromoneMaps(1, cfg)
+    ph2.local_update(np.array([0]), np.array([[20, 20]]))
+    assert ph2.tau[0, 20, 20] == pytest.approx(cfg.tau_max - cfg.local_decrement)
+    assert ph2.tau[0, 22, 20] == pytest.approx(cfg.tau_max - cfg.local_decrement * (81 - 16) / 81)
+    assert ph2.tau[0, 24, 20] == cfg.tau_max  # beyond R
+    ph2.global_update()
+    assert ph2.tau[0, 20, 20] == cfg.tau_max  # raised by F * dtau_g0 = 0.3, clamped
+
+
+def test_viability_never_lets_a_uav_into_a_threat_or_out_of_the_area():
+    threats = np.array([[50.0, 50.0], [20.0, 80.0]])
+    radii = np.array([6.0, 3.0])
+    model = SafetyModel(GRID, threats, radii, 0.0, 45.0)
+    rng = np.random.default_rng(3)
+    for _ in range(20):  # random walks over allowed moves from viable states stay safe for ever
+        while True:
+            cell = rng.integers(0, 100, 2)
+            h = int(rng.integers(0, 8))
+            if model.viable[h, cell[0], cell[1]]:
+                break
+        for _ in range(300):
+            cand, heads = candidate_moves(cell[None], np.array([h]), 45.0)
+            ok = model.move_allowed(np.repeat(cell[None], 3, 0), heads[0])
+            assert ok.any(), "a viable state always has an allowed move"
+            k = rng.choice(np.flatnonzero(ok))
+            clearance = segment_clearance(GRID.centre_km(cell), GRID.centre_km(cand[0, k]), threats, radii)
+            assert clearance > 0 and GRID.inside(cand[0, k])
+            cell, h = cand[0, k], int(heads[0, k])
+
+
+def test_distance_home_goes_around_threats():
+    model = SafetyModel(GRID, np.array([[50.0, 50.0]]), np.array([10.0]), 0.0, 45.0)
+    home = GRID.flat(np.array([30, 50]))
+    d = model.distance_home_km(int(home))
+    assert d[30, 50] == 0
+    assert d[70, 50] > 40.0 + 1.0  # straight line 40 km goes through the threat
+    free = SafetyModel(GRID, np.zeros((0, 2)), np.zeros(0), 0.0, 45.0).distance_home_km(int(home))
+    assert free[70, 50] == pytest.approx(40.0)
+
+
+def test_deterministic_switch_and_heuristic_choice():
+    q = np.array([0.1, 0.9, 0.1])
+    det = use_deterministic(np.array([1.0, 1.0, 1e-9]), np.array([1.0, 1.0, 1e-9]), q, CFG)
+    assert det.tolist() == [True, False, False]  # flat field: never deterministic
+    w = np.array([[0.0, 1.0, 3.0], [0.0, 1.0, 0.0]])
+    greedy = heuristic_choice(w, np.array([0.0, 0.0]), np.array([0.5, 0.5]), CFG)
+    assert greedy.tolist() == [2, 1]
+    draws = [heuristic_choice(w[:1], np.array([1.0]), np.array([u]), CFG)[0] for u in np.linspace(0, 0.999, 200)]
+    assert 0 not in draws  # a forbidden cell is never drawn
+    assert abs(np.mean(np.array(draws) == 2) - 0.75) < 0.02  # eq 36 probabilities
+
+
+def test_claim_cells_keeps_min_separation():
+    cand = np.array([[[10, 10], [11, 10], [12, 10]], [[10, 10], [10, 11], [10, 12]]])
+    ranked = np.array([[0, 1, 2], [0, 1, 2]])
+    pos = np.array([[9.5, 10.5], [10.5, 9.5]])
+    pick = claim_cells(ranked, cand, np.ones((2, 3), bool), pos, np.ones(2, bool), 1.0, 1.0, 3.0)
+    assert pick.tolist() == [0, 1]
+
+
+def test_config_rejects_bad_values_with_a_clear_message():
+    with pytest.raises(ConfigError, match="p_detect"):
+        PlannerConfig(p_detect=1.5)
+    with pytest.raises(ConfigError, match="tau_min"):
+        PlannerConfig(tau_min=2.0)

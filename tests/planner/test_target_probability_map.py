@@ -1,0 +1,146 @@
+import numpy as np
+import pytest
+
+from planner.config import PlannerConfig
+from planner.grid import Grid
+from planner.scenario import TargetSpec
+from planner.sensor_model import bayes_update, detection_probability
+from planner.target_probability_map import (
+    TargetProbabilityMaps,
+    convolve_reflect,
+    normalised,
+    ring_kernel,
+    ring_prior,
+    shift_with_reflection,
+    shifted_prior,
+    uniform_prior,
+    wiener_kernel_1d,
+    wiener_prior,
+)
+
+CFG = PlannerConfig()
+GRID = Grid()
+
+
+def test_uniform_prior_is_eq9_and_sums_to_one():
+    prior = uniform_prior(GRID)
+    assert prior.shape == (100, 100)
+    assert np.allclose(prior, 1e-4)
+    assert prior.sum() == pytest.approx(1.0)
+
+
+def test_wiener_prior_has_the_eq11_variance():
+    t = TargetSpec(1, "known_position", 50.0, 50.0, 1.0)
+    p = normalised(wiener_prior(t, CFG, GRID))
+    x = GRID.centres_x_km
+    mean_x = (p.sum(axis=1) * x).sum()
+    var_x = (p.sum(axis=1) * (x - mean_x) ** 2).sum()
+    expected = CFG.delta_0_km**2 + CFG.delta_e_km_per_sqrt_s**2 * CFG.t0_s + 1 / 12  # + cell width
+    assert mean_x == pytest.approx(50.0, abs=1e-6)
+    assert var_x == pytest.approx(expected, rel=0.01)
+
+
+def test_ring_prior_of_eq13_peaks_on_the_ring_of_radius_v_t0():
+    cfg = CFG.replace(delta_0_km=1.0)  # a sharp prior makes the ring visible
+    t = TargetSpec(5, "known_speed", 50.0, 50.0, 1.0, speed_mps=200.0)  # v t0 = 10 km
+    p = ring_prior(t, cfg, GRID)
+    x, y = np.meshgrid(GRID.centres_x_km, GRID.centres_y_km, indexing="ij")
+    r = np.hypot(x - 50, y - 50)
+    assert abs(r[np.unravel_index(np.argmax(p), p.shape)] - 10.0) < 1.0
+    on_ring = p[np.abs(r - 10) < 0.5].mean()
+    assert on_ring > 20 * p[r < 3].mean()  # the centre is nearly empty
+
+
+def test_shifted_prior_of_eq14_is_centred_at_x_plus_v_t0():
+    t = TargetSpec(9, "known_velocity", 30.0, 30.0, 1.0, speed_mps=100.0, heading_rad=np.pi / 2)
+    p = normalised(shifted_prior(t, CFG, GRID))
+    mean_y = (p.sum(axis=0) * GRID.centres_y_km).sum()
+    assert mean_y == pytest.approx(30.0 + 0.1 * CFG.t0_s, abs=0.05)
+
+
+def test_negative_look_lowers_the_cell_by_the_eq18_ratio():
+    p = 0.2
+    post = bayes_update(np.array([p]), np.array([False]), 0.9, 0.1)[0]
+    assert post == pytest.approx((1 - 0.9) * p / (1 - 0.1 + (0.1 - 0.9) * p))
+    post_pos = bayes_update(np.array([p]), np.array([True]), 0.9, 0.1)[0]
+    assert post_pos == pytest.approx(0.9 * p / (0.1 + 0.8 * p))
+    assert post < p < post_pos
+
+
+def test_detection_probability_follows_eq17():
+    cfg = CFG
+    d = np.array([0.0, cfg.sensor_d_in_km, 2.0, cfg.detection_radius_km, 10.0])
+    p = detection_probability(d, cfg)
+    assert p[0] == p[1] == cfg.p_detect
+    assert p[2] == pytest.approx(cfg.p_detect - (cfg.p_detect - cfg.p_false) * 0.5)
+    assert p[3] == pytest.approx(cfg.p_false) and p[4] == cfg.p_false
+
+
+def test_maps_sum_to_target_counts_after_looks_and_forecasts():
+    targets = (
+        TargetSpec(1, "known_position", 20, 20, 3),
+        TargetSpec(2, "known_speed", 50, 50, 2, speed_mps=40),
+        TargetSpec(3, "known_velocity", 70, 30, 1, speed_mps=30, heading_rad=1.0),
+        TargetSpec(4, "unknown_position", 10, 90, 1),
+        TargetSpec(5, "unknown_position", 90, 10, 1),
+    )
+    tpm = TargetProbabilityMaps(targets, CFG, n_uavs=3)
+    rng = np.random.default_rng(0)
+    offsets = GRID.disc_offsets(CFG.detection_radius_km)
+    for _ in range(30):
+        centres = rng.integers(5, 95, size=(3, 2))
+        looks = [c + offsets for c in centres]
+        tpm.apply_looks(np.arange(3), looks, [rng.random(len(offsets)) < 0.1 for _ in looks], centres)
+        tpm.renormalise()
+        tpm.forecast()
+    for uav in range(3):
+        sums = [tpm.layer_map(l, uav).sum() for l in range(len(tpm.specs))]
+        assert sums == pytest.approx([1, 1, 1, 2], rel=1e-4)  # (ring, shift, wiener, uniform) counts
+        e = tpm.existence_map(uav)
+        assert np.all((e >= 0) & (e <= 1))
+
+
+def test_negative_looks_move_mass_out_of_the_footprint():
+    targets = (TargetSpec(1, "unknown_position", 50, 50, 1),)
+    tpm = TargetProbabilityMaps(targets, CFG, n_uavs=1)
+    cells = np.array([[50, 50]]) + GRID.disc_offsets(CFG.detection_radius_km)
+    before = tpm.existence_at(np.zeros(len(cells), int), cells).sum()
+    tpm.apply_looks(np.array([0]), [cells], [np.zeros(len(cells), bool)], np.array([[50, 50]]))
+    tpm.renormalise()
+    assert tpm.existence_at(np.zeros(len(cells), int), cells).sum() < 0.6 * before
+    assert tpm.layer_map(0, 0).sum() == pytest.approx(1.0, rel=1e-5)
+
+
+def test_forecast_kernels_conserve_mass_and_spread():
+    k = wiener_kernel_1d(0.63)
+    assert k.sum() == pytest.approx(1.0) and np.allclose(k, k[::-1])
+    ring = ring_kernel(0.5)
+    assert ring.sum() == pytest.approx(1.0)
+    maps = np.zeros((2, 20, 20), np.float32)
+    maps[:, 0, 0] = 1.0
+    maps[1, 10, 10] = 1.0
+    out = convolve_reflect(maps, ring)
+    assert out.sum(axis=(1, 2)) == pytest.approx(maps.sum(axis=(1, 2)), rel=1e-6)
+    assert out[1, 10, 10] == pytest.approx(ring[1, 1])
+
+
+def test_shift_with_reflection_folds_mass_at_the_edge():
+    maps = np.arange(10, dtype=float)[None, :, None] * np.ones((1, 10, 3))
+    moved = shift_with_reflection(maps, 3, axis=1)
+    assert moved.sum() == pytest.approx(maps.sum())
+    assert moved[0, 3, 0] == 0.0 and moved[0, 9, 0] == 6.0 + 7.0  # 6 moved in, 7 folded back
+    back = shift_with_reflection(maps, -2, axis=1)
+    assert back.sum() == pytest.approx(maps.sum())
+    assert back[0, 0, 0] == 2.0 + 1.0
+
+
+def test_known_velocity_layer_moves_without_blurring():
+    t = (TargetSpec(9, "known_velocity", 30, 50, 1, speed_mps=30, heading_rad=0.0),)
+    tpm = TargetProbabilityMaps(t, CFG.replace(delta_0_km=1.0), n_uavs=1)
+    start = tpm.layer_map(0, 0).copy()
+    for _ in range(100):  # 0.3 km per step -> 30 km east
+        tpm.forecast()
+    end = tpm.layer_map(0, 0)
+    mean = lambda m: (m.sum(axis=1) * GRID.centres_x_km).sum() / m.sum()  # noqa: E731
+    assert mean(end) - mean(start) == pytest.approx(30.0, abs=0.6)
+    assert end.max() == pytest.approx(start.max(), rel=1e-5)  # same shape, not smeared
