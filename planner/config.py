@@ -36,11 +36,11 @@ class PlannerConfig:
 
     # --- sensor (eqs 17-18, section 4.1) ---
     detection_radius_km: float = 3.0  # R, sensor footprint radius; also d_out of eq 17
-    sensor_d_in_km: float = 1.0  # d_in of eq 17 (open in the paper)
+    sensor_d_in_km: float = 2.0  # d_in of eq 17 (open in the paper)
     p_detect: float = 0.9  # P_D
     p_false: float = 0.1  # P_F
     tpm_decay_tau: float = 1.0  # tau of eq 18 for cells outside the view (open; 1 = no decay)
-    confirm_threshold: float = 0.9  # cell existence probability that confirms a target (open)
+    confirm_threshold: float = 0.8  # cell existence probability that confirms a target (open)
     engage_radius_km: float = 1.0  # attack (engagement) radius
 
     # --- target priors and motion (eqs 10-14, 19-22) ---

@@ -73,7 +73,8 @@ def claim_cells(
     min_separation_km: float,
     sense_km: float,
 ) -> np.ndarray:
-    """C_c: every moving UAV in index order takes the first of its ranked candidates that keeps
+    """C_c: every moving UAV, the most constrained first (fewest allowed cells, then index),
+    takes the first of its ranked candidates that keeps
     ``min_separation_km`` from the cells already claimed by UAVs it can sense (within
     ``sense_km``) and from the UAVs that hold still. Returns the chosen candidate index per UAV
     (its first choice when nothing satisfies the constraint, so the metrics see the breach)."""
@@ -81,7 +82,8 @@ def claim_cells(
     choice = ranked[:, 0].copy()
     claimed = np.full((n, 2), np.nan)
     claimed[~movers] = positions_km[~movers]
-    for i in np.flatnonzero(movers):
+    order = np.lexsort((np.arange(n), allowed.sum(axis=1)))
+    for i in order[movers[order]]:
         near = np.hypot(*(positions_km - positions_km[i]).T) <= sense_km
         near[i] = False
         others = claimed[near & ~np.isnan(claimed[:, 0])]
