@@ -68,7 +68,7 @@ def test_negative_look_lowers_the_cell_by_the_eq18_ratio():
 
 
 def test_detection_probability_follows_eq17():
-    cfg = CFG
+    cfg = CFG.replace(sensor_d_in_km=1.0)
     d = np.array([0.0, cfg.sensor_d_in_km, 2.0, cfg.detection_radius_km, 10.0])
     p = detection_probability(d, cfg)
     assert p[0] == p[1] == cfg.p_detect
