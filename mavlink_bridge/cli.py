@@ -34,8 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="seconds to wait for the autopilots to finish initialising (default 120)")  # fmt: skip
     parser.add_argument("--lost-after", type=float, default=3.0,
                         help="seconds of silence before a vehicle counts as lost (default 3)")  # fmt: skip
-    parser.add_argument("--threat-margin-km", type=float, default=0.25,
-                        help="safety envelope's clearance from threat circles (default 0.25 km)")  # fmt: skip
+    parser.add_argument("--threat-margin-km", type=float, default=1.0,
+                        help="safety envelope clearance from threat circles (default 1 km, a plane turn radius)")  # fmt: skip
     parser.add_argument("--time-scale", type=float, default=1.0,
                         help="speed of the vehicles' clock (SITL --speedup); paces steps only for "
                         "vehicles that send no sensor looks (default 1)")  # fmt: skip

@@ -76,7 +76,15 @@ class DaemonOptions:
     lost_after_s: float = 3.0  # wall seconds of silence before a vehicle counts as lost
     takeoff_altitude_m: float = 30.0  # climb (above home) that ends the TAKEOFF phase
     takeoff_timeout_s: float = 60.0
-    threat_margin_km: float = 0.25
+    threat_margin_km: float = 1.0  # about a plane's minimum turn radius at 100 m/s
+    separation_margin_km: float = 1.0  # on top of d_min: telemetry positions lag the cells
+    #: guided targets lead the next cell by this many legs along the planned direction, so a
+    #: plane passes through the cell centre on time instead of arriving and circling it
+    lead_steps: float = 1.0
+    max_refusals: int = 5  # consecutive refused guided targets of one vehicle that end the run
+    #: measured legs come from telemetry, not cell centres: a turn counts as a C_m violation only
+    #: beyond phi_max plus this (the envelope itself never commands more than phi_max)
+    turn_tolerance_deg: float = 15.0
     time_scale: float = 1.0  # vehicles' clock speed; paces steps only when no looks arrive
     command_retry_s: float = 0.3
     command_attempts: int = 5
@@ -135,13 +143,16 @@ class MissionDaemon:
             raise UserError("--expect must be at least 1")
         self.system_ids = list(range(1, self.n + 1))
         self.steps = options.steps or scenario.steps
-        self.envelope = SafetyEnvelope.for_scenario(scenario, options.threat_margin_km)
+        self.envelope = SafetyEnvelope.for_scenario(
+            scenario, options.threat_margin_km, options.separation_margin_km
+        )
         self.events: list[LinkEvent] = []
         self.tlog: TlogWriter | None = None
         self.link: SwarmLink | None = None
         self.overrides = {"area": 0, "threat": 0, "separation": 0, "range": 0}
         self._look_gaps: list[float] = []
         self._last_step_wall = 0.0
+        self.refused_commands = 0
         self._target_values = {t.id: t.value for t in scenario.targets}
 
     # ------------------------------------------------------------------ helpers
@@ -342,7 +353,8 @@ class MissionDaemon:
         """Run discovery to RTL and return the result measured over MAVLink."""
         HapfAcoPlanner, MissionRecorder = _import_planner()
         started = time.monotonic()
-        self.connect()
+        if self.link is None:
+            self.connect()
         try:
             self.discover()
             self.upload_threats()
@@ -373,21 +385,24 @@ class MissionDaemon:
         scenario, n, cfg = self.scenario, self.n, self.scenario.config
         starts = self.starts_from_telemetry()
         planner = planner_cls(scenario, starts, self.options.seed)
-        recorder = recorder_cls(scenario, starts)
+        recorder = recorder_cls(scenario, starts, turn_tolerance_deg=self.options.turn_tolerance_deg)
         home_km = np.array([[s.x_km, s.y_km] for s in starts])
         cells = self.grid.cell_of(home_km)
         headings = np.array([int(heading_of_angle(math.radians(s.heading_deg))) for s in starts])
         commanded_cells, commanded_headings = cells.copy(), headings.copy()
-        last_target: list[tuple[int, int] | None] = [None] * n
+        last_target: list[tuple[float, float] | None] = [None] * n
         consumed = [self.vehicle(i).latest_look for i in range(n)]
         flown_km = np.zeros(n)
         engagements: list[EngagementOutcome | None] = [None] * n
         engage_seq = [0] * n
+        refusals = [0] * n
         observed = np.zeros(self.grid.shape, dtype=bool)
         engaged_ids: set[int] = set()
         engaged_value = 0.0
         positions = self.grid.centre_km(cells)
-        for step in range(self.steps):
+        previous_centres = positions.copy()
+        self.looks_missed = 0
+        for step in range(self.steps + 1):  # the start, then one record per decision step
             looks = self.wait_for_step(step, consumed) if step > 0 else {}
             active = np.array([not self.vehicle(i).lost for i in range(n)])
             reports: list[SensorReport | None] = [None] * n
@@ -400,17 +415,20 @@ class MissionDaemon:
                     positions[i] = self.local_km(look.lat_deg, look.lon_deg)
                     reports[i] = look_report(look, self.grid, scenario.origin, cfg.detection_radius_km)
                     observed[reports[i].cells[:, 0], reports[i].cells[:, 1]] = True
-                elif v.has_position and step > 0:
+                elif v.has_position:
+                    self.looks_missed += step > 0
                     positions[i] = self.local_km(v.lat_deg, v.lon_deg)
                 cell = self.grid.cell_of(positions[i])
-                if step > 0:
+                if step == 0:  # where the take-off left it, flying its course
+                    course = self._course_heading(v)
+                    headings[i] = headings[i] if course is None else course
+                else:
                     if np.array_equal(cell, commanded_cells[i]):
                         headings[i] = commanded_headings[i]
                     else:
                         course = self._course_heading(v)
                         headings[i] = commanded_headings[i] if course is None else course
                 cells[i] = cell
-            recorder.record_step(step, positions.copy(), headings.copy(), active.copy())
             decision = planner.step(cells.copy(), headings.copy(), reports, engagements, active.copy())
             engagements = [None] * n
             done = np.asarray(decision.done, dtype=bool)
@@ -419,6 +437,14 @@ class MissionDaemon:
             checked = self.envelope.check(cells, headings, proposed, proposed_h, flown_km, home_km, active)
             for o in checked.overrides:
                 self.overrides[o.reason] += 1
+            for i in range(n):  # distance flown so far, between measured cells (as the planner counts)
+                if active[i] and step > 0:
+                    flown_km[i] += float(np.hypot(*(self.grid.centre_km(cells[i]) - previous_centres[i])))
+            previous_centres = self.grid.centre_km(cells)
+            recorder.record_step(
+                positions.copy(), airborne=active.copy(),
+                planned_km=self.grid.centre_km(checked.next_cells), done=done,
+            )  # fmt: skip
             # engagements first: the vehicle is where the planner asked for it
             requests = [
                 (i, engagement_command(self.vehicle(i), engage_seq[i] + 1))
@@ -437,25 +463,34 @@ class MissionDaemon:
                     engaged_value += value
                     recorder.record_engagement(step, i, target, value)
             # guided targets
-            lat, lon = self.geodetic(checked.next_cells)
+            aims = np.array([
+                self.envelope.aim_point_km(cells[i], checked.next_cells[i], self.options.lead_steps)
+                for i in range(n)
+            ])  # fmt: skip
+            lat, lon = local_km_to_geodetic(aims[:, 0], aims[:, 1], scenario.origin)
             moves = []
             for i in range(n):
                 if not active[i]:
                     continue
-                target_cell = (int(checked.next_cells[i, 0]), int(checked.next_cells[i, 1]))
-                if target_cell == last_target[i] and step % 5:
+                aim = (round(float(aims[i, 0]), 3), round(float(aims[i, 1]), 3))
+                if aim == last_target[i] and step % 5:
                     continue  # already flying there (re-sent every 5 steps all the same)
                 moves.append((i, reposition_command(
                     self.vehicle(i), float(lat[i]), float(lon[i]), scenario.altitude_m)))  # fmt: skip
             for (i, _), cmd in zip(moves, self.send([c for _, c in moves]), strict=True):
                 if cmd.ack is not None and not cmd.accepted:
-                    raise CommandRefused(cmd.describe_failure())
+                    refusals[i] += 1
+                    self.refused_commands += 1
+                    self.say(f"warning: {cmd.describe_failure()} (step {step})")
+                    if refusals[i] >= self.options.max_refusals:
+                        raise CommandRefused(
+                            f"{cmd.describe_failure()} {refusals[i]} times in a row; check its "
+                            f"mode, fence and STATUSTEXT messages"
+                        )
+                elif cmd.accepted:
+                    refusals[i] = 0
                 if cmd.accepted:
-                    last_target[i] = (int(checked.next_cells[i, 0]), int(checked.next_cells[i, 1]))
-            for i in range(n):
-                if active[i]:
-                    leg = self.grid.centre_km(checked.next_cells[i]) - self.grid.centre_km(cells[i])
-                    flown_km[i] += float(np.hypot(*leg))
+                    last_target[i] = (round(float(aims[i, 0]), 3), round(float(aims[i, 1]), 3))
             commanded_cells = checked.next_cells.copy()
             commanded_headings = checked.next_headings.copy()
             if self.options.on_step is not None:
@@ -471,6 +506,8 @@ class MissionDaemon:
             "source": "mavlink",
             "endpoints": self.link.describe(),
             "envelope_overrides": dict(self.overrides),
+            "refused_commands": self.refused_commands,
+            "looks_missed": self.looks_missed,
             "link_events": [
                 {"step": e.step, "uav": e.uav, "system_id": e.uav + 1, "event": e.event}
                 for e in self.events

@@ -6,12 +6,14 @@ A proposed move (current cell -> next cell) is safe when
 * the next cell lies inside the mission area;
 * the straight leg between the two cell centres keeps ``threat_margin_km`` clear of every
   threat circle (the operator's threat list, all of it, known or not to the planner);
-* the next cell centre is at least ``min_separation_km`` from every other active UAV's next cell;
+* the next cell centre is at least ``min_separation_km + separation_margin_km`` from every other
+  active UAV's next cell (the margin absorbs how far telemetry positions lag the cells);
 * the distance flown so far, plus the leg, plus the straight line home stays within
   ``max_range_km`` (constraint C_r).
 
 An unsafe move is replaced by the safe move closest to it among the turns the airframe can make
-in one step (``max_turn_deg``), and if none is safe, by holding (loitering over) the current cell.
+in one step (``max_turn_deg``); if none is safe, by the reachable cell farthest from the threats
+(holding, i.e. circling, only when no move is better).
 Every replacement is reported with its reason.
 """
 
@@ -60,13 +62,16 @@ class SafetyEnvelope:
     grid: Grid
     threat_xy_km: np.ndarray  # (M, 2)
     threat_radius_km: np.ndarray  # (M,)
-    threat_margin_km: float = 0.25
+    threat_margin_km: float = 1.0
     min_separation_km: float = 1.0
+    separation_margin_km: float = 1.0
     max_range_km: float = math.inf
     max_turn_deg: float = 45.0
 
     @classmethod
-    def for_scenario(cls, scenario: Scenario, threat_margin_km: float = 0.25) -> SafetyEnvelope:
+    def for_scenario(
+        cls, scenario: Scenario, threat_margin_km: float = 1.0, separation_margin_km: float = 1.0
+    ) -> SafetyEnvelope:
         cfg = scenario.config
         return cls(
             grid=Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km),
@@ -74,6 +79,7 @@ class SafetyEnvelope:
             threat_radius_km=np.array([t.radius_km for t in scenario.threats], float),
             threat_margin_km=threat_margin_km,
             min_separation_km=cfg.min_separation_km,
+            separation_margin_km=separation_margin_km,
             max_range_km=cfg.max_range_km,
             max_turn_deg=cfg.max_turn_deg,
         )
@@ -114,7 +120,7 @@ class SafetyEnvelope:
         if len(others) == 0:
             return True
         d = np.hypot(*(self.grid.centre_km(others) - self.grid.centre_km(cell)).T)
-        return bool(np.all(d >= self.min_separation_km - 1e-9))
+        return bool(np.all(d >= self.min_separation_km + self.separation_margin_km - 1e-9))
 
     # ------------------------------------------------------------------ the whole swarm
 
@@ -170,4 +176,50 @@ class SafetyEnvelope:
                 best = (miss, candidate, h)
         if best is not None:
             return best[1], best[2]
-        return cell.copy(), heading
+        return self._escape(cell, heading)
+
+    def aim_point_km(self, cell_from: np.ndarray, cell_to: np.ndarray, lead: float = 1.0) -> np.ndarray:
+        """Where to send the plane for a move: the next cell's centre extended ``lead`` legs
+        further along the move (a carrot: the plane flies through the centre without arriving and
+        circling), shortened until the extension stays in the area and clear of the threats."""
+        a, b = self.grid.centre_km(cell_from), self.grid.centre_km(cell_to)
+        for c, r in zip(self.threat_xy_km, self.threat_radius_km, strict=True):
+            away = b - c
+            distance = float(np.hypot(*away))
+            if distance < r + self.threat_margin_km:  # an escape cell: aim clear of the zone
+                direction = away / distance if distance > 1e-9 else (a - c) / max(float(np.hypot(*(a - c))), 1e-9)
+                return c + direction * (r + self.threat_margin_km)
+        leg = b - a
+        if not np.any(leg):
+            return b
+        width, height = self.grid.nx * self.grid.cell_km, self.grid.ny * self.grid.cell_km
+        for fraction in (lead, lead / 2, 0.0):
+            aim = b + fraction * leg
+            inside = 0 <= aim[0] <= width and 0 <= aim[1] <= height
+            clear = all(
+                segment_point_distance(b, aim, c) >= r + self.threat_margin_km
+                for c, r in zip(self.threat_xy_km, self.threat_radius_km, strict=True)
+            )
+            if inside and clear:
+                return aim
+        return b
+
+    def threat_clearance(self, cell: np.ndarray) -> float:
+        """Distance (km) from a cell centre to the nearest threat edge (negative inside)."""
+        if len(self.threat_radius_km) == 0:
+            return math.inf
+        d = np.hypot(*(self.threat_xy_km - self.grid.centre_km(cell)).T) - self.threat_radius_km
+        return float(d.min())
+
+    def _escape(self, cell: np.ndarray, heading: int) -> tuple[np.ndarray, int]:
+        """No safe move: take the reachable in-area cell with the most clearance from the threats
+        (a plane cannot stop: told to hold, it circles at its minimum turn radius, ~1 km at
+        100 m/s, so holding near a threat is worse than moving away); hold only if nothing is
+        better."""
+        best = (self.threat_clearance(cell) - 1e-6, cell.copy(), heading)
+        for turn in turn_options(self.max_turn_deg):
+            h = int((heading + turn) % 8)
+            candidate = cell + HEADING_STEPS[h]
+            if bool(self.grid.inside(candidate)) and self.threat_clearance(candidate) > best[0]:
+                best = (self.threat_clearance(candidate), candidate, h)
+        return best[1], best[2]

@@ -104,7 +104,12 @@ class FleetKinematics:
         self.guidance[i] = HOLD
 
     def fly_to(
-        self, i: int, x_m: float, y_m: float, capture_radius_m: float, then_orbit_radius_m: float | None
+        self,
+        i: int,
+        x_m: float,
+        y_m: float,
+        capture_radius_m: float,
+        then_orbit_radius_m: float | None,
     ) -> None:
         """Pursue a point; on arrival orbit it at ``then_orbit_radius_m`` (negative: counter-
         clockwise), or, when None, keep pursuing-free course (the caller chooses the next leg)."""

@@ -6,7 +6,8 @@ Parsing: each datagram is parsed on its own, so a bad datagram never costs the n
 datagram, frames are found by scanning for the MAVLink start bytes and decoding exactly one
 frame's length at each; a frame that fails (bad CRC, bad length) is counted and the scan resumes
 one byte after its start, so junk in front of a good frame does not swallow it either. Frames of
-message ids this dialect does not know (``UNKNOWN_<id>``) cannot be CRC-checked and are dropped.
+message ids this dialect does not know (``UNKNOWN_<id>``) cannot be CRC-checked: they are counted,
+dropped and rescanned like junk.
 
 Ports: a vehicle *sends* like a pymavlink ``udpout`` (its own socket to a fixed destination, the
 ground station's / daemon's port) and answers whatever comes back to that socket; see
@@ -66,7 +67,9 @@ class DatagramParser:
             magic = data[pos]
             if magic == MAGIC_V2 and pos + 3 <= end:
                 signed = data[pos + 2] & mavlink.MAVLINK_IFLAG_SIGNED
-                length = 10 + data[pos + 1] + 2 + (mavlink.MAVLINK_SIGNATURE_BLOCK_LEN if signed else 0)
+                length = (
+                    10 + data[pos + 1] + 2 + (mavlink.MAVLINK_SIGNATURE_BLOCK_LEN if signed else 0)
+                )
             elif magic == MAGIC_V1 and pos + 2 <= end:
                 length = 6 + data[pos + 1] + 2
             else:
@@ -87,12 +90,16 @@ class DatagramParser:
                     junk_run = True
                 pos += 1
                 continue
-            junk_run = False
-            pos += length
             if message.get_type().startswith("UNKNOWN"):
+                # no CRC check is possible: drop it, and rescan its bytes in case it was junk
+                # in front of a good frame
                 stats.unknown_messages += 1
                 bad += 1
+                junk_run = True
+                pos += 1
                 continue
+            junk_run = False
+            pos += length
             good.append(message)
         stats.frames += len(good)
         if bad:
@@ -117,7 +124,9 @@ class ComponentSender:
 class VehicleSocket:
     """The UDP socket of one vehicle: sends to its ground-station address, receives replies."""
 
-    def __init__(self, bind_host: str, bind_port: int, destination: tuple[str, int], stats: LinkStats):
+    def __init__(
+        self, bind_host: str, bind_port: int, destination: tuple[str, int], stats: LinkStats
+    ):
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         self.sock.bind((bind_host, bind_port))

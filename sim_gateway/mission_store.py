@@ -89,7 +89,10 @@ class MissionItem:
         return self.y / 1e7
 
     def is_relative_alt(self) -> bool:
-        return self.frame in (mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
+        return self.frame in (
+            mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+            mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+        )
 
 
 def validate_item(item: MissionItem) -> int:

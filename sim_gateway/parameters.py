@@ -35,7 +35,15 @@ def default_specs(sysid: int, airspeed_mps: float, altitude_m: float) -> tuple[P
     """The parameters of vehicle ``sysid`` flying at ``airspeed_mps`` and ``altitude_m``."""
     p = ParameterSpec
     return (
-        p("SYSID_THISMAV", INT16, sysid, 1, 255, False, "this vehicle's system id (fixed: index + 1)"),
+        p(
+            "SYSID_THISMAV",
+            INT16,
+            sysid,
+            1,
+            255,
+            False,
+            "this vehicle's system id (fixed: index + 1)",
+        ),
         p("SYSID_MYGCS", INT16, 255, 1, 255, True, "ground station system id"),
         p("AIRSPEED_CRUISE", REAL32, airspeed_mps, 5, 400, True, "sim: cruise airspeed, m/s"),
         p("AIRSPEED_MIN", INT16, max(5, round(airspeed_mps * 0.6)), 5, 400, True, "m/s"),

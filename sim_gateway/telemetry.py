@@ -1,0 +1,295 @@
+"""Telemetry streams of a simulated vehicle: which messages, how often, and how each is built.
+
+Rates count wall-clock seconds (at a 50x speedup a 10 Hz position stream is one message per 5 s
+of simulated flight): a ground station or daemon receives at a wall-clock rate, and receiving is
+its bottleneck. Defaults are below; MAV_CMD_SET_MESSAGE_INTERVAL and REQUEST_DATA_STREAM change
+them per vehicle, as on ArduPilot (whose SRx_ stream groups are mapped in :data:`DATA_STREAMS`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+if TYPE_CHECKING:
+    from sim_gateway.vehicle import Vehicle
+
+#: Default rates in Hz (wall clock). HEARTBEAT is always 1 Hz.
+DEFAULT_RATES_HZ = {
+    "HEARTBEAT": 1.0,
+    "SYS_STATUS": 1.0,
+    "GLOBAL_POSITION_INT": 10.0,
+    "ATTITUDE": 10.0,
+    "VFR_HUD": 4.0,
+    "GPS_RAW_INT": 2.0,
+    "EXTENDED_SYS_STATE": 1.0,
+    "MISSION_CURRENT": 1.0,
+    "HOME_POSITION": 0.2,
+    "SYSTEM_TIME": 0.5,
+}
+MAX_RATE_HZ = 50.0
+
+#: REQUEST_DATA_STREAM groups -> messages (ArduPilot's stream groups, restricted to ours).
+DATA_STREAMS = {
+    mavlink.MAV_DATA_STREAM_EXTENDED_STATUS: ("SYS_STATUS", "GPS_RAW_INT", "MISSION_CURRENT"),
+    mavlink.MAV_DATA_STREAM_POSITION: ("GLOBAL_POSITION_INT",),
+    mavlink.MAV_DATA_STREAM_EXTRA1: ("ATTITUDE",),
+    mavlink.MAV_DATA_STREAM_EXTRA2: ("VFR_HUD",),
+    mavlink.MAV_DATA_STREAM_EXTRA3: ("EXTENDED_SYS_STATE", "SYSTEM_TIME"),
+}
+DATA_STREAMS[mavlink.MAV_DATA_STREAM_ALL] = tuple(
+    m for group in DATA_STREAMS.values() for m in group
+)
+
+MESSAGE_IDS = {name: getattr(mavlink, f"MAVLINK_MSG_ID_{name}") for name in DEFAULT_RATES_HZ}
+NAMES_BY_ID = {v: k for k, v in MESSAGE_IDS.items()}
+
+
+@dataclass
+class StreamSchedule:
+    """Interval (s) and next due wall time of each stream of one vehicle."""
+
+    interval_s: dict[str, float | None] = field(
+        default_factory=lambda: {k: 1.0 / v for k, v in DEFAULT_RATES_HZ.items()}
+    )
+    next_due_s: dict[str, float] = field(default_factory=dict)
+
+    def set_rate_hz(self, name: str, rate_hz: float | None) -> None:
+        """Set a stream's rate; None or <= 0 stops it."""
+        if rate_hz is None or rate_hz <= 0:
+            self.interval_s[name] = None
+        else:
+            self.interval_s[name] = 1.0 / min(rate_hz, MAX_RATE_HZ)
+        self.next_due_s.pop(name, None)
+
+    def reset_default(self, name: str) -> None:
+        self.set_rate_hz(name, DEFAULT_RATES_HZ[name])
+
+    def due(self, now_s: float) -> list[str]:
+        """Streams due at ``now_s``, each rescheduled one interval on (no burst after a stall)."""
+        out = []
+        for name, interval in self.interval_s.items():
+            if interval is None:
+                continue
+            nxt = self.next_due_s.get(name)
+            if nxt is None or now_s >= nxt:
+                out.append(name)
+                base = now_s if nxt is None or now_s - nxt > interval else nxt
+                self.next_due_s[name] = base + interval
+        return out
+
+
+@dataclass
+class FleetSnapshot:
+    """Per-vehicle values computed once per telemetry frame for the whole fleet."""
+
+    lat_e7: list[int]
+    lon_e7: list[int]
+    home_lat_e7: list[int]
+    home_lon_e7: list[int]
+    time_boot_ms: int
+    time_unix_us: int
+    range_remaining_pct: list[int]
+
+
+# ---------------------------------------------------------------------- builders
+
+
+def build_heartbeat(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+    return mavlink.MAVLink_heartbeat_message(
+        mavlink.MAV_TYPE_FIXED_WING,
+        mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+        v.base_mode(),
+        v.mode,
+        v.system_status(),
+        3,
+    )
+
+
+SENSORS = (
+    mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
+    | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+    | mavlink.MAV_SYS_STATUS_SENSOR_GPS
+    | mavlink.MAV_SYS_STATUS_SENSOR_DIFFERENTIAL_PRESSURE
+    | mavlink.MAV_SYS_STATUS_AHRS
+    | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
+)
+
+
+def build_sys_status(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+    present = enabled = health = SENSORS
+    fence_on = bool(v.params["FENCE_ENABLE"]) and v.missions.count(1) > 0
+    present |= mavlink.MAV_SYS_STATUS_GEOFENCE
+    if fence_on:
+        enabled |= mavlink.MAV_SYS_STATUS_GEOFENCE
+    if not v.fence_breached:
+        health |= mavlink.MAV_SYS_STATUS_GEOFENCE
+    if v.booting:
+        health &= ~(mavlink.MAV_SYS_STATUS_AHRS | mavlink.MAV_SYS_STATUS_SENSOR_GPS)
+    if v.range_exhausted:
+        health &= ~mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
+    pct = s.range_remaining_pct[v.index]
+    return mavlink.MAVLink_sys_status_message(
+        present,
+        enabled,
+        health,
+        100,
+        12600,
+        1000 if v.armed else 0,
+        pct,
+        0,
+        0,
+        0,
+        0,
+        0,
+        0,
+    )
+
+
+def build_global_position_int(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+    i, f = v.index, v.fleet
+    speed = float(f.ground_speed_mps()[i])
+    course = float(f.course_rad[i])
+    rel = float(f.alt_m[i])
+    return mavlink.MAVLink_global_position_int_message(
+        s.time_boot_ms,
+        s.lat_e7[i],
+        s.lon_e7[i],
+        round((v.host.home_amsl_m() + rel) * 1000),
+        round(rel * 1000),
+        round(speed * math.cos(course) * 100),
+        round(speed * math.sin(course) * 100),
+        round(-float(f.climb_rate_mps[i]) * 100),
+        round(math.degrees(course) * 100) % 36000,
+    )
+
+
+def build_attitude(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+    i, f = v.index, v.fleet
+    speed = max(float(f.airspeed_mps[i]), 1.0)
+    pitch = math.atan2(float(f.climb_rate_mps[i]), speed) if v.airborne else 0.0
+    yaw = math.atan2(math.sin(float(f.course_rad[i])), math.cos(float(f.course_rad[i])))
+    yawspeed = 9.80665 * math.tan(float(f.bank_rad[i])) / speed if v.airborne else 0.0
+    return mavlink.MAVLink_attitude_message(
+        s.time_boot_ms, float(f.bank_rad[i]), pitch, yaw, 0.0, 0.0, yawspeed
+    )
+
+
+def build_vfr_hud(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+    i, f = v.index, v.fleet
+    speed = float(f.ground_speed_mps()[i])
+    heading = round(math.degrees(float(f.course_rad[i]))) % 360
+    return mavlink.MAVLink_vfr_hud_message(
+        speed,
+        speed,
+        heading,
+        60 if v.airborne else 0,
+        v.host.home_amsl_m() + float(f.alt_m[i]),
+        float(f.climb_rate_mps[i]),
+    )
+
+
+def build_gps_raw_int(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+    i, f = v.index, v.fleet
+    fix = (
+        mavlink.GPS_FIX_TYPE_NO_FIX
+        if v.host.sim_time_s < v.host.boot_s / 2
+        else mavlink.GPS_FIX_TYPE_3D_FIX
+    )
+    alt_mm = round((v.host.home_amsl_m() + float(f.alt_m[i])) * 1000)
+    return mavlink.MAVLink_gps_raw_int_message(
+        s.time_boot_ms * 1000,
+        fix,
+        s.lat_e7[i],
+        s.lon_e7[i],
+        alt_mm,
+        80,
+        120,
+        round(float(f.ground_speed_mps()[i]) * 100),
+        round(math.degrees(float(f.course_rad[i])) * 100) % 36000,
+        14 if fix == mavlink.GPS_FIX_TYPE_3D_FIX else 0,
+    )
+
+
+def build_extended_sys_state(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+    if not v.airborne:
+        landed = mavlink.MAV_LANDED_STATE_ON_GROUND
+    elif (
+        v.fleet.climb_rate_mps[v.index] > 0.5
+        and v.fleet.alt_m[v.index] < v.params["TKOFF_ALT"] * 0.5
+    ):
+        landed = mavlink.MAV_LANDED_STATE_TAKEOFF
+    else:
+        landed = mavlink.MAV_LANDED_STATE_IN_AIR
+    return mavlink.MAVLink_extended_sys_state_message(mavlink.MAV_VTOL_STATE_UNDEFINED, landed)
+
+
+def build_home_position(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+    return mavlink.MAVLink_home_position_message(
+        s.home_lat_e7[v.index],
+        s.home_lon_e7[v.index],
+        round(v.host.home_amsl_m() * 1000),
+        0.0,
+        0.0,
+        0.0,
+        [1.0, 0.0, 0.0, 0.0],
+        0.0,
+        0.0,
+        0.0,
+        time_usec=s.time_boot_ms * 1000,
+    )
+
+
+def build_mission_current(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+    total = max(len(v.missions.mission()) - 1, 0)
+    return mavlink.MAVLink_mission_current_message(
+        v.missions.current_seq,
+        total=total,
+        mission_state=mavlink.MISSION_STATE_NO_MISSION
+        if total == 0
+        else mavlink.MISSION_STATE_ACTIVE
+        if v.mode == 10
+        else mavlink.MISSION_STATE_NOT_STARTED,
+        mission_mode=int(v.mode == 10),
+    )
+
+
+def build_system_time(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+    return mavlink.MAVLink_system_time_message(s.time_unix_us, s.time_boot_ms)
+
+
+BUILDERS = {
+    "HEARTBEAT": build_heartbeat,
+    "SYS_STATUS": build_sys_status,
+    "GLOBAL_POSITION_INT": build_global_position_int,
+    "ATTITUDE": build_attitude,
+    "VFR_HUD": build_vfr_hud,
+    "GPS_RAW_INT": build_gps_raw_int,
+    "EXTENDED_SYS_STATE": build_extended_sys_state,
+    "HOME_POSITION": build_home_position,
+    "MISSION_CURRENT": build_mission_current,
+    "SYSTEM_TIME": build_system_time,
+}
+
+
+def build_autopilot_version(v: Vehicle) -> mavlink.MAVLink_message:
+    """AUTOPILOT_VERSION of an ArduPlane 4.5.7 (official) without MAVLink FTP."""
+    caps = (
+        mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
+        | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+        | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+        | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+        | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+        | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+        | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+        | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
+        | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
+    )
+    version = (4 << 24) | (5 << 16) | (7 << 8) | mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL
+    return mavlink.MAVLink_autopilot_version_message(
+        caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, v.sysid, uid2=[0] * 18
+    )

@@ -1,0 +1,488 @@
+"""One simulated ArduPlane: its state (armed, mode, home, boot phase, guided target, mission
+progress) and its autopilot logic (mode changes, take-off, AUTO missions, RTL, failsafe and
+fence actions). Its motion lives in the fleet's :class:`~sim_gateway.fixed_wing.FleetKinematics`
+(row ``index``); what it says and hears over MAVLink lives in ``message_handlers``,
+``commands``, ``mission_protocol``, ``parameter_protocol`` and ``telemetry``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from planner.engagement import EngagementOutcome
+from planner.scenario import Origin
+from sim_gateway import flight_modes as modes
+from sim_gateway.camera import EngagementLog
+from sim_gateway.failsafe import FailsafeEvent, GcsFailsafe
+from sim_gateway.fixed_wing import FleetKinematics
+from sim_gateway.geofence import exclusion_circles
+from sim_gateway.mavlink_endpoint import (
+    MAV_COMP_ID_AUTOPILOT1,
+    MAV_COMP_ID_CAMERA,
+    ComponentSender,
+    LinkStats,
+    VehicleSocket,
+)
+from sim_gateway.mission_store import FENCE, MissionItem, MissionStore
+from sim_gateway.parameters import ParameterSet, default_specs
+from sim_gateway.telemetry import StreamSchedule
+
+BOOT_STATE_S = 1.0  # MAV_STATE_BOOT this long, then CALIBRATING until the boot phase ends
+
+
+class VehicleHost(Protocol):
+    """What a vehicle needs from the simulator that runs it."""
+
+    stats: LinkStats
+    origin: Origin
+    sim_time_s: float
+    decision_step: int
+    boot_s: float
+
+    def wall_s(self) -> float: ...
+    def local_to_geodetic(self, x_m: float, y_m: float) -> tuple[float, float]: ...
+    def geodetic_to_local(self, lat_deg: float, lon_deg: float) -> tuple[float, float]: ...
+    def engage(self, index: int) -> EngagementOutcome: ...
+    def set_fence(self, index: int, circles: np.ndarray) -> None: ...
+    def home_amsl_m(self) -> float: ...
+
+
+@dataclass
+class GuidedTarget:
+    x_m: float
+    y_m: float
+    alt_m: float  # above home
+    radius_m: float  # signed: < 0 counter-clockwise
+
+
+class Vehicle:
+    """State and autopilot behaviour of the plane in row ``index`` of the fleet."""
+
+    def __init__(
+        self,
+        index: int,
+        fleet: FleetKinematics,
+        host: VehicleHost,
+        sock: VehicleSocket,
+        cruise_alt_m: float,
+    ) -> None:
+        self.index = index
+        self.sysid = index + 1
+        self.fleet = fleet
+        self.host = host
+        self.sock = sock
+        self.autopilot = ComponentSender(self.sysid, MAV_COMP_ID_AUTOPILOT1)
+        self.camera = ComponentSender(self.sysid, MAV_COMP_ID_CAMERA)
+        self.params = ParameterSet(
+            default_specs(self.sysid, float(fleet.airspeed_mps[index]), cruise_alt_m)
+        )
+        self.missions = MissionStore()
+        self.failsafe = GcsFailsafe()
+        self.engagements = EngagementLog()
+        self.streams = StreamSchedule()
+        self.armed = False
+        self.mode = modes.MANUAL
+        self.home_x_m = float(fleet.x_m[index])
+        self.home_y_m = float(fleet.y_m[index])
+        self.guided: GuidedTarget | None = None
+        self.look_index = 0
+        self.fence_breached = False
+        self.range_exhausted = False
+        self.item_wait_until_s: float | None = None  # AUTO loiter-time / turns deadline
+        self.item_arrived = False
+        self.jumps_left: dict[int, int] = {}
+        self.last_gcs: tuple[int, int] = (255, 190)  # (sysid, compid) of the last GCS heard
+        self.apply_params()
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def booting(self) -> bool:
+        return self.host.sim_time_s < self.host.boot_s
+
+    @property
+    def airborne(self) -> bool:
+        return bool(self.fleet.airborne[self.index])
+
+    def system_status(self) -> int:
+        if self.host.sim_time_s < min(BOOT_STATE_S, self.host.boot_s):
+            return mavlink.MAV_STATE_BOOT
+        if self.booting:
+            return mavlink.MAV_STATE_CALIBRATING
+        if self.failsafe.stage or self.fence_breached or self.range_exhausted:
+            return mavlink.MAV_STATE_CRITICAL
+        return mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY
+
+    def base_mode(self) -> int:
+        mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if self.armed:
+            mode |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        if self.mode in (
+            modes.AUTO,
+            modes.RTL,
+            modes.LOITER,
+            modes.GUIDED,
+            modes.CIRCLE,
+            modes.TAKEOFF,
+        ):
+            mode |= mavlink.MAV_MODE_FLAG_GUIDED_ENABLED | mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
+        else:
+            mode |= mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+        return mode
+
+    def apply_params(self) -> None:
+        """Push the flight parameters into the kinematics row."""
+        i, p = self.index, self.params
+        self.fleet.airspeed_mps[i] = p["AIRSPEED_CRUISE"]
+        self.fleet.bank_limit_rad[i] = math.radians(p["ROLL_LIMIT_DEG"])
+        self.fleet.climb_mps[i] = p["TECS_CLMB_MAX"]
+        self.fleet.sink_mps[i] = p["TECS_SINK_MAX"]
+
+    # ------------------------------------------------------------------ sending
+
+    def send(self, message: mavlink.MAVLink_message) -> None:
+        self.sock.send(self.autopilot.pack(message))
+
+    def send_from_camera(self, message: mavlink.MAVLink_message) -> None:
+        self.sock.send(self.camera.pack(message))
+
+    def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        self.send(mavlink.MAVLink_statustext_message(severity, text[:50].encode()))
+
+    def ack(self, command: int, result: int, peer: tuple[int, int], result_param2: int = 0) -> None:
+        self.send(
+            mavlink.MAVLink_command_ack_message(
+                command,
+                result,
+                progress=0,
+                result_param2=result_param2,
+                target_system=peer[0],
+                target_component=peer[1],
+            )
+        )
+
+    # ------------------------------------------------------------------ arming
+
+    def arm(self) -> tuple[int, str | None]:
+        """Arm; returns (MAV_RESULT, reason refused)."""
+        if self.booting and self.params["ARMING_CHECK"]:
+            return mavlink.MAV_RESULT_FAILED, "PreArm: AHRS: waiting for home"
+        if self.range_exhausted:
+            return mavlink.MAV_RESULT_FAILED, "PreArm: Battery 1 below minimum arming capacity"
+        if not self.armed:
+            self.armed = True
+            self.statustext("Arming motors")
+            self.start_takeoff_if_due()
+        return mavlink.MAV_RESULT_ACCEPTED, None
+
+    def disarm(self, force: bool) -> tuple[int, str | None]:
+        if self.airborne and not force:
+            return mavlink.MAV_RESULT_FAILED, "Disarm refused: flying (use force)"
+        if self.airborne:
+            self.land_now()
+        self.armed = False
+        return mavlink.MAV_RESULT_ACCEPTED, None
+
+    def land_now(self) -> None:
+        i = self.index
+        self.fleet.airborne[i] = False
+        self.fleet.alt_m[i] = 0.0
+        self.fleet.target_alt_m[i] = 0.0
+        self.fleet.hold_course(i)
+
+    # ------------------------------------------------------------------ modes
+
+    def set_mode(self, mode: int, reason: str = "") -> bool:
+        """Change flight mode; False when the mode is unknown or cannot be entered now."""
+        if mode not in modes.SUPPORTED_MODES:
+            return False
+        if mode == modes.AUTO and len(self.missions.mission()) < 2:
+            self.statustext("Mode change to AUTO failed: no mission", mavlink.MAV_SEVERITY_WARNING)
+            return False
+        self.mode = mode
+        self.item_wait_until_s = None
+        i, fleet, p = self.index, self.fleet, self.params
+        here = (float(fleet.x_m[i]), float(fleet.y_m[i]))
+        if mode in modes.HOLD_COURSE_MODES:
+            fleet.hold_course(i)
+        elif mode in (modes.CIRCLE, modes.LOITER):
+            fleet.orbit(i, *here, p["WP_LOITER_RAD"])
+        elif mode == modes.GUIDED:
+            if self.guided is None:
+                self.guided = GuidedTarget(*here, float(fleet.target_alt_m[i]), p["WP_LOITER_RAD"])
+                fleet.orbit(i, *here, p["WP_LOITER_RAD"])
+            else:
+                self.fly_to_guided()
+        elif mode == modes.RTL:
+            self.return_to_launch()
+        elif mode == modes.AUTO:
+            seq = max(self.missions.current_seq, 1)
+            self.start_mission_item(seq)
+        elif mode == modes.TAKEOFF:
+            if self.airborne:
+                fleet.target_alt_m[i] = max(p["TKOFF_ALT"], float(fleet.alt_m[i]))
+                fleet.orbit(i, *here, p["WP_LOITER_RAD"])
+            else:
+                self.start_takeoff_if_due()
+        if reason:
+            self.statustext(f"{reason}: mode {modes.mode_name(mode)}", mavlink.MAV_SEVERITY_WARNING)
+        return True
+
+    def return_to_launch(self) -> None:
+        i, p = self.index, self.params
+        radius = p["RTL_RADIUS"] or p["WP_LOITER_RAD"]
+        self.fleet.fly_to(i, self.home_x_m, self.home_y_m, p["WP_RADIUS"], radius)
+        if p["RTL_ALTITUDE"] >= 0 and self.airborne:
+            self.fleet.target_alt_m[i] = p["RTL_ALTITUDE"]
+
+    def start_takeoff_if_due(self) -> None:
+        """Leave the ground when armed in TAKEOFF mode or in AUTO at a NAV_TAKEOFF item."""
+        if not self.armed or self.airborne:
+            return
+        i, fleet = self.index, self.fleet
+        if self.mode == modes.TAKEOFF:
+            alt = self.params["TKOFF_ALT"]
+        elif self.mode == modes.AUTO and self.current_item_command() == mavlink.MAV_CMD_NAV_TAKEOFF:
+            alt = self.item_relative_alt(self.missions.mission()[self.missions.current_seq])
+        else:
+            return
+        fleet.airborne[i] = True
+        fleet.hold_course(i)
+        fleet.target_alt_m[i] = max(alt, 10.0)
+        self.statustext(f"Takeoff to {alt:.0f} m")
+
+    # ------------------------------------------------------------------ guided
+
+    def set_guided_target(self, target: GuidedTarget) -> None:
+        self.guided = target
+        if self.mode == modes.GUIDED:
+            self.fly_to_guided()
+
+    def fly_to_guided(self) -> None:
+        g, i = self.guided, self.index
+        assert g is not None
+        self.fleet.fly_to(i, g.x_m, g.y_m, self.params["WP_RADIUS"], g.radius_m)
+        if self.airborne:
+            self.fleet.target_alt_m[i] = g.alt_m
+
+    # ------------------------------------------------------------------ AUTO missions
+
+    def current_item_command(self) -> int | None:
+        items = self.missions.mission()
+        seq = self.missions.current_seq
+        return items[seq].command if 0 <= seq < len(items) else None
+
+    def item_relative_alt(self, item: MissionItem) -> float:
+        return item.z if item.is_relative_alt() else item.z - self.host.home_amsl_m()
+
+    def start_mission_item(self, seq: int) -> None:
+        """Make item ``seq`` current and start flying it (DO items run at once)."""
+        items = self.missions.mission()
+        for _ in range(len(items) + 1):  # bounded: DO items and jumps cannot loop forever
+            if seq >= len(items):
+                self.finish_mission()
+                return
+            self.missions.current_seq = seq
+            self.item_wait_until_s = None
+            self.item_arrived = False
+            item = items[seq]
+            self.send_mission_current()
+            next_seq = self.begin_item(item)
+            if next_seq is None:
+                return
+            seq = next_seq
+        self.finish_mission()
+
+    def begin_item(self, item: MissionItem) -> int | None:
+        """Start one item; returns the next seq when the item completes at once (DO items)."""
+        i, fleet, p = self.index, self.fleet, self.params
+        cmd = item.command
+        if cmd == mavlink.MAV_CMD_DO_CHANGE_SPEED:
+            if 0 < item.param2 <= 400:
+                fleet.airspeed_mps[i] = item.param2
+            return item.seq + 1
+        if cmd == mavlink.MAV_CMD_DO_JUMP:
+            target, repeat = int(item.param1), int(item.param2)
+            left = self.jumps_left.setdefault(item.seq, repeat)
+            if left == 0 or not 1 <= target < len(self.missions.mission()):
+                return item.seq + 1
+            if left > 0:
+                self.jumps_left[item.seq] = left - 1
+            return target
+        if cmd not in (
+            mavlink.MAV_CMD_NAV_TAKEOFF,
+            mavlink.MAV_CMD_NAV_WAYPOINT,
+            mavlink.MAV_CMD_NAV_LOITER_UNLIM,
+            mavlink.MAV_CMD_NAV_LOITER_TIME,
+            mavlink.MAV_CMD_NAV_LOITER_TURNS,
+            mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+            mavlink.MAV_CMD_NAV_LAND,
+        ):
+            return item.seq + 1  # other DO commands: nothing to fly (never a payload release)
+        if cmd == mavlink.MAV_CMD_NAV_TAKEOFF:
+            alt = self.item_relative_alt(item)
+            if self.airborne:
+                fleet.target_alt_m[i] = max(alt, float(fleet.alt_m[i]))
+                if fleet.alt_m[i] >= alt - 1.0:
+                    self.mission_item_reached(item.seq)
+                    return item.seq + 1
+            else:
+                self.start_takeoff_if_due()
+            return None
+        if cmd == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            self.return_to_launch()
+            return None
+        x_m, y_m = self.host.geodetic_to_local(item.lat_deg, item.lon_deg)
+        if item.x == 0 and item.y == 0:  # "here" (as ArduPilot reads a 0,0 location)
+            x_m, y_m = float(fleet.x_m[i]), float(fleet.y_m[i])
+        if self.airborne and cmd != mavlink.MAV_CMD_NAV_LAND:
+            alt = self.item_relative_alt(item)
+            if alt > 0:
+                fleet.target_alt_m[i] = alt
+        if cmd == mavlink.MAV_CMD_NAV_WAYPOINT:
+            fleet.fly_to(i, x_m, y_m, p["WP_RADIUS"], None)
+        else:
+            radius = (
+                item.param3 if math.isfinite(item.param3) and item.param3 else p["WP_LOITER_RAD"]
+            )
+            fleet.fly_to(i, x_m, y_m, p["WP_RADIUS"], radius)
+        return None
+
+    def on_arrived(self) -> None:
+        """The kinematics reached the PURSUIT point of this vehicle."""
+        if self.mode != modes.AUTO:
+            return
+        items = self.missions.mission()
+        seq = self.missions.current_seq
+        if not 0 <= seq < len(items):
+            return
+        item = items[seq]
+        cmd = item.command
+        self.item_arrived = True
+        if cmd in (mavlink.MAV_CMD_NAV_WAYPOINT, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH):
+            self.advance_mission(seq)
+        elif cmd == mavlink.MAV_CMD_NAV_LOITER_TIME:
+            self.item_wait_until_s = self.host.sim_time_s + max(item.param1, 0.0)
+        elif cmd == mavlink.MAV_CMD_NAV_LOITER_TURNS:
+            radius = float(self.fleet.effective_orbit_radius_m()[self.index])
+            lap_s = 2 * math.pi * radius / max(float(self.fleet.airspeed_mps[self.index]), 1.0)
+            self.item_wait_until_s = self.host.sim_time_s + max(item.param1, 0.0) * lap_s
+        elif cmd == mavlink.MAV_CMD_NAV_LAND:
+            self.fleet.target_alt_m[self.index] = 0.0
+
+    def on_climbed(self) -> None:
+        """The kinematics reached this vehicle's altitude target."""
+        i = self.index
+        if self.mode == modes.TAKEOFF:
+            self.fleet.orbit(
+                i, float(self.fleet.x_m[i]), float(self.fleet.y_m[i]), self.params["WP_LOITER_RAD"]
+            )
+        elif self.mode == modes.AUTO:
+            cmd = self.current_item_command()
+            if cmd == mavlink.MAV_CMD_NAV_TAKEOFF:
+                self.advance_mission(self.missions.current_seq)
+            elif (
+                cmd == mavlink.MAV_CMD_NAV_LAND and self.item_arrived and self.fleet.alt_m[i] <= 1.0
+            ):
+                self.land_now()
+                self.armed = False
+                self.statustext("Landed, disarmed")
+                self.advance_mission(self.missions.current_seq)
+
+    def on_timer(self) -> None:
+        """Called when a pending AUTO deadline may have passed."""
+        if self.item_wait_until_s is not None and self.host.sim_time_s >= self.item_wait_until_s:
+            self.item_wait_until_s = None
+            if self.mode == modes.AUTO:
+                self.advance_mission(self.missions.current_seq)
+
+    def advance_mission(self, seq: int) -> None:
+        self.mission_item_reached(seq)
+        if self.mode == modes.AUTO and self.armed:
+            self.start_mission_item(seq + 1)
+
+    def mission_item_reached(self, seq: int) -> None:
+        self.send(mavlink.MAVLink_mission_item_reached_message(seq))
+
+    def finish_mission(self) -> None:
+        self.missions.current_seq = max(len(self.missions.mission()) - 1, 0)
+        self.statustext("Mission complete, changing mode to RTL")
+        self.set_mode(modes.RTL)
+
+    def send_mission_current(self) -> None:
+        total = max(len(self.missions.mission()) - 1, 0)
+        state = (
+            mavlink.MISSION_STATE_NO_MISSION
+            if total == 0
+            else mavlink.MISSION_STATE_ACTIVE
+            if self.mode == modes.AUTO
+            else mavlink.MISSION_STATE_NOT_STARTED
+        )
+        self.send(
+            mavlink.MAVLink_mission_current_message(
+                self.missions.current_seq,
+                total=total,
+                mission_state=state,
+                mission_mode=int(self.mode == modes.AUTO),
+            )
+        )
+
+    # ------------------------------------------------------------------ fence, range, link
+
+    def fence_items_changed(self) -> None:
+        circles = exclusion_circles(self.missions.items[FENCE], self.host.origin)
+        self.host.set_fence(self.index, circles)
+
+    def on_fence_breach(self) -> None:
+        """First tick inside an exclusion circle."""
+        self.fence_breached = True
+        self.statustext("Fence Breached", mavlink.MAV_SEVERITY_CRITICAL)
+        action = int(self.params["FENCE_ACTION"])
+        if not self.params["FENCE_ENABLE"] or action == 0:
+            return
+        if action == 1 and self.mode != modes.RTL:
+            self.set_mode(modes.RTL, "Fence breach")
+        elif action != 1 and self.mode not in (modes.RTL, modes.LOITER):
+            self.set_mode(modes.LOITER, "Fence breach")
+
+    def on_fence_clear(self) -> None:
+        self.fence_breached = False
+
+    def on_range_exhausted(self) -> None:
+        self.range_exhausted = True
+        self.statustext("Battery 1 is critical: range used up", mavlink.MAV_SEVERITY_CRITICAL)
+        if self.mode != modes.RTL:
+            self.set_mode(modes.RTL, "Battery failsafe")
+
+    def on_gcs_heartbeat(self, now_wall_s: float, peer: tuple[int, int]) -> None:
+        self.last_gcs = peer
+        if self.failsafe.heard(now_wall_s) == FailsafeEvent.CLEARED:
+            self.statustext("GCS Failsafe Cleared")
+            if self.failsafe.mode_before is not None and self.mode == modes.CIRCLE:
+                self.set_mode(self.failsafe.mode_before)
+            self.failsafe.mode_before = None
+
+    def check_failsafe(self, now_wall_s: float) -> None:
+        p = self.params
+        event = self.failsafe.check(
+            now_wall_s,
+            bool(p["FS_GCS_ENABL"]),
+            self.armed and self.airborne,
+            p["FS_SHORT_TIMEOUT"],
+            p["FS_LONG_TIMEOUT"],
+        )
+        if event == FailsafeEvent.SHORT:
+            self.statustext("GCS Failsafe On: short", mavlink.MAV_SEVERITY_CRITICAL)
+            if self.mode not in (modes.AUTO, modes.RTL, modes.LOITER, modes.CIRCLE):
+                self.failsafe.mode_before = self.mode
+                self.set_mode(modes.CIRCLE)
+        elif event == FailsafeEvent.LONG:
+            self.statustext("GCS Failsafe On: long, RTL", mavlink.MAV_SEVERITY_CRITICAL)
+            self.failsafe.mode_before = None
+            if self.mode != modes.RTL:
+                self.set_mode(modes.RTL)
