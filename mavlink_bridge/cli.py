@@ -18,30 +18,56 @@ HELP = "fly MAVLink vehicles (SITL, hardware or the simulator) with the HAPF-ACO
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--connect", action="append", metavar="ENDPOINT",
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
         help="udpin:HOST:PORT (shared by many vehicles), udpout:HOST:PORT or tcp:HOST:PORT "
         "(one per vehicle, e.g. ArduPilot SITL tcp:127.0.0.1:5760, 5770...); repeatable; "
         "default udpin:0.0.0.0:14550",
-    )  # fmt: skip
+    )
     parser.add_argument("--scenario", default="paper-10uav", help="built-in name or TOML file")
     parser.add_argument("--seed", type=int, default=0, help="planner seed (default 0)")
-    parser.add_argument("--expect", type=int, help="vehicles to wait for: system ids 1..N "
-                        "(default: the scenario's UAV count)")  # fmt: skip
+    parser.add_argument(
+        "--expect",
+        type=int,
+        help="vehicles to wait for: system ids 1..N (default: the scenario's UAV count)",
+    )
     parser.add_argument("--steps", type=int, help="decision steps (default: the scenario's)")
-    parser.add_argument("--timeout", type=float, default=60.0,
-                        help="seconds to wait for every expected vehicle (default 60)")  # fmt: skip
-    parser.add_argument("--ready-timeout", type=float, default=120.0,
-                        help="seconds to wait for the autopilots to finish initialising (default 120)")  # fmt: skip
-    parser.add_argument("--lost-after", type=float, default=3.0,
-                        help="seconds of silence before a vehicle counts as lost (default 3)")  # fmt: skip
-    parser.add_argument("--threat-margin-km", type=float, default=1.0,
-                        help="safety envelope clearance from threat circles (default 1 km, a plane turn radius)")  # fmt: skip
-    parser.add_argument("--time-scale", type=float, default=1.0,
-                        help="speed of the vehicles' clock (SITL --speedup); paces steps only for "
-                        "vehicles that send no sensor looks (default 1)")  # fmt: skip
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=60.0,
+        help="seconds to wait for every expected vehicle (default 60)",
+    )
+    parser.add_argument(
+        "--ready-timeout",
+        type=float,
+        default=120.0,
+        help="seconds to wait for the autopilots to finish initialising (default 120)",
+    )
+    parser.add_argument(
+        "--lost-after",
+        type=float,
+        default=3.0,
+        help="seconds of silence before a vehicle counts as lost (default 3)",
+    )
+    parser.add_argument(
+        "--threat-margin-km",
+        type=float,
+        default=1.0,
+        help="safety envelope clearance from threat circles (default 1 km, a plane turn radius)",
+    )
+    parser.add_argument(
+        "--time-scale",
+        type=float,
+        default=1.0,
+        help="speed of the vehicles' clock (SITL --speedup); paces steps only for "
+        "vehicles that send no sensor looks (default 1)",
+    )
     parser.add_argument("--tlog", type=Path, help="telemetry log (default OUT/mission.tlog)")
-    parser.add_argument("--out", type=Path, default=Path("out/daemon"),
-                        help="output folder (default out/daemon)")  # fmt: skip
+    parser.add_argument(
+        "--out", type=Path, default=Path("out/daemon"), help="output folder (default out/daemon)"
+    )
     parser.add_argument("--json", action="store_true", help="print only the result JSON")
 
 
@@ -61,9 +87,13 @@ def print_step(status: StepStatus) -> None:
     lost = f" lost {status.lost}" if status.lost else ""
     print(
         f"\rstep {status.step + 1:>4}/{status.steps}  active {status.active:>2}  coverage "
-        f"{status.coverage * 100:5.1f}%  engaged {status.engaged:>2} (value {status.engaged_value:g})"
-        f"{lost}   ", end="", file=sys.stderr, flush=True,
-    )  # fmt: skip
+        f"{status.coverage * 100:5.1f}%  engaged {status.engaged:>2} "
+        f"(value {status.engaged_value:g})"
+        f"{lost}   ",
+        end="",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
 def main(args: argparse.Namespace) -> int:
@@ -74,13 +104,20 @@ def main(args: argparse.Namespace) -> int:
     quiet = args.json
     options = DaemonOptions(
         connect=args.connect or ["udpin:0.0.0.0:14550"],
-        seed=args.seed, expect=args.expect, steps=args.steps,
-        discovery_timeout_s=args.timeout, ready_timeout_s=args.ready_timeout,
-        lost_after_s=args.lost_after, threat_margin_km=args.threat_margin_km,
-        time_scale=args.time_scale, tlog_path=args.tlog or out / "mission.tlog",
-        progress=None if quiet else (lambda text: print(f"\n{text}" if text else "", file=sys.stderr)),
+        seed=args.seed,
+        expect=args.expect,
+        steps=args.steps,
+        discovery_timeout_s=args.timeout,
+        ready_timeout_s=args.ready_timeout,
+        lost_after_s=args.lost_after,
+        threat_margin_km=args.threat_margin_km,
+        time_scale=args.time_scale,
+        tlog_path=args.tlog or out / "mission.tlog",
+        progress=None
+        if quiet
+        else (lambda text: print(f"\n{text}" if text else "", file=sys.stderr)),
         on_step=None if quiet else print_step,
-    )  # fmt: skip
+    )
     report = MissionDaemon(scenario, options).fly()
     result = report.result
     (out / "result.json").write_text(json.dumps(result, indent=2, default=float))
@@ -96,9 +133,14 @@ def main(args: argparse.Namespace) -> int:
 def print_summary(result: dict, out: Path, files: list[Path]) -> None:
     """The metrics a person reads first, then where the files are."""
     v = result.get("violations", {})
-    print(f"scenario {result.get('scenario')}  seed {result.get('seed')}  steps {result.get('steps')}")
+    print(
+        f"scenario {result.get('scenario')}  seed {result.get('seed')}  steps {result.get('steps')}"
+    )
     print(f"coverage        {result.get('coverage', 0) * 100:.1f}%")
-    print(f"engaged         {result.get('engaged_count')} targets, value {result.get('engaged_value')}")
+    print(
+        f"engaged         {result.get('engaged_count')} targets, "
+        f"value {result.get('engaged_value')}"
+    )
     print(f"min separation  {result.get('min_separation_km', float('nan')):.2f} km")
     print(f"returned        {result.get('returned_count')}")
     print("violations      " + ", ".join(f"{k} {v[k]}" for k in sorted(v)))

@@ -32,7 +32,7 @@ import numpy as np
 from mavlink_bridge.discovery import wait_for_vehicles, wait_until_ready
 from mavlink_bridge.guided_commands import (
     Command,
-    CommandRefused,
+    CommandRefusedError,
     arm_command,
     engagement_command,
     reposition_command,
@@ -203,10 +203,14 @@ class MissionDaemon:
         lat, lon = local_km_to_geodetic(
             [t.x_km for t in threats], [t.y_km for t in threats], self.scenario.origin
         )
-        circles = [
-            FenceCircle(float(la), float(lo), t.radius_km * 1000.0)
-            for la, lo, t in zip(lat, lon, threats, strict=True)
-        ] if threats else []  # fmt: skip
+        circles = (
+            [
+                FenceCircle(float(la), float(lo), t.radius_km * 1000.0)
+                for la, lo, t in zip(lat, lon, threats, strict=True)
+            ]
+            if threats
+            else []
+        )
         upload_fence(self.link, [self.vehicle(i) for i in range(self.n)], circles)
         self.say(f"fence uploaded: {len(circles)} exclusion circles to each vehicle")
 
@@ -226,7 +230,7 @@ class MissionDaemon:
                 reasons = cmd.vehicle.prearm_reasons(since_s=started - 0.5)
                 because = "; ".join(reasons) if reasons else "no PreArm message"
                 result = result_name(cmd.ack.result) if cmd.ack else "no answer"
-                raise CommandRefused(
+                raise CommandRefusedError(
                     f"vehicle {cmd.vehicle.system_id} refused to arm ({result}): {because}"
                 )
             self.link.pump_until(lambda: False, 1.0)
@@ -244,7 +248,7 @@ class MissionDaemon:
             low = [str(v.system_id) for v in vehicles if v.relative_alt_m < climb]
             raise UserError(
                 f"vehicle {', '.join(low)} did not climb to {climb:g} m within "
-                f"{self.options.takeoff_timeout_s:g} s of TAKEOFF; check the autopilot's takeoff setup"
+                f"{self.options.takeoff_timeout_s:g} s of TAKEOFF; check its takeoff setup"
             )
         require_accepted(self.send([set_mode_command(v, PLANE_MODE_GUIDED) for v in vehicles]))
         self.say("airborne, GUIDED")
@@ -274,8 +278,11 @@ class MissionDaemon:
             centre = self.grid.centre_km(cell)
             heading = self._course_heading(v)
             if heading is None:
-                heading = int(heading_of_angle(math.radians(fallback[i].heading_deg))) if i < len(
-                    fallback) else 0  # fmt: skip
+                heading = (
+                    int(heading_of_angle(math.radians(fallback[i].heading_deg)))
+                    if i < len(fallback)
+                    else 0
+                )
             starts.append(UavStart(float(centre[0]), float(centre[1]), heading * 45.0))
         return tuple(starts)
 
@@ -385,7 +392,9 @@ class MissionDaemon:
         scenario, n, cfg = self.scenario, self.n, self.scenario.config
         starts = self.starts_from_telemetry()
         planner = planner_cls(scenario, starts, self.options.seed)
-        recorder = recorder_cls(scenario, starts, turn_tolerance_deg=self.options.turn_tolerance_deg)
+        recorder = recorder_cls(
+            scenario, starts, turn_tolerance_deg=self.options.turn_tolerance_deg
+        )
         home_km = np.array([[s.x_km, s.y_km] for s in starts])
         cells = self.grid.cell_of(home_km)
         headings = np.array([int(heading_of_angle(math.radians(s.heading_deg))) for s in starts])
@@ -413,7 +422,9 @@ class MissionDaemon:
                 look = looks.get(i)
                 if look is not None:
                     positions[i] = self.local_km(look.lat_deg, look.lon_deg)
-                    reports[i] = look_report(look, self.grid, scenario.origin, cfg.detection_radius_km)
+                    reports[i] = look_report(
+                        look, self.grid, scenario.origin, cfg.detection_radius_km
+                    )
                     observed[reports[i].cells[:, 0], reports[i].cells[:, 1]] = True
                 elif v.has_position:
                     self.looks_missed += step > 0
@@ -429,30 +440,43 @@ class MissionDaemon:
                         course = self._course_heading(v)
                         headings[i] = commanded_headings[i] if course is None else course
                 cells[i] = cell
-            decision = planner.step(cells.copy(), headings.copy(), reports, engagements, active.copy())
+            decision = planner.step(
+                cells.copy(), headings.copy(), reports, engagements, active.copy()
+            )
             engagements = [None] * n
             done = np.asarray(decision.done, dtype=bool)
             proposed = np.where(done[:, None], cells, np.asarray(decision.next_cells))
             proposed_h = np.where(done, headings, np.asarray(decision.next_headings))
-            checked = self.envelope.check(cells, headings, proposed, proposed_h, flown_km, home_km, active)
+            checked = self.envelope.check(
+                cells, headings, proposed, proposed_h, flown_km, home_km, active
+            )
             for o in checked.overrides:
                 self.overrides[o.reason] += 1
-            for i in range(n):  # distance flown so far, between measured cells (as the planner counts)
+            for i in range(
+                n
+            ):  # distance flown so far, between measured cells (as the planner counts)
                 if active[i] and step > 0:
-                    flown_km[i] += float(np.hypot(*(self.grid.centre_km(cells[i]) - previous_centres[i])))
+                    flown_km[i] += float(
+                        np.hypot(*(self.grid.centre_km(cells[i]) - previous_centres[i]))
+                    )
             previous_centres = self.grid.centre_km(cells)
             recorder.record_step(
-                positions.copy(), airborne=active.copy(),
-                planned_km=self.grid.centre_km(checked.next_cells), done=done,
-            )  # fmt: skip
+                positions.copy(),
+                airborne=active.copy(),
+                planned_km=self.grid.centre_km(checked.next_cells),
+                done=done,
+            )
             # engagements first: the vehicle is where the planner asked for it
             requests = [
                 (i, engagement_command(self.vehicle(i), engage_seq[i] + 1))
-                for i in range(n) if active[i] and bool(decision.engage[i])
-            ]  # fmt: skip
+                for i in range(n)
+                if active[i] and bool(decision.engage[i])
+            ]
             for i, _ in requests:
                 engage_seq[i] += 1
-            for i, cmd in zip([r[0] for r in requests], self.send([c for _, c in requests]), strict=True):
+            for i, cmd in zip(
+                [r[0] for r in requests], self.send([c for _, c in requests]), strict=True
+            ):
                 if cmd.ack is None:
                     continue  # unanswered: the planner sees no outcome and may ask again
                 target = int(cmd.ack.result_param2) if cmd.accepted else 0
@@ -463,10 +487,14 @@ class MissionDaemon:
                     engaged_value += value
                     recorder.record_engagement(step, i, target, value)
             # guided targets
-            aims = np.array([
-                self.envelope.aim_point_km(cells[i], checked.next_cells[i], self.options.lead_steps)
-                for i in range(n)
-            ])  # fmt: skip
+            aims = np.array(
+                [
+                    self.envelope.aim_point_km(
+                        cells[i], checked.next_cells[i], self.options.lead_steps
+                    )
+                    for i in range(n)
+                ]
+            )
             lat, lon = local_km_to_geodetic(aims[:, 0], aims[:, 1], scenario.origin)
             moves = []
             for i in range(n):
@@ -475,15 +503,21 @@ class MissionDaemon:
                 aim = (round(float(aims[i, 0]), 3), round(float(aims[i, 1]), 3))
                 if aim == last_target[i] and step % 5:
                     continue  # already flying there (re-sent every 5 steps all the same)
-                moves.append((i, reposition_command(
-                    self.vehicle(i), float(lat[i]), float(lon[i]), scenario.altitude_m)))  # fmt: skip
+                moves.append(
+                    (
+                        i,
+                        reposition_command(
+                            self.vehicle(i), float(lat[i]), float(lon[i]), scenario.altitude_m
+                        ),
+                    )
+                )
             for (i, _), cmd in zip(moves, self.send([c for _, c in moves]), strict=True):
                 if cmd.ack is not None and not cmd.accepted:
                     refusals[i] += 1
                     self.refused_commands += 1
                     self.say(f"warning: {cmd.describe_failure()} (step {step})")
                     if refusals[i] >= self.options.max_refusals:
-                        raise CommandRefused(
+                        raise CommandRefusedError(
                             f"{cmd.describe_failure()} {refusals[i]} times in a row; check its "
                             f"mode, fence and STATUSTEXT messages"
                         )
@@ -494,12 +528,18 @@ class MissionDaemon:
             commanded_cells = checked.next_cells.copy()
             commanded_headings = checked.next_headings.copy()
             if self.options.on_step is not None:
-                self.options.on_step(StepStatus(
-                    step, self.steps, int(active.sum()),
-                    [i + 1 for i in range(n) if not active[i]],
-                    float(observed.mean()), len(engaged_ids), engaged_value,
-                    sum(self.overrides.values()),
-                ))  # fmt: skip
+                self.options.on_step(
+                    StepStatus(
+                        step,
+                        self.steps,
+                        int(active.sum()),
+                        [i + 1 for i in range(n) if not active[i]],
+                        float(observed.mean()),
+                        len(engaged_ids),
+                        engaged_value,
+                        sum(self.overrides.values()),
+                    )
+                )
             if done.all():
                 break
         extra = {
@@ -516,7 +556,9 @@ class MissionDaemon:
             "frames_received": self.link.messages_received,
             "tlog": str(self.options.tlog_path) if self.options.tlog_path else None,
         }
-        return recorder.result(self.options.seed, ALGORITHM, time.monotonic() - started, extra=extra)
+        return recorder.result(
+            self.options.seed, ALGORITHM, time.monotonic() - started, extra=extra
+        )
 
 
 __all__ = ["MissionDaemon", "DaemonOptions", "MissionReport", "StepStatus", "mavlink"]

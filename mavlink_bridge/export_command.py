@@ -14,9 +14,15 @@ HELP = "write waypoint files (QGC WPL, QGroundControl .plan) and maps (GeoJSON, 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("result", type=Path, help="result folder (with result.json) or the JSON file")
-    parser.add_argument("--format", action="append", choices=FORMATS,
-                        help="format to write (repeatable; default all)")  # fmt: skip
+    parser.add_argument(
+        "result", type=Path, help="result folder (with result.json) or the JSON file"
+    )
+    parser.add_argument(
+        "--format",
+        action="append",
+        choices=FORMATS,
+        help="format to write (repeatable; default all)",
+    )
     parser.add_argument("--out", type=Path, help="output folder (default: the result folder)")
 
 
@@ -24,11 +30,15 @@ def load_result(path: Path) -> dict:
     """The result dict in ``path`` (a folder holding result.json, or the file itself)."""
     file = path / "result.json" if path.is_dir() else path
     if not file.exists():
-        raise UserError(f"{file} does not exist; give the output folder of `swarmplan run/demo/daemon`")
+        raise UserError(
+            f"{file} does not exist; give the output folder of `swarmplan run/demo/daemon`"
+        )
     try:
         return json.loads(file.read_text())
     except json.JSONDecodeError as exc:
-        raise UserError(f"{file} is not valid JSON ({exc.msg} at line {exc.lineno}); re-run the mission") from None
+        raise UserError(
+            f"{file} is not valid JSON ({exc.msg} at line {exc.lineno}); re-run the mission"
+        ) from None
 
 
 def main(args: argparse.Namespace) -> int:

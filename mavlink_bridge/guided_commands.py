@@ -24,7 +24,7 @@ from mavlink_bridge.vehicle_state import CommandAck, VehicleState
 from planner.errors import UserError
 
 
-class CommandRefused(UserError):
+class CommandRefusedError(UserError):
     """A vehicle answered a command with a result other than ACCEPTED, or never answered."""
 
 
@@ -63,9 +63,20 @@ class Command:
         sysid = self.vehicle.system_id
         if self.as_int:
             mav.command_int_send(
-                sysid, self.target_component, self.frame, self.command, 0, 0,
-                p[0], p[1], p[2], p[3], int(p[4]), int(p[5]), p[6],
-            )  # fmt: skip
+                sysid,
+                self.target_component,
+                self.frame,
+                self.command,
+                0,
+                0,
+                p[0],
+                p[1],
+                p[2],
+                p[3],
+                int(p[4]),
+                int(p[5]),
+                p[6],
+            )
         else:
             mav.command_long_send(
                 sysid, self.target_component, self.command, min(self.attempts, 255), *p
@@ -116,10 +127,10 @@ def send_commands(
 
 
 def require_accepted(commands: list[Command]) -> None:
-    """Raise CommandRefused (one line, naming vehicle and result) for the first non-accepted."""
+    """Raise CommandRefusedError (one line: vehicle and result) for the first non-accepted."""
     for cmd in commands:
         if not cmd.accepted:
-            raise CommandRefused(cmd.describe_failure())
+            raise CommandRefusedError(cmd.describe_failure())
 
 
 # ---------------------------------------------------------------------- the commands themselves
@@ -137,7 +148,11 @@ def set_mode_command(vehicle: VehicleState, custom_mode: int) -> Command:
 
 
 def reposition_command(
-    vehicle: VehicleState, lat_deg: float, lon_deg: float, altitude_m: float, loiter_radius_m: float = 0
+    vehicle: VehicleState,
+    lat_deg: float,
+    lon_deg: float,
+    altitude_m: float,
+    loiter_radius_m: float = 0,
 ) -> Command:
     """COMMAND_INT MAV_CMD_DO_REPOSITION: fly to lat/lon at ``altitude_m`` above home.
 
@@ -145,10 +160,12 @@ def reposition_command(
     GUIDED), param3 = loiter radius (0: the autopilot's default), param4 = NaN (keep yaw
     behaviour). ArduPlane accepts it only as COMMAND_INT."""
     return Command(
-        vehicle, mavlink.MAV_CMD_DO_REPOSITION,
+        vehicle,
+        mavlink.MAV_CMD_DO_REPOSITION,
         (-1, 1, loiter_radius_m, math.nan, round(lat_deg * 1e7), round(lon_deg * 1e7), altitude_m),
-        as_int=True, frame=mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-    )  # fmt: skip
+        as_int=True,
+        frame=mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+    )
 
 
 def engagement_command(vehicle: VehicleState, sequence: int) -> Command:
@@ -157,6 +174,8 @@ def engagement_command(vehicle: VehicleState, sequence: int) -> Command:
     with the same number gets the same outcome). The ACK's result_param2 is the serviced target
     id (0: none within the engage radius). Never a weapon or payload command."""
     return Command(
-        vehicle, mavlink.MAV_CMD_IMAGE_START_CAPTURE, (0, 0, 1, sequence, 0, 0, 0),
+        vehicle,
+        mavlink.MAV_CMD_IMAGE_START_CAPTURE,
+        (0, 0, 1, sequence, 0, 0, 0),
         target_component=CAMERA_COMPONENT_ID,
-    )  # fmt: skip
+    )

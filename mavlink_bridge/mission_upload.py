@@ -35,11 +35,22 @@ class FenceCircle:
 def send_fence_item(vehicle: VehicleState, seq: int, circle: FenceCircle) -> None:
     """MISSION_ITEM_INT of one exclusion circle (frame GLOBAL, as QGroundControl sends it)."""
     vehicle.link.mav.mission_item_int_send(
-        vehicle.system_id, AUTOPILOT_COMPONENT_ID, seq, mavlink.MAV_FRAME_GLOBAL,
-        mavlink.MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION, 0, 1, circle.radius_m, 0, 0, 0,
-        round(circle.lat_deg * 1e7), round(circle.lon_deg * 1e7), 0.0,
+        vehicle.system_id,
+        AUTOPILOT_COMPONENT_ID,
+        seq,
+        mavlink.MAV_FRAME_GLOBAL,
+        mavlink.MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION,
+        0,
+        1,
+        circle.radius_m,
+        0,
+        0,
+        0,
+        round(circle.lat_deg * 1e7),
+        round(circle.lon_deg * 1e7),
+        0.0,
         mavlink.MAV_MISSION_TYPE_FENCE,
-    )  # fmt: skip
+    )
 
 
 def upload_fence(
@@ -71,7 +82,8 @@ def upload_fence(
         if time.monotonic() > deadline:
             stuck = [str(s) for s, r in done.items() if r is None]
             raise MissionUploadError(
-                f"fence upload to vehicle {', '.join(stuck)} did not complete within {timeout_s:g} s; "
+                f"fence upload to vehicle {', '.join(stuck)} did not complete "
+                f"within {timeout_s:g} s; "
                 f"check the link (and that the autopilot supports MISSION_TYPE_FENCE)"
             )
         link.pump(0.01)
@@ -87,12 +99,16 @@ def upload_fence(
                     last_progress[sysid] = now
             if vehicle.mission_ack is not None and vehicle.mission_ack[1] == fence:
                 done[sysid] = vehicle.mission_ack[0]
-            elif now - last_progress[sysid] > retry_interval_s and now - last_count[sysid] > retry_interval_s:
+            elif (
+                now - last_progress[sysid] > retry_interval_s
+                and now - last_count[sysid] > retry_interval_s
+            ):
                 send_count(vehicle)  # nothing asked for a while: start again
                 last_progress[sysid] = now
     for sysid, result in done.items():
         if result != mavlink.MAV_MISSION_ACCEPTED:
             raise MissionUploadError(
-                f"vehicle {sysid} refused the fence upload: {enum_name('MAV_MISSION_RESULT', result or 0)}"
+                f"vehicle {sysid} refused the fence upload: "
+                f"{enum_name('MAV_MISSION_RESULT', result or 0)}"
                 f" (an autopilot still initialising answers NO_SPACE; wait for STANDBY)"
             )

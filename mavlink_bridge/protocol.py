@@ -29,9 +29,17 @@ PLANE_MODE_TAKEOFF = 13
 PLANE_MODE_GUIDED = 15
 
 PLANE_MODE_NAMES = {
-    0: "MANUAL", 1: "CIRCLE", 2: "STABILIZE", 5: "FBWA", 6: "FBWB", 10: "AUTO", 11: "RTL",
-    12: "LOITER", 13: "TAKEOFF", 15: "GUIDED",
-}  # fmt: skip
+    0: "MANUAL",
+    1: "CIRCLE",
+    2: "STABILIZE",
+    5: "FBWA",
+    6: "FBWB",
+    10: "AUTO",
+    11: "RTL",
+    12: "LOITER",
+    13: "TAKEOFF",
+    15: "GUIDED",
+}
 
 
 def enum_name(enum: str, value: int) -> str:
@@ -55,5 +63,14 @@ def mode_name(custom_mode: int) -> str:
     return PLANE_MODE_NAMES.get(custom_mode, f"mode {custom_mode}")
 
 
-__all__ = ["mavlink", "GCS_SYSTEM_ID", "GCS_COMPONENT_ID", "AUTOPILOT_COMPONENT_ID",
-           "CAMERA_COMPONENT_ID", "result_name", "command_name", "mode_name", "enum_name"]  # fmt: skip
+__all__ = [
+    "mavlink",
+    "GCS_SYSTEM_ID",
+    "GCS_COMPONENT_ID",
+    "AUTOPILOT_COMPONENT_ID",
+    "CAMERA_COMPONENT_ID",
+    "result_name",
+    "command_name",
+    "mode_name",
+    "enum_name",
+]

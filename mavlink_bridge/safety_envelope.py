@@ -75,7 +75,9 @@ class SafetyEnvelope:
         cfg = scenario.config
         return cls(
             grid=Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km),
-            threat_xy_km=np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(-1, 2),
+            threat_xy_km=np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(
+                -1, 2
+            ),
             threat_radius_km=np.array([t.radius_km for t in scenario.threats], float),
             threat_margin_km=threat_margin_km,
             min_separation_km=cfg.min_separation_km,
@@ -93,8 +95,9 @@ class SafetyEnvelope:
                 return False
         return True
 
-    def within_range(self, cell_from: np.ndarray, cell_to: np.ndarray, flown_km: float,
-                     home_km: np.ndarray) -> bool:  # fmt: skip
+    def within_range(
+        self, cell_from: np.ndarray, cell_to: np.ndarray, flown_km: float, home_km: np.ndarray
+    ) -> bool:
         if not math.isfinite(self.max_range_km):
             return True
         a, b = self.grid.centre_km(cell_from), self.grid.centre_km(cell_to)
@@ -105,8 +108,9 @@ class SafetyEnvelope:
             return True
         return flown_km + leg + home <= self.max_range_km + 1e-9
 
-    def static_reason(self, cell_from: np.ndarray, cell_to: np.ndarray, flown_km: float,
-                      home_km: np.ndarray) -> str | None:  # fmt: skip
+    def static_reason(
+        self, cell_from: np.ndarray, cell_to: np.ndarray, flown_km: float, home_km: np.ndarray
+    ) -> str | None:
         """The first rule (other than separation) a move breaks, or None."""
         if not bool(self.grid.inside(cell_to)):
             return "area"
@@ -155,13 +159,25 @@ class SafetyEnvelope:
                 )
                 out_cells[i], out_headings[i] = cell, heading
                 overrides.append(
-                    Override(i, reason, (int(proposed[0]), int(proposed[1])), (int(cell[0]), int(cell[1])))
+                    Override(
+                        i,
+                        reason,
+                        (int(proposed[0]), int(proposed[1])),
+                        (int(cell[0]), int(cell[1])),
+                    )
                 )
             settled.append(i)
         return EnvelopeDecision(out_cells, out_headings, overrides)
 
-    def _alternative(self, cell: np.ndarray, heading: int, proposed: np.ndarray, flown_km: float,
-                     home_km: np.ndarray, others: np.ndarray) -> tuple[np.ndarray, int]:  # fmt: skip
+    def _alternative(
+        self,
+        cell: np.ndarray,
+        heading: int,
+        proposed: np.ndarray,
+        flown_km: float,
+        home_km: np.ndarray,
+        others: np.ndarray,
+    ) -> tuple[np.ndarray, int]:
         """The safe reachable cell nearest the proposed one, else the current cell (hold)."""
         best: tuple[float, np.ndarray, int] | None = None
         for turn in turn_options(self.max_turn_deg):
@@ -178,7 +194,9 @@ class SafetyEnvelope:
             return best[1], best[2]
         return self._escape(cell, heading)
 
-    def aim_point_km(self, cell_from: np.ndarray, cell_to: np.ndarray, lead: float = 1.0) -> np.ndarray:
+    def aim_point_km(
+        self, cell_from: np.ndarray, cell_to: np.ndarray, lead: float = 1.0
+    ) -> np.ndarray:
         """Where to send the plane for a move: the next cell's centre extended ``lead`` legs
         further along the move (a carrot: the plane flies through the centre without arriving and
         circling), shortened until the extension stays in the area and clear of the threats."""
@@ -187,7 +205,11 @@ class SafetyEnvelope:
             away = b - c
             distance = float(np.hypot(*away))
             if distance < r + self.threat_margin_km:  # an escape cell: aim clear of the zone
-                direction = away / distance if distance > 1e-9 else (a - c) / max(float(np.hypot(*(a - c))), 1e-9)
+                direction = (
+                    away / distance
+                    if distance > 1e-9
+                    else (a - c) / max(float(np.hypot(*(a - c))), 1e-9)
+                )
                 return c + direction * (r + self.threat_margin_km)
         leg = b - a
         if not np.any(leg):

@@ -18,9 +18,12 @@ from mavlink_bridge.vehicle_state import VehicleState
 
 #: Vehicle kinds that are not vehicles (ground stations, cameras, gimbals...).
 _NOT_VEHICLES = {
-    mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_CAMERA, mavlink.MAV_TYPE_GIMBAL,
-    mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_ADSB,
-}  # fmt: skip
+    mavlink.MAV_TYPE_GCS,
+    mavlink.MAV_TYPE_CAMERA,
+    mavlink.MAV_TYPE_GIMBAL,
+    mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+    mavlink.MAV_TYPE_ADSB,
+}
 
 
 class SwarmLink:
@@ -43,13 +46,13 @@ class SwarmLink:
             self._selector.register(endpoint.fileno(), selectors.EVENT_READ, endpoint)
         self._last_heartbeat_s = -1e9
         # udpout peers that wait for our first word get their own GCS link until a vehicle answers
-        self._openers = [
-            VehicleLink(0, e, None, tlog) for e in endpoints if e.needs_first_word
-        ]
+        self._openers = [VehicleLink(0, e, None, tlog) for e in endpoints if e.needs_first_word]
         self.messages_received = 0
 
     @classmethod
-    def open(cls, specs: Iterable[str], tlog: TlogWriter | None = None, **kwargs: object) -> SwarmLink:
+    def open(
+        cls, specs: Iterable[str], tlog: TlogWriter | None = None, **kwargs: object
+    ) -> SwarmLink:
         """Open every endpoint (closing those already opened if one fails)."""
         opened: list[Endpoint] = []
         try:

@@ -16,6 +16,7 @@ the frames of the next one; frames that parse as ``UNKNOWN_<id>`` (not CRC-check
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import socket
 from abc import ABC, abstractmethod
@@ -144,10 +145,9 @@ class UdpInEndpoint(Endpoint):
     def send_to(self, frame: bytes, address: Address | None) -> None:
         if address is None or self.sock is None:
             return
-        try:
+        # UDP: a lost datagram is what retries are for
+        with contextlib.suppress(BlockingIOError, ConnectionRefusedError):
             self.sock.sendto(frame, address)
-        except (BlockingIOError, ConnectionRefusedError):
-            pass  # UDP: a lost datagram is what retries are for
 
     def close(self) -> None:
         if self.sock is not None:
@@ -193,7 +193,7 @@ class TcpEndpoint(Endpoint):
                 f"nothing listens on {self.spec} (connection refused); start the vehicle or SITL "
                 f"first, or check the address"
             ) from None
-        except (TimeoutError, socket.timeout):
+        except TimeoutError:
             raise EndpointError(
                 f"{self.spec} is unreachable (no answer in {self.connect_timeout_s:g} s); "
                 f"check the address and the network"
@@ -244,9 +244,14 @@ class TcpEndpoint(Endpoint):
 
 
 def parse_endpoint(spec: str) -> Endpoint:
-    """An (unopened) endpoint from ``udpin:HOST:PORT``, ``udpout:HOST:PORT`` or ``tcp:HOST:PORT``."""
+    """An (unopened) endpoint: ``udpin:HOST:PORT``, ``udpout:HOST:PORT`` or ``tcp:HOST:PORT``."""
     parts = spec.split(":")
-    kinds = {"udpin": UdpInEndpoint, "udp": UdpInEndpoint, "udpout": UdpOutEndpoint, "tcp": TcpEndpoint}
+    kinds = {
+        "udpin": UdpInEndpoint,
+        "udp": UdpInEndpoint,
+        "udpout": UdpOutEndpoint,
+        "tcp": TcpEndpoint,
+    }
     if len(parts) != 3 or parts[0] not in kinds:
         raise EndpointError(
             f"--connect {spec!r} is not an endpoint; use udpin:HOST:PORT, udpout:HOST:PORT or "

@@ -94,9 +94,9 @@ class VehicleState:
         """STATUSTEXTs that explain an arming refusal (``PreArm: ...``, ``Arm: ...``)."""
         reasons = []
         for when, _severity, text in self.statustexts:
-            if when >= since_s and text.lower().startswith(("prearm", "arm")):
-                if text not in reasons:
-                    reasons.append(text)
+            prearm = text.lower().startswith(("prearm", "arm"))
+            if when >= since_s and prearm and text not in reasons:
+                reasons.append(text)
         return reasons
 
     # ------------------------------------------------------------------ dispatch
@@ -149,7 +149,11 @@ class VehicleState:
     def on_camera_image_captured(self, msg: mavlink.MAVLink_camera_image_captured_message) -> None:
         if msg.get_srcComponent() != CAMERA_COMPONENT_ID or msg.capture_result != 1:
             return
-        url = msg.file_url if isinstance(msg.file_url, str) else msg.file_url.decode("ascii", "replace")
+        url = (
+            msg.file_url
+            if isinstance(msg.file_url, str)
+            else msg.file_url.decode("ascii", "replace")
+        )
         url = url.rstrip("\x00")
         if url.startswith("look+:"):
             look = self.looks.get(msg.image_index)
@@ -159,9 +163,12 @@ class VehicleState:
         if not url.startswith("look:"):
             return  # an ordinary photo, not a sensor look
         self.looks[msg.image_index] = Look(
-            msg.image_index, msg.lat * 1e-7, msg.lon * 1e-7,
-            parse_look_offsets(url[len("look:") :]), self.last_heard_s,
-        )  # fmt: skip
+            msg.image_index,
+            msg.lat * 1e-7,
+            msg.lon * 1e-7,
+            parse_look_offsets(url[len("look:") :]),
+            self.last_heard_s,
+        )
         self.latest_look = max(self.latest_look, msg.image_index)
         for old in [k for k in self.looks if k < msg.image_index - 20]:
             del self.looks[old]

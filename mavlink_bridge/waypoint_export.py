@@ -82,12 +82,17 @@ class MissionGeometry:
         if not self.threats:
             return []
         centres = self.to_geodetic(np.array([[t[0], t[1]] for t in self.threats]))
-        return [(float(c[0]), float(c[1]), t[2] * 1000.0) for c, t in zip(centres, self.threats, strict=True)]
+        return [
+            (float(c[0]), float(c[1]), t[2] * 1000.0)
+            for c, t in zip(centres, self.threats, strict=True)
+        ]
 
     def threat_ring(self, threat: tuple[float, float, float], points: int = 72) -> np.ndarray:
         """Closed ring (points+1, 2) of (lat, lon) around a threat circle."""
         a = np.linspace(0, 2 * np.pi, points, endpoint=False)
-        ring = np.stack([threat[0] + threat[2] * np.cos(a), threat[1] + threat[2] * np.sin(a)], axis=1)
+        ring = np.stack(
+            [threat[0] + threat[2] * np.cos(a), threat[1] + threat[2] * np.sin(a)], axis=1
+        )
         geo = self.to_geodetic(ring)
         return np.vstack([geo, geo[:1]])
 
@@ -103,7 +108,9 @@ def _origin_of(value: Any) -> Origin:
             raise ExportError("result.json: origin needs lat_deg and lon_deg")
         return Origin(float(lat), float(lon), float(alt))
     if isinstance(value, list | tuple) and len(value) >= 2:
-        return Origin(float(value[0]), float(value[1]), float(value[2]) if len(value) > 2 else Origin.alt_m)
+        return Origin(
+            float(value[0]), float(value[1]), float(value[2]) if len(value) > 2 else Origin.alt_m
+        )
     raise ExportError(f"result.json: origin {value!r} is not {{lat_deg, lon_deg, alt_m}}")
 
 
@@ -177,15 +184,25 @@ def mission_items(geometry: MissionGeometry, uav: dict[str, Any], which: str) ->
     """Home, takeoff, the path's waypoints, RTL for one UAV."""
     path = path_km(uav, which)
     start = uav.get("start_km")
-    start_km = np.asarray(start, float) if start is not None else (path[0] if len(path) else np.zeros(2))
+    start_km = (
+        np.asarray(start, float) if start is not None else (path[0] if len(path) else np.zeros(2))
+    )
     home = geometry.to_geodetic(start_km.reshape(1, 2))[0]
     items = [
         Waypoint(NAV_WAYPOINT, MAV_FRAME_GLOBAL, home[0], home[1], geometry.origin.alt_m),
-        Waypoint(NAV_TAKEOFF, MAV_FRAME_GLOBAL_RELATIVE_ALT, home[0], home[1], geometry.altitude_m,
-                 (TAKEOFF_PITCH_DEG, 0.0, 0.0, 0.0)),
-    ]  # fmt: skip
+        Waypoint(
+            NAV_TAKEOFF,
+            MAV_FRAME_GLOBAL_RELATIVE_ALT,
+            home[0],
+            home[1],
+            geometry.altitude_m,
+            (TAKEOFF_PITCH_DEG, 0.0, 0.0, 0.0),
+        ),
+    ]
     for lat, lon in geometry.to_geodetic(simplify_path(path)):
-        items.append(Waypoint(NAV_WAYPOINT, MAV_FRAME_GLOBAL_RELATIVE_ALT, lat, lon, geometry.altitude_m))
+        items.append(
+            Waypoint(NAV_WAYPOINT, MAV_FRAME_GLOBAL_RELATIVE_ALT, lat, lon, geometry.altitude_m)
+        )
     items.append(Waypoint(NAV_RETURN_TO_LAUNCH, MAV_FRAME_GLOBAL_RELATIVE_ALT, 0.0, 0.0, 0.0))
     return items
 
@@ -198,11 +215,21 @@ def wpl_text(items: Sequence[Waypoint]) -> str:
     lines = ["QGC WPL 110"]
     for index, item in enumerate(items):
         p = item.params
-        lines.append("\t".join([
-            str(index), "1" if index == 0 else "0", str(item.frame), str(item.command),
-            *(f"{v:.8f}" for v in p), f"{item.lat_deg:.8f}", f"{item.lon_deg:.8f}",
-            f"{item.alt_m:.6f}", "1",
-        ]))  # fmt: skip
+        lines.append(
+            "\t".join(
+                [
+                    str(index),
+                    "1" if index == 0 else "0",
+                    str(item.frame),
+                    str(item.command),
+                    *(f"{v:.8f}" for v in p),
+                    f"{item.lat_deg:.8f}",
+                    f"{item.lon_deg:.8f}",
+                    f"{item.alt_m:.6f}",
+                    "1",
+                ]
+            )
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -246,7 +273,11 @@ def plan_document(geometry: MissionGeometry, uav: dict[str, Any]) -> dict[str, A
         "fileType": "Plan",
         "geoFence": {
             "circles": [
-                {"circle": {"center": [lat, lon], "radius": radius}, "inclusion": False, "version": 1}
+                {
+                    "circle": {"center": [lat, lon], "radius": radius},
+                    "inclusion": False,
+                    "version": 1,
+                }
                 for lat, lon, radius in geometry.threat_circles()
             ],
             "polygons": [],
@@ -300,19 +331,27 @@ def geojson_document(geometry: MissionGeometry) -> dict[str, Any]:
         coords = [[float(lon), float(lat)] for lat, lon in geo]
         if len(coords) == 1:
             coords.append(coords[0])
-        features.append({
-            "type": "Feature",
-            "geometry": {"type": "LineString", "coordinates": coords},
-            "properties": {"kind": f"{which}_track", "uav": label, "returned": uav.get("returned"),
-                           "distance_km": uav.get("distance_km")},
-        })  # fmt: skip
+        features.append(
+            {
+                "type": "Feature",
+                "geometry": {"type": "LineString", "coordinates": coords},
+                "properties": {
+                    "kind": f"{which}_track",
+                    "uav": label,
+                    "returned": uav.get("returned"),
+                    "distance_km": uav.get("distance_km"),
+                },
+            }
+        )
     for k, threat in enumerate(geometry.threats):
         ring = [[float(lon), float(lat)] for lat, lon in geometry.threat_ring(threat)]
-        features.append({
-            "type": "Feature",
-            "geometry": {"type": "Polygon", "coordinates": [ring]},
-            "properties": {"kind": "threat", "index": k, "radius_km": threat[2]},
-        })  # fmt: skip
+        features.append(
+            {
+                "type": "Feature",
+                "geometry": {"type": "Polygon", "coordinates": [ring]},
+                "properties": {"kind": "threat", "index": k, "radius_km": threat[2]},
+            }
+        )
     return {"type": "FeatureCollection", "name": geometry.name, "features": features}
 
 
@@ -343,7 +382,9 @@ def kml_document(geometry: MissionGeometry) -> ET.ElementTree:
         mark = ET.SubElement(doc, "Placemark")
         ET.SubElement(mark, "name").text = f"threat {k + 1} ({threat[2]:g} km)"
         ET.SubElement(mark, "styleUrl").text = "#threat"
-        ring = ET.SubElement(ET.SubElement(ET.SubElement(mark, "Polygon"), "outerBoundaryIs"), "LinearRing")
+        ring = ET.SubElement(
+            ET.SubElement(ET.SubElement(mark, "Polygon"), "outerBoundaryIs"), "LinearRing"
+        )
         ET.SubElement(ring, "coordinates").text = " ".join(
             f"{lon:.7f},{lat:.7f},0" for lat, lon in geometry.threat_ring(threat)
         )
@@ -366,7 +407,9 @@ def write_kml(geometry: MissionGeometry, out_dir: Path) -> list[Path]:
 WRITERS = {"wpl": write_wpl, "plan": write_plan, "geojson": write_geojson, "kml": write_kml}
 
 
-def export(result: dict[str, Any], out_dir: str | Path, formats: Iterable[str] = FORMATS) -> list[Path]:
+def export(
+    result: dict[str, Any], out_dir: str | Path, formats: Iterable[str] = FORMATS
+) -> list[Path]:
     """Write the chosen formats of a result into ``out_dir``; returns the files written."""
     geometry = geometry_of(result)
     out = Path(out_dir)
@@ -384,5 +427,15 @@ def export_all(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
     return export(result, out_dir, FORMATS)
 
 
-__all__ = ["export", "export_all", "FORMATS", "wpl_text", "plan_document", "geojson_document",
-           "kml_document", "geometry_of", "simplify_path", "ExportError"]  # fmt: skip
+__all__ = [
+    "export",
+    "export_all",
+    "FORMATS",
+    "wpl_text",
+    "plan_document",
+    "geojson_document",
+    "kml_document",
+    "geometry_of",
+    "simplify_path",
+    "ExportError",
+]

@@ -27,25 +27,58 @@ DEFAULT_SPEEDUP = 100.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("scenario", nargs="?", default="paper-10uav",
-                        help=f"built-in ({', '.join(BUILTIN_SCENARIOS)}) or a TOML file (default paper-10uav)")  # fmt: skip
-    parser.add_argument("--seed", type=int, default=1, help="seed of the world and the planner (default 1)")
-    parser.add_argument("--steps", type=int, default=None, help="decision steps (default: the scenario's)")
-    parser.add_argument("--speedup", type=float, default=DEFAULT_SPEEDUP,
-                        help=f"simulated seconds per wall second (default {DEFAULT_SPEEDUP:g})")  # fmt: skip
-    parser.add_argument("--out", type=Path, default=None,
-                        help="output folder (default runs/<scenario>-seed<S>-demo)")  # fmt: skip
+    parser.add_argument(
+        "scenario",
+        nargs="?",
+        default="paper-10uav",
+        help=f"built-in ({', '.join(BUILTIN_SCENARIOS)}) or a TOML file (default paper-10uav)",
+    )
+    parser.add_argument(
+        "--seed", type=int, default=1, help="seed of the world and the planner (default 1)"
+    )
+    parser.add_argument(
+        "--steps", type=int, default=None, help="decision steps (default: the scenario's)"
+    )
+    parser.add_argument(
+        "--speedup",
+        type=float,
+        default=DEFAULT_SPEEDUP,
+        help=f"simulated seconds per wall second (default {DEFAULT_SPEEDUP:g})",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default runs/<scenario>-seed<S>-demo)",
+    )
     parser.add_argument("--json", action="store_true", help="print only the result JSON on stdout")
 
 
-def start_simulator(scenario: str, seed: int, speedup: float, port: int, log: Path) -> subprocess.Popen:
+def start_simulator(
+    scenario: str, seed: int, speedup: float, port: int, log: Path
+) -> subprocess.Popen:
     """``python -m swarmplan sim`` sending to our port; its output goes to ``log``."""
     command = [
-        sys.executable, "-m", "swarmplan", "sim", "--scenario", scenario, "--seed", str(seed),
-        "--speedup", f"{speedup:g}", "--gcs-host", "127.0.0.1", "--gcs-port", str(port), "--quiet",
-    ]  # fmt: skip
+        sys.executable,
+        "-m",
+        "swarmplan",
+        "sim",
+        "--scenario",
+        scenario,
+        "--seed",
+        str(seed),
+        "--speedup",
+        f"{speedup:g}",
+        "--gcs-host",
+        "127.0.0.1",
+        "--gcs-port",
+        str(port),
+        "--quiet",
+    ]
     with open(log, "wb") as sink:
-        return subprocess.Popen(command, stdout=sink, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        return subprocess.Popen(
+            command, stdout=sink, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL
+        )
 
 
 def stop_simulator(proc: subprocess.Popen) -> None:
@@ -79,8 +112,14 @@ def main(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise UserError(f"cannot create {out} ({exc.strerror}); choose another --out") from None
     quiet = args.json
-    bar = tqdm(total=steps, desc=f"{scenario.name} over MAVLink", unit="step", disable=quiet,
-               file=sys.stderr, leave=False)  # fmt: skip
+    bar = tqdm(
+        total=steps,
+        desc=f"{scenario.name} over MAVLink",
+        unit="step",
+        disable=quiet,
+        file=sys.stderr,
+        leave=False,
+    )
 
     def on_step(status: StepStatus) -> None:
         bar.update(1)
@@ -93,24 +132,35 @@ def main(args: argparse.Namespace) -> int:
             bar.write(f"demo: {text}", file=sys.stderr)
 
     options = DaemonOptions(
-        connect=["udpin:127.0.0.1:0"], seed=args.seed, steps=steps,
-        discovery_timeout_s=30.0, ready_timeout_s=60.0, takeoff_timeout_s=60.0,
-        lost_after_s=max(1.0, 200.0 / args.speedup), time_scale=args.speedup,
-        tlog_path=out / "mission.tlog", progress=say, on_step=on_step,
-    )  # fmt: skip
+        connect=["udpin:127.0.0.1:0"],
+        seed=args.seed,
+        steps=steps,
+        discovery_timeout_s=30.0,
+        ready_timeout_s=60.0,
+        takeoff_timeout_s=60.0,
+        lost_after_s=max(1.0, 200.0 / args.speedup),
+        time_scale=args.speedup,
+        tlog_path=out / "mission.tlog",
+        progress=say,
+        on_step=on_step,
+    )
     daemon = MissionDaemon(scenario, options)
     link = daemon.connect()
     port = link.endpoints[0].port
     sim_log = out / "sim.log"
     sim = start_simulator(args.scenario, args.seed, args.speedup, port, sim_log)
-    say(f"simulator started (pid {sim.pid}, {scenario.uav_count} vehicles, {args.speedup:g}x) -> udp {port}")
+    say(
+        f"simulator started (pid {sim.pid}, {scenario.uav_count} vehicles, {args.speedup:g}x) "
+        f"-> udp {port}"
+    )
     started = time.monotonic()
     try:
         report = daemon.fly()
     except UserError as exc:
         if sim.poll() is not None:
             raise UserError(
-                f"the simulator exited (status {sim.returncode}): {last_line(sim_log) or 'no output'}"
+                f"the simulator exited (status {sim.returncode}): "
+                f"{last_line(sim_log) or 'no output'}"
             ) from None
         raise exc
     finally:
@@ -128,6 +178,8 @@ def main(args: argparse.Namespace) -> int:
     lost = result.get("lost_uavs") or []
     if lost:
         print(f"lost vehicles   {', '.join(str(i + 1) for i in lost)} (system ids)")
-    print(f"written: {out}/ (result.json, figures, waypoints/, plan/, mission.geojson, mission.kml, "
-          f"mission.tlog, sim.log; {len(written)} files)")  # fmt: skip
+    print(
+        f"written: {out}/ (result.json, figures, waypoints/, plan/, mission.geojson, mission.kml, "
+        f"mission.tlog, sim.log; {len(written)} files)"
+    )
     return 0

@@ -1,0 +1,150 @@
+"""The daemon against a fake swarm: the whole protocol, failures named in one line, lost links."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
+from mavlink_bridge.discovery import DiscoveryError
+from mavlink_bridge.guided_commands import CommandRefusedError
+from mavlink_bridge.protocol import mavlink
+from mavlink_bridge.vehicle_link import EndpointError
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def options(port: int, **kw: object) -> DaemonOptions:
+    base = dict(
+        connect=[f"udpin:127.0.0.1:{port}"],
+        steps=12,
+        discovery_timeout_s=5,
+        ready_timeout_s=10,
+        takeoff_timeout_s=10,
+    )
+    base.update(kw)
+    return DaemonOptions(**base)  # type: ignore[arg-type]
+
+
+def test_flies_fake_swarm_and_logs_a_readable_tlog(paper10, udp_port, fake_swarm_factory, tmp_path):
+    swarm = fake_swarm_factory(4, udp_port)
+    tlog = tmp_path / "m.tlog"
+    report = MissionDaemon(paper10, options(udp_port, expect=4, tlog_path=tlog)).fly()
+    result = report.result
+    assert result["steps"] >= 10
+    assert result["source"] == "mavlink"
+    assert len(result["uavs"]) == 4
+    for v in swarm.vehicles:
+        assert len(v.fence_items) == len(paper10.threats)
+        assert all(i.command == mavlink.MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION for i in v.fence_items)
+        assert v.mode == 11  # RTL at the end
+        assert mavlink.MAV_CMD_DO_REPOSITION in v.commands
+    from pymavlink import mavutil
+
+    log = mavutil.mavlink_connection(str(tlog))
+    kinds: dict[str, int] = {}
+    while (msg := log.recv_match()) is not None:
+        kinds[msg.get_type()] = kinds.get(msg.get_type(), 0) + 1
+    for kind in (
+        "HEARTBEAT",
+        "COMMAND_INT",
+        "COMMAND_ACK",
+        "MISSION_ITEM_INT",
+        "CAMERA_IMAGE_CAPTURED",
+    ):
+        assert kinds.get(kind, 0) > 0, kind
+
+
+def test_missing_vehicles_named_with_endpoint(paper10, udp_port, fake_swarm_factory):
+    fake_swarm_factory(2, udp_port)
+    with pytest.raises(DiscoveryError) as err:
+        MissionDaemon(paper10, options(udp_port, expect=4, discovery_timeout_s=1.5)).fly()
+    text = str(err.value)
+    assert "system id 3, 4" in text and f"udpin:127.0.0.1:{udp_port}" in text
+    assert "\n" not in text
+
+
+def test_port_in_use_is_one_clear_line(paper10, udp_port):
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    holder.bind(("127.0.0.1", udp_port))
+    try:
+        with pytest.raises(EndpointError, match=f"UDP port {udp_port} is already in use"):
+            MissionDaemon(paper10, options(udp_port, expect=1)).fly()
+    finally:
+        holder.close()
+
+
+def test_unreachable_tcp_endpoint(paper10, udp_port):
+    with pytest.raises(EndpointError, match="nothing listens on tcp:127.0.0.1"):
+        MissionDaemon(
+            paper10, options(udp_port, connect=[f"tcp:127.0.0.1:{udp_port}"], expect=1)
+        ).fly()
+
+
+def test_arm_refusal_names_prearm_reason(paper10, udp_port, fake_swarm_factory):
+    fake_swarm_factory(2, udp_port, refuse_arm="PreArm: Throttle not at zero")
+    with pytest.raises(CommandRefusedError, match="refused to arm .*PreArm: Throttle not at zero"):
+        MissionDaemon(paper10, options(udp_port, expect=2)).fly()
+
+
+def test_command_refusal_names_result(paper10, udp_port, fake_swarm_factory):
+    fake_swarm_factory(2, udp_port, refuse_command=mavlink.MAV_CMD_DO_REPOSITION)
+    with pytest.raises(
+        CommandRefusedError, match="refused MAV_CMD_DO_REPOSITION: MAV_RESULT_DENIED"
+    ):
+        MissionDaemon(paper10, options(udp_port, expect=2)).fly()
+
+
+def test_cli_reports_missing_vehicles_in_one_line(udp_port, tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "swarmplan",
+            "daemon",
+            "--connect",
+            f"udpin:127.0.0.1:{udp_port}",
+            "--scenario",
+            "paper-10uav",
+            "--expect",
+            "3",
+            "--timeout",
+            "1",
+            "--out",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+        cwd=REPO,
+    )
+    assert proc.returncode == 2
+    last = proc.stderr.strip().splitlines()[-1]
+    assert "system id 1, 2, 3 did not appear within 1 s" in last
+    assert f"udpin:127.0.0.1:{udp_port}" in last
+
+
+def test_silent_vehicle_is_lost_then_rejoins(paper10, udp_port, fake_swarm_factory):
+    swarm = fake_swarm_factory(3, udp_port)
+    steps_seen: list[int] = []
+
+    def on_step(status) -> None:  # cut vehicle 2 at step 5, bring it back at step 25
+        steps_seen.append(status.step)
+        if status.step == 5:
+            swarm.vehicles[1].silent.set()
+        if status.step == 25:
+            swarm.vehicles[1].silent.clear()
+
+    opts = options(udp_port, expect=3, steps=40, lost_after_s=0.6, on_step=on_step)
+    report = MissionDaemon(paper10, opts).fly()
+    events = [(e.uav, e.event) for e in report.events]
+    assert (1, "lost") in events and (1, "rejoined") in events
+    assert report.result["lost_uavs"] == [1]
+    assert report.result["steps"] >= 35  # the others carried on

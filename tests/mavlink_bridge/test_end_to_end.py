@@ -1,0 +1,200 @@
+"""End to end over real loopback UDP: the simulator (a subprocess, `swarmplan sim`) and the
+daemon, on a short 10-UAV mission; and a vehicle whose link is cut mid-mission by a relay."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
+
+REPO = Path(__file__).resolve().parents[2]
+SPEEDUP = 100
+
+
+def start_sim(port: int, seed: int, log: Path, extra: list[str] | None = None) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    with open(log, "wb") as sink:
+        return subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "swarmplan",
+                "sim",
+                "--scenario",
+                "paper-10uav",
+                "--seed",
+                str(seed),
+                "--speedup",
+                str(SPEEDUP),
+                "--gcs-port",
+                str(port),
+                "--quiet",
+                *(extra or []),
+            ],
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+            env=env,
+            cwd=REPO,
+        )
+
+
+def stop(proc: subprocess.Popen) -> None:
+    proc.terminate()
+    try:
+        proc.wait(5)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5)
+
+
+@pytest.mark.timeout(120)
+def test_demo_json_short_mission_has_no_violations(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "swarmplan",
+            "demo",
+            "paper-10uav",
+            "--seed",
+            "1",
+            "--steps",
+            "35",
+            "--speedup",
+            str(SPEEDUP),
+            "--json",
+            "--out",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=110,
+        env=env,
+        cwd=REPO,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout)
+    assert result["source"] == "mavlink" and result["steps"] == 35
+    assert result["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
+    assert result["coverage"] > 0.1
+    assert len(result["uavs"]) == 10 and all(len(u["track_km"]) == 36 for u in result["uavs"])
+    for name in (
+        "result.json",
+        "mission.tlog",
+        "mission.geojson",
+        "waypoints/uav01_flown.waypoints",
+        "plan/uav10.plan",
+    ):
+        assert (tmp_path / name).exists(), name
+
+
+class CuttableRelay(threading.Thread):
+    """Forwards one vehicle's datagrams to the daemon and back, until ``cut`` is set."""
+
+    def __init__(self, daemon_port: int, bind_port: int) -> None:
+        super().__init__(daemon=True)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", bind_port))
+        self.sock.settimeout(0.05)
+        self.port = self.sock.getsockname()[1]
+        self.daemon_addr = ("127.0.0.1", daemon_port)
+        self.vehicle_addr: tuple[str, int] | None = None
+        self.cut = threading.Event()
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        while not self.done.is_set():
+            try:
+                data, addr = self.sock.recvfrom(65535)
+            except (TimeoutError, OSError):
+                continue
+            if self.cut.is_set():
+                continue
+            if addr == self.daemon_addr or addr[1] == self.daemon_addr[1]:
+                if self.vehicle_addr is not None:
+                    self.sock.sendto(data, self.vehicle_addr)
+            else:
+                self.vehicle_addr = addr
+                self.sock.sendto(data, self.daemon_addr)
+
+    def stop(self) -> None:
+        self.done.set()
+        self.join(2)
+        self.sock.close()
+
+
+def free_port_block(count: int) -> int:
+    """A base port with ``count`` consecutive UDP ports free on 127.0.0.1 right now."""
+    for _ in range(50):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.bind(("127.0.0.1", 0))
+            base = probe.getsockname()[1]
+        if base + count > 65535:
+            continue
+        socks = []
+        try:
+            for k in range(count):
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(s)
+                s.bind(("127.0.0.1", base + k))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise RuntimeError("no block of free UDP ports")
+
+
+@pytest.mark.timeout(120)
+def test_cut_link_vehicle_is_lost_and_others_go_on(paper10, tmp_path):
+    """Vehicle 3 talks through a relay (the simulator's per-vehicle ports: vehicle i sends to
+    BASE + i); the relay stops forwarding at step 10. The daemon reports it lost and flies on."""
+    daemon = MissionDaemon(
+        paper10,
+        DaemonOptions(
+            connect=["udpin:127.0.0.1:0"],
+            seed=2,
+            steps=30,
+            lost_after_s=1.0,
+            discovery_timeout_s=30,
+            time_scale=SPEEDUP,
+            tlog_path=tmp_path / "m.tlog",
+        ),
+    )
+    link = daemon.connect()
+    port = link.endpoints[0].port
+    # the simulator's per-vehicle destinations: vehicle i (0-based) sends to BASE + i; a relay on
+    # each forwards to the daemon's one port, and the one of vehicle 3 (index 2) can be cut
+    base = free_port_block(10)
+    relays = [CuttableRelay(port, base + i) for i in range(10)]
+    for r in relays:
+        r.start()
+    relay = relays[2]
+    sim = start_sim(port, 2, tmp_path / "sim.log", ["--per-vehicle-ports", str(base)])
+
+    def on_step(status) -> None:
+        if status.step == 10:
+            relay.cut.set()
+
+    daemon.options.on_step = on_step
+    try:
+        report = daemon.fly()
+    finally:
+        stop(sim)
+        for r in relays:
+            r.stop()
+    result = report.result
+    assert result["lost_uavs"] == [2]
+    assert any(e.uav == 2 and e.event == "lost" for e in report.events)
+    assert result["steps"] == 30  # the others carried on to the end
+    assert all(len(u["track_km"]) == 31 for u in result["uavs"])
