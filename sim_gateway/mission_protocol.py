@@ -229,42 +229,16 @@ def _send_item(v: Vehicle, msg: mavlink.MAVLink_message, as_int: bool) -> None:
         _mission_ack(v, peer, mavlink.MAV_MISSION_INVALID_SEQUENCE, mission_type)
         return
     current = int(mission_type == MISSION and item.seq == v.missions.current_seq)
-    if as_int:
-        out = mavlink.MAVLink_mission_item_int_message(
-            peer[0],
-            peer[1],
-            item.seq,
-            item.frame,
-            item.command,
-            current,
-            item.autocontinue,
-            item.param1,
-            item.param2,
-            item.param3,
-            item.param4,
-            item.x,
-            item.y,
-            item.z,
-            mission_type,
-        )
-    else:
-        out = mavlink.MAVLink_mission_item_message(
-            peer[0],
-            peer[1],
-            item.seq,
-            item.frame,
-            item.command,
-            current,
-            item.autocontinue,
-            item.param1,
-            item.param2,
-            item.param3,
-            item.param4,
-            item.x / 1e7,
-            item.y / 1e7,
-            item.z,
-            mission_type,
-        )
+    # MISSION_ITEM_INT carries degE7 integers; the legacy MISSION_ITEM carries degrees.
+    message = (
+        mavlink.MAVLink_mission_item_int_message if as_int else mavlink.MAVLink_mission_item_message
+    )
+    scale = 1 if as_int else 1e-7
+    out = message(
+        peer[0], peer[1], item.seq, item.frame, item.command, current, item.autocontinue,
+        item.param1, item.param2, item.param3, item.param4, item.x * scale, item.y * scale, item.z,
+        mission_type,
+    )  # fmt: skip
     v.send(out)
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
+from swarmplan.demo import stop_simulator
 
 REPO = Path(__file__).resolve().parents[2]
 SPEEDUP = 100
@@ -46,13 +47,6 @@ def start_sim(port: int, seed: int, log: Path, extra: list[str] | None = None) -
         )
 
 
-def stop(proc: subprocess.Popen) -> None:
-    proc.terminate()
-    try:
-        proc.wait(5)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait(5)
 
 
 @pytest.mark.timeout(120)
@@ -190,7 +184,7 @@ def test_cut_link_vehicle_is_lost_and_others_go_on(paper10, tmp_path):
     try:
         report = daemon.fly()
     finally:
-        stop(sim)
+        stop_simulator(sim)
         for r in relays:
             r.stop()
     result = report.result

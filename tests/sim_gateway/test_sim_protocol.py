@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from conftest import take_off
 from pymavlink import mavutil
+from sim_harness import take_off
 
 from planner.geodesy import geodetic_to_local_km
 from planner.grid import Grid

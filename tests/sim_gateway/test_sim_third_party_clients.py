@@ -184,7 +184,7 @@ def test_mavsdk_connects_reads_position_uploads_a_mission_arms_and_starts_it(gcs
 @pytest.fixture
 def gcs_free_sim():
     """A simulator sending to a free port that the test's client (not pymavlink) will bind."""
-    from conftest import RunningSim
+    from sim_harness import RunningSim
 
     from planner.scenario import load_scenario
     from sim_gateway.simulator import SimOptions, Simulator
