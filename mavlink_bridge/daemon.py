@@ -391,7 +391,17 @@ class MissionDaemon:
         assert self.link is not None
         scenario, n, cfg = self.scenario, self.n, self.scenario.config
         starts = self.starts_from_telemetry()
-        planner = planner_cls(scenario, starts, self.options.seed)
+        # Real planes stray from cell centres (turn circle ~1 km, 14 s diagonal legs), so the
+        # planner itself claims cells with the flight margin on top of d_min; the recorder keeps
+        # judging against the scenario's true d_min.
+        planning = scenario.with_config(
+            min_separation_km=cfg.min_separation_km + self.options.separation_margin_km,
+            separation_sense_km=max(
+                cfg.separation_sense_km,
+                cfg.min_separation_km + 2 * self.options.separation_margin_km,
+            ),
+        )
+        planner = planner_cls(planning, starts, self.options.seed)
         recorder = recorder_cls(
             scenario, starts, turn_tolerance_deg=self.options.turn_tolerance_deg
         )
