@@ -40,7 +40,8 @@ class PlannerConfig:
     p_detect: float = 0.9  # P_D
     p_false: float = 0.1  # P_F
     tpm_decay_tau: float = 1.0  # tau of eq 18 for cells outside the view (open; 1 = no decay)
-    confirm_threshold: float = 0.8  # cell existence probability that confirms a target (open)
+    confirm_threshold: float = 0.5  # cell existence probability that confirms a target (open)
+    pursue_threshold: float = 0.2  # existence probability worth flying back for a closer look (open)
     engage_radius_km: float = 1.0  # attack (engagement) radius
 
     # --- target priors and motion (eqs 10-14, 19-22) ---
@@ -84,6 +85,9 @@ class PlannerConfig:
     escape_steps: int = 10  # N_t
     eta_floor: float = 0.05  # keeps eta > 0 where no cell is new
     eta_tpm_weight: float = 1.0  # weight of TPM mass in the heuristic (open)
+    eta_lookahead_steps: int = 8  # straight steps ahead whose footprints count as coverage gain (open)
+    eta_lookahead_weight: float = 1.0  # weight of that look-ahead unsearched share in eta (open)
+    eta_lookahead_discount: float = 0.85  # weight of each further step ahead (open)
 
     # --- range constraint C_r (eqs 35, 37) ---
     max_range_km: float = math.inf  # L_max
@@ -110,7 +114,7 @@ class PlannerConfig:
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"parameter {name!r} must be > 0, got {getattr(self, name)!r}")
-        probabilities = "p_detect p_false tpm_decay_tau confirm_threshold q0 env_perception_lambda"
+        probabilities = "p_detect p_false tpm_decay_tau confirm_threshold pursue_threshold q0 env_perception_lambda"
         for name in probabilities.split():
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"parameter {name!r} must be in [0, 1], got {getattr(self, name)}")

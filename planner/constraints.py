@@ -14,7 +14,7 @@
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -98,22 +98,29 @@ class SafetyModel:
         ny_ = np.clip(nxt[..., 1], 0, self.grid.ny - 1)
         return inside & self.edge_safe[headings, x, y] & self.grid.inside(nxt) & self.viable[headings, nx_, ny_]
 
-    @lru_cache(maxsize=64)  # noqa: B019 - one model per threat set, few homes
-    def distance_home_km(self, home_flat: int) -> np.ndarray:
-        """Shortest threat-avoiding path length (km) from every cell to ``home_flat``, (nx, ny)."""
+    @cached_property
+    def _reversed_graph(self) -> csr_matrix:
+        """The safe moves as a sparse graph with reversed edges (distances *to* a cell)."""
         grid = self.grid
         rows, cols, weights = [], [], []
         ix, iy = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny), indexing="ij")
         cells = np.stack([ix, iy], axis=-1)
         for h in range(8):
             ok = self.edge_safe[h]
-            src = grid.flat(cells[ok])
-            dst = grid.flat(cells[ok] + HEADING_STEPS[h])
-            rows.append(dst)  # reversed edges: distance *to* home
-            cols.append(src)
-            weights.append(np.full(len(src), HEADING_LENGTHS[h] * grid.cell_km))
-        graph = csr_matrix(
+            rows.append(grid.flat(cells[ok] + HEADING_STEPS[h]))
+            cols.append(grid.flat(cells[ok]))
+            weights.append(np.full(int(ok.sum()), HEADING_LENGTHS[h] * grid.cell_km))
+        return csr_matrix(
             (np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
             shape=(grid.size, grid.size),
         )
-        return dijkstra(graph, indices=home_flat).reshape(grid.shape)
+
+    @lru_cache(maxsize=64)  # noqa: B019 - one model per threat set, few homes
+    def distance_home_km(self, home_flat: int) -> np.ndarray:
+        """Shortest threat-avoiding path length (km) from every cell to ``home_flat``, (nx, ny)."""
+        return self.distances_home_km((home_flat,))[0]
+
+    @lru_cache(maxsize=16)  # noqa: B019 - one model per threat set, one tuple of homes per swarm
+    def distances_home_km(self, homes_flat: tuple[int, ...]) -> np.ndarray:
+        """``distance_home_km`` for several homes at once, (H, nx, ny)."""
+        return dijkstra(self._reversed_graph, indices=list(homes_flat)).reshape(-1, *self.grid.shape)

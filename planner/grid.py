@@ -89,6 +89,45 @@ class Grid:
         return np.stack([dx[keep], dy[keep]], axis=1).astype(np.int64)
 
 
+def corridor_offsets(footprint: np.ndarray, steps: int, discount: float) -> tuple[np.ndarray, np.ndarray]:
+    """The cells a UAV's footprint would sweep flying 2..``steps`` straight steps beyond a
+    candidate cell, for each heading: ``(offsets (8, K, 2), weights (8, K))`` padded to a common
+    K with weight 0. A cell's weight is ``discount ** (s - 1)`` for the first step s whose
+    footprint holds it; the candidate's own footprint (s = 1) is left out."""
+    per_heading = []
+    for h in range(8):
+        first_seen: dict[tuple[int, int], int] = {tuple(o): 1 for o in footprint}
+        for s in range(2, steps + 1):
+            for o in footprint + (s - 1) * HEADING_STEPS[h]:
+                first_seen.setdefault((int(o[0]), int(o[1])), s)
+        items = [(o, s) for o, s in first_seen.items() if s > 1]
+        per_heading.append(items)
+    k = max((len(items) for items in per_heading), default=0)
+    offsets = np.zeros((8, k, 2), dtype=np.int64)
+    weights = np.zeros((8, k))
+    for h, items in enumerate(per_heading):
+        for j, (o, s) in enumerate(items):
+            offsets[h, j] = o
+            weights[h, j] = discount ** (s - 1)
+    return offsets, weights
+
+
+def disc_overlap(radius_km: float, cell_km: float, samples: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """Cells overlapping a disc of ``radius_km`` around a cell centre: ``(offsets (K, 2),
+    fractions (K,))``, the share of each cell's area inside the disc (midpoint quadrature), so
+    that a target uniform in cell o lies within the radius with probability ``fractions[o]``."""
+    r = int(np.ceil(radius_km / cell_km + 0.5))
+    u = ((np.arange(samples) + 0.5) / samples - 0.5) * cell_km
+    offsets, fractions = [], []
+    for dx in range(-r, r + 1):
+        for dy in range(-r, r + 1):
+            inside = np.hypot(dx * cell_km + u[:, None], dy * cell_km + u[None, :]) <= radius_km
+            if inside.any():
+                offsets.append((dx, dy))
+                fractions.append(inside.mean())
+    return np.array(offsets, dtype=np.int64).reshape(-1, 2), np.array(fractions)
+
+
 def turn_options(max_turn_deg: float) -> np.ndarray:
     """Heading changes allowed in one step, e.g. [-1, 0, 1] for 45 degrees (constraint C_m)."""
     k = int(np.floor(max_turn_deg / 45.0 + 1e-9))

@@ -30,7 +30,15 @@ from scipy import ndimage
 from planner.config import PlannerConfig
 from planner.constraints import SafetyModel
 from planner.engagement import EngagementOutcome
-from planner.grid import HEADING_LENGTHS, HEADING_STEPS, Grid, candidate_moves, heading_of_angle
+from planner.grid import (
+    HEADING_LENGTHS,
+    HEADING_STEPS,
+    Grid,
+    candidate_moves,
+    corridor_offsets,
+    disc_overlap,
+    heading_of_angle,
+)
 from planner.pheromone import PheromoneMaps
 from planner.potential_field import attraction, morse_repulsion, threat_repulsion
 from planner.scenario import Scenario, UavStart
@@ -75,6 +83,7 @@ class HapfAcoPlanner:
         xy = np.array([[s.x_km, s.y_km] for s in starts], dtype=float)
         self.home = self.grid.cell_of(xy)
         self.home_flat = self.grid.flat(self.home)
+        self.homes_key = tuple(int(h) for h in self.home_flat)
         self.cells = self.home.copy()
         self.headings = heading_of_angle(np.radians([s.heading_deg for s in starts]))
         self.distance_km = np.zeros(n)
@@ -101,7 +110,14 @@ class HapfAcoPlanner:
         self.engaged_applied = self.known_engaged.copy()  # removed from that UAV's TPM already
         self.engaged_cells = np.full((len(self.target_ids), 2), -1, dtype=np.int64)
         self.footprint = self.grid.disc_offsets(cfg.detection_radius_km)
+        self.track_window = self.grid.disc_offsets(2.0 * cfg.cell_km)
+        # a candidate is one cell away and the force needs one more cell around the footprint
+        self.window_reach = int(np.abs(self.footprint).max()) + 1
+        self.engage_cells, self.engage_fractions = disc_overlap(cfg.engage_radius_km, cfg.cell_km)
         self.centre_index = int(np.flatnonzero((self.footprint == 0).all(axis=1))[0])
+        self.corridor, self.corridor_weights = corridor_offsets(
+            self.footprint, cfg.eta_lookahead_steps, cfg.eta_lookahead_discount
+        )
         self.k = 0
         self._safety: dict[tuple[bool, ...], SafetyModel] = {}
 
@@ -209,67 +225,77 @@ class HapfAcoPlanner:
         if receivers.size == 0:
             self.tpm.renormalise()
             return
-        # Rounds so that one receiver gets at most one look per batched update (exact sequential
-        # Bayes when footprints overlap); a receiver's own look comes first.
-        own_first = np.lexsort((sources != receivers, receivers))
-        receivers, sources = receivers[own_first], sources[own_first]
-        starts = np.flatnonzero(np.r_[True, receivers[1:] != receivers[:-1]])
-        counts = np.diff(np.r_[starts, len(receivers)])
-        rank = np.arange(len(receivers)) - np.repeat(starts, counts)
         origins = self.grid.cell_of(positions)
-        for r in range(int(rank.max()) + 1):
-            sel = rank == r
-            rec, src = receivers[sel], sources[sel]
-            self.tpm.apply_looks(
-                rec, [reports[j].cells for j in src], [reports[j].detected for j in src], origins[src]
-            )
-        # coverage each UAV knows of
-        before = self.coverage_count.copy()
-        for i, j in zip(receivers, sources, strict=True):
-            c = reports[j].cells
-            self.coverage[i, c[:, 0], c[:, 1]] = True
+        look_cells = [reports[j].cells for j in sources]
+        self.tpm.apply_looks(receivers, look_cells, [reports[j].detected for j in sources], origins[sources])
+        # coverage each UAV knows of, and the N_t counter of steps without a gain
+        seen_by = np.repeat(receivers, [len(c) for c in look_cells])
+        seen = np.concatenate(look_cells)
+        before = self.coverage_count
+        self.coverage[seen_by, seen[:, 0], seen[:, 1]] = True
         self.coverage_count = self.coverage.reshape(self.n, -1).sum(axis=1)
         gained = self.coverage_count > before
         self.stall_steps = np.where(gained, 0, self.stall_steps + 1)
         self.escape_goal[gained] = -1
-        self.tpm.decay_unobserved(self.coverage_this_step(receivers, sources, reports))
+        if self.cfg.tpm_decay_tau < 1.0:
+            observed = np.zeros(self.coverage.shape, dtype=bool)
+            observed[seen_by, seen[:, 0], seen[:, 1]] = True
+            self.tpm.decay_unobserved(observed)
         self.tpm.renormalise()
 
-    def coverage_this_step(self, receivers: np.ndarray, sources: np.ndarray, reports: Sequence[SensorReport | None]) -> np.ndarray:
-        if self.cfg.tpm_decay_tau >= 1.0:
-            return np.zeros(0, dtype=bool)
-        observed = np.zeros(self.coverage.shape, dtype=bool)
-        for i, j in zip(receivers, sources, strict=True):
-            c = reports[j].cells
-            observed[i, c[:, 0], c[:, 1]] = True
-        return observed
-
     def _update_tracks(self, reports: Sequence[SensorReport | None], listen: np.ndarray) -> None:
-        """Confirm targets (existence >= threshold) in the cells each UAV just heard about; keep
-        following a confirmed target as its TPM peak moves; drop it when the peak fades."""
-        cfg = self.cfg
-        window = self.grid.disc_offsets(2.0 * cfg.cell_km)
-        for i in np.flatnonzero(~self.done):
-            heard = [reports[j].cells for j in np.flatnonzero(listen[i]) if reports[j] is not None]
-            best_cell, best_value = None, -1.0
-            if self.track[i, 0] >= 0:
-                around = self.track[i] + window
-                around = around[self.grid.inside(around)]
-                p = self.tpm.existence_at(np.full(len(around), i), around)
-                k = int(np.argmax(p))
-                if p[k] >= cfg.confirm_threshold / 3:
-                    best_cell = around[k]
-                    best_value = self.tpm.value_at(i, best_cell)
-                self.track[i] = -1
-            if heard:
-                cand = np.unique(np.concatenate(heard), axis=0)
-                p = self.tpm.existence_at(np.full(len(cand), i), cand)
-                for cell in cand[p >= cfg.confirm_threshold]:
-                    value = self.tpm.value_at(i, cell)
-                    if value > best_value:
-                        best_cell, best_value = cell, value
-            if best_cell is not None:
-                self.track[i] = best_cell
+        """Section 3.2.1: choose the cell each UAV goes for. Candidates are the cells it just heard
+        a detection in and the cells around its current track (the belief peak moves with the target).
+        A cell whose existence probability reaches ``pursue_threshold`` is worth a closer look
+        (the attraction of eq 24 toward a rising p); one that reaches ``confirm_threshold`` is a
+        confirmed target, and confirmed targets come first, the higher value first. Batched over
+        UAVs: one TPM read for all (UAV, cell) pairs."""
+        cfg, n = self.cfg, self.n
+        rows: list[np.ndarray] = []
+        cells: list[np.ndarray] = []
+        tracking = np.flatnonzero((self.track[:, 0] >= 0) & ~self.done)
+        if tracking.size:
+            rows.append(np.repeat(tracking, len(self.track_window)))
+            cells.append((self.track[tracking][:, None, :] + self.track_window[None]).reshape(-1, 2))
+        have = np.array([r is not None and len(r.cells) > 0 for r in reports], dtype=bool)
+        receivers, sources = np.nonzero(listen & have[None, :] & ~self.done[:, None])
+        if receivers.size:
+            # only a detection (b = 1) raises a cell's probability: the cells worth checking
+            positive = [reports[j].cells[np.asarray(reports[j].detected, dtype=bool)] for j in sources]
+            rows.append(np.repeat(receivers, [len(c) for c in positive]))
+            cells.append(np.concatenate(positive))
+        self.track[:] = -1
+        if not rows:
+            return
+        rows_all, cells_all = np.concatenate(rows), np.concatenate(cells)
+        keep = self.grid.inside(cells_all)
+        rows_all, cells_all = rows_all[keep], cells_all[keep]
+        # one look per distinct (UAV, cell): heard footprints overlap
+        keys = np.unique(rows_all * self.grid.size + self.grid.flat(cells_all))
+        rows_all = keys // self.grid.size
+        cells_all = np.column_stack(np.unravel_index(keys % self.grid.size, self.grid.shape))
+        p = self.engage_probability(rows_all, cells_all)
+        worth = p >= cfg.pursue_threshold
+        if not worth.any():
+            return
+        rows_all, cells_all, p = rows_all[worth], cells_all[worth], p[worth]
+        value = self.tpm.values_at(rows_all, cells_all)
+        confirmed = p >= cfg.confirm_threshold
+        # confirmed first (higher value first), then the likeliest value among the suspects
+        score = np.where(confirmed, 1.0 + value, 0.0) + np.where(confirmed, 0.0, p * value / (1.0 + value))
+        order = np.lexsort((-score, rows_all))
+        first = np.r_[True, rows_all[order][1:] != rows_all[order][:-1]]
+        chosen = order[first]
+        self.track[rows_all[chosen]] = cells_all[chosen]
+
+    def engage_probability(self, uavs: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """Probability, as UAV ``uavs[m]`` believes, that a target lies within the engage radius
+        of the centre of ``cells[m]``: ``1 - prod_cells (1 - p_cell * share of the cell inside
+        the radius)``. A moving target's belief spreads over neighbouring cells, so this, not a
+        single cell's p, is what confirms it and what an engagement needs."""
+        around = cells[:, None, :] + self.engage_cells[None]
+        p = self.tpm.existence_at(np.asarray(uavs)[:, None], around) * self.engage_fractions[None]
+        return 1.0 - np.prod(1.0 - p, axis=1)
 
     def _update_pheromone(self, flying: np.ndarray) -> None:
         cfg = self.cfg
@@ -286,13 +312,24 @@ class HapfAcoPlanner:
 
     # ------------------------------------------------------------------ decision
 
-    def _forces(self, points: np.ndarray, positions: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
-        """Total APF force (N, K, 2) at cells ``points`` (N, K, 2) for each UAV (eqs 24, 25, 27)."""
-        cfg = self.cfg
-        patch = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], indexing="ij"), axis=-1)  # (3, 3, 2)
-        around = points[:, :, None, None, :] + patch[None, None]
-        existence = self.tpm.existence_at(np.arange(self.n)[:, None, None, None], around)
-        centres = self.grid.centre_km(points)
+    def _existence_window(self) -> np.ndarray:
+        """Each UAV's existence probabilities on the square of half-side ``window_reach`` around
+        its cell, (N, 2r+1, 2r+1) (0 outside the area): one TPM read serves the footprint's
+        forces and every candidate's footprint mass."""
+        r = self.window_reach
+        offsets = np.stack(np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij"), axis=-1)
+        around = self.cells[:, None, None, :] + offsets[None]
+        return self.tpm.existence_at(np.arange(self.n)[:, None, None], around)
+
+    def _forces(self, window: np.ndarray, positions: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+        """Total APF force (N, K, 2) at the footprint cells of each UAV (eqs 24, 25, 27), from its
+        existence ``window`` (``_existence_window``)."""
+        cfg, r = self.cfg, self.window_reach
+        patch = np.arange(-1, 2)
+        ix = self.footprint[:, 0][:, None, None] + patch[None, :, None] + r  # (K, 3, 1)
+        iy = self.footprint[:, 1][:, None, None] + patch[None, None, :] + r  # (K, 1, 3)
+        existence = window[:, ix, iy]  # (N, K, 3, 3)
+        centres = self.grid.centre_km(self.cells[:, None, :] + self.footprint[None, :, :])
         force = attraction(existence, cfg)
         force = force + threat_repulsion(centres, self.threat_xy, self.threat_r, self.known_threats, cfg)
         force = force + morse_repulsion(centres, positions, neighbours, cfg)
@@ -305,14 +342,17 @@ class HapfAcoPlanner:
         step_len = HEADING_LENGTHS[cand_head] * cfg.cell_km
         allowed = np.zeros(cand_head.shape, dtype=bool)
         home_dist = np.zeros(cand_head.shape)
-        for i in range(n):
-            model = self.safety_model(self.known_threats[i])
-            allowed[i] = model.move_allowed(np.repeat(self.cells[i][None], cand.shape[1], 0), cand_head[i])
-            field = model.distance_home_km(int(self.home_flat[i]))
-            inside = grid.inside(cand[i])
-            home_dist[i] = np.where(
-                inside, field[np.clip(cand[i, :, 0], 0, grid.nx - 1), np.clip(cand[i, :, 1], 0, grid.ny - 1)], np.inf
-            )
+        clipped_x = np.clip(cand[..., 0], 0, grid.nx - 1)
+        clipped_y = np.clip(cand[..., 1], 0, grid.ny - 1)
+        threat_sets, group = np.unique(self.known_threats, axis=0, return_inverse=True)
+        for g, known in enumerate(threat_sets):  # UAVs that know the same threats share a model
+            members = np.flatnonzero(group.ravel() == g)
+            model = self.safety_model(known)
+            here = np.broadcast_to(self.cells[members][:, None, :], cand[members].shape)
+            allowed[members] = model.move_allowed(here, cand_head[members])
+            fields = model.distances_home_km(self.homes_key)  # (N, nx, ny), cached per model
+            home_dist[members] = fields[members[:, None], clipped_x[members], clipped_y[members]]
+        home_dist = np.where(grid.inside(cand), home_dist, np.inf)
         needed = self.distance_km[:, None] + step_len + home_dist + cfg.return_reserve_km
         slack = np.inf if not np.isfinite(cfg.max_range_km) else cfg.max_range_km - needed
         slack = np.where(np.isfinite(home_dist), slack, -np.inf)
@@ -331,7 +371,8 @@ class HapfAcoPlanner:
 
         # potential field at the UAV and over its footprint (eqs 23-27)
         points = self.cells[:, None, :] + self.footprint[None, :, :]
-        force = self._forces(points, positions, hears | (pairwise_distances(positions) <= cfg.separation_sense_km))
+        window = self._existence_window()
+        force = self._forces(window, positions, hears | (pairwise_distances(positions) <= cfg.separation_sense_km))
         norms = np.hypot(force[..., 0], force[..., 1])
         inside_fp = grid.inside(points)
         force_max = np.where(inside_fp, norms, 0.0).max(axis=1)
@@ -347,9 +388,19 @@ class HapfAcoPlanner:
         fy = np.clip(fp[..., 1], 0, grid.ny - 1)
         unsearched = ~self.coverage[np.arange(n)[:, None, None], fx, fy] & fp_inside
         new_share = unsearched.sum(axis=2) / len(self.footprint)
-        mass = (self.tpm.existence_at(np.arange(n)[:, None, None], fp) * fp_inside).sum(axis=2)
+        r = self.window_reach
+        offset = (cand - self.cells[:, None, :])[:, :, None, :] + self.footprint[None, None, :, :] + r
+        mass = window[np.arange(n)[:, None, None], offset[..., 0], offset[..., 1]].sum(axis=2)  # 0 outside
         mass_share = mass / np.maximum(mass.max(axis=1, keepdims=True), 1e-12)
-        eta = cfg.eta_floor + new_share + cfg.eta_tpm_weight * mass_share
+        ahead = cand[:, :, None, :] + self.corridor[cand_head]  # (N, C, K', 2)
+        ahead_unsearched = ~self.coverage[
+            np.arange(n)[:, None, None], np.clip(ahead[..., 0], 0, grid.nx - 1), np.clip(ahead[..., 1], 0, grid.ny - 1)
+        ] & grid.inside(ahead)
+        corridor_w = self.corridor_weights[cand_head]
+        ahead_share = (ahead_unsearched * corridor_w).sum(axis=2) / np.maximum(corridor_w.sum(axis=2), 1e-12)
+        eta = (
+            cfg.eta_floor + new_share + cfg.eta_lookahead_weight * ahead_share + cfg.eta_tpm_weight * mass_share
+        )
         tau = self.pheromone.at(np.arange(n)[:, None], cand)
         weights = transition_weights(tau, eta, feasible, cfg)
 
@@ -394,8 +445,12 @@ class HapfAcoPlanner:
         next_headings = np.where(flying, cand_head[rows, pick], self.headings)
         modes[~flying] = MODES.index("hold")
 
-        dist_track = np.hypot(*((self.track - self.cells) * cfg.cell_km).T)
-        engage = engaging & (dist_track <= cfg.engage_radius_km)
+        # Engage once a confirmed target lies within the engage radius with probability at least
+        # confirm_threshold: each cell's existence weighted by its share inside the radius.
+        engage = engaging.copy()
+        if engage.any():
+            candidates = np.flatnonzero(engage)
+            engage[candidates] = self.engage_probability(candidates, self.cells[candidates]) >= cfg.confirm_threshold
         return StepDecision(next_cells, next_headings, engage, self.done.copy(), modes)
 
 

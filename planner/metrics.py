@@ -47,6 +47,7 @@ class MissionRecorder:
         self.min_separation_curve: list[float] = []
         self.mean_min_separation_curve: list[float] = []
         self.engagements: list[dict] = []
+        self.engage_misses = 0  # engagements requested where no target was within the radius
         self.violations = {"threat": 0, "separation": 0, "turn": 0, "range": 0}
         self._last = np.full((self.n, 2), np.nan)
         self._last_leg = np.full((self.n, 2), np.nan)
@@ -113,6 +114,10 @@ class MissionRecorder:
         if self.engaged_curve:
             self.engaged_curve[-1] = len(self.engagements)
 
+    def record_engagement_miss(self) -> None:
+        """An engagement was requested and nothing was within the engage radius."""
+        self.engage_misses += 1
+
     def returned(self) -> np.ndarray:
         """UAVs whose last position is within one cell of their start and that did fly."""
         if not self.steps:
@@ -139,6 +144,7 @@ class MissionRecorder:
             "engaged_count": len(self.engagements),
             "engaged_value": float(sum(e["value"] for e in self.engagements)),
             "engaged_curve": list(self.engaged_curve),
+            "engage_misses": int(self.engage_misses),
             "min_separation_km": float(min(finite_sep)) if finite_sep else None,
             "min_separation_curve": [None if not math.isfinite(s) else round(s, 4) for s in self.min_separation_curve],
             "mean_min_separation_curve": [

@@ -41,8 +41,8 @@ class PheromoneMaps:
         amount = np.broadcast_to(self.decrement[None, :], inside.shape)[inside]
         view = self.tau.reshape(len(self.tau), -1)
         np.subtract.at(view, (owner, flat), amount)
-        touched = np.unique(owner)
-        self.tau[touched] = np.clip(self.tau[touched], self.cfg.tau_min, self.cfg.tau_max)
+        # only lowered cells can leave [tau_min, tau_max]: clamp those (eq 29)
+        view[owner, flat] = np.maximum(view[owner, flat], self.cfg.tau_min)
 
     def global_update(self) -> None:
         """Eq 34: tau += F delta tau_g0 on every cell of every map, then eq 29's clamp."""

@@ -50,13 +50,20 @@ def morse_repulsion(
     """Eq 27: F = sum_j (b/c) e^{||x||/c} / (e^{||x||/c} - e^{r0/c})^2 x_hat over neighbours j
     with ||x_ij|| in [d_min, d^v_max] (closer than d_min it is held at its d_min value).
 
-    ``points_km`` (N, K, 2), ``others_km`` (N, 2) UAV positions, ``neighbours`` (N, N) bool."""
-    x = points_km[:, :, None, :] - others_km[None, None, :, :]  # (N, K, N, 2)
+    ``points_km`` (N, K, 2) around each UAV, ``others_km`` (N, 2) UAV positions,
+    ``neighbours`` (N, N) bool. Only the (i, j) pairs that can be in range are evaluated."""
+    force = np.zeros(points_km.shape)
+    spread = np.hypot(*(points_km - others_km[:, None, :]).transpose(2, 0, 1)).max(initial=0.0)
+    gap = np.hypot(*(others_km[:, None, :] - others_km[None, :, :]).transpose(2, 0, 1))
+    owner, other = np.nonzero(neighbours & (gap <= cfg.uav_repulsion_range_km + spread))
+    if owner.size == 0:
+        return force
+    x = points_km[owner] - others_km[other][:, None, :]  # (P, K, 2)
     dist = np.hypot(x[..., 0], x[..., 1])
     c, r0 = cfg.morse_c_km, cfg.morse_r0_km
     d = np.maximum(dist, cfg.min_separation_km)
     magnitude = (cfg.morse_b / c) * np.exp(d / c) / (np.exp(d / c) - np.exp(r0 / c)) ** 2
-    in_range = (dist <= cfg.uav_repulsion_range_km) & (dist > 1e-9) & neighbours[:, None, :]
-    magnitude = np.where(in_range, magnitude, 0.0)
-    unit = x / np.maximum(dist, 1e-9)[..., None]
-    return np.sum(magnitude[..., None] * unit, axis=2)
+    magnitude = np.where((dist <= cfg.uav_repulsion_range_km) & (dist > 1e-9), magnitude, 0.0)
+    push = magnitude[..., None] * x / np.maximum(dist, 1e-9)[..., None]
+    np.add.at(force, owner, push)
+    return force

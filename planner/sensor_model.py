@@ -32,6 +32,23 @@ def detection_probability(distance_km: np.ndarray | float, cfg: PlannerConfig) -
     return np.where(d <= d_in, cfg.p_detect, np.where(d <= d_out, ramp, cfg.p_false))
 
 
+def likelihood_ratio(detected: np.ndarray, p_detect: np.ndarray | float, p_false: float) -> np.ndarray:
+    """P(b | target) / P(b | no target) of one look at a cell: eq 18 multiplies a cell's odds
+    of holding a target by it (P_D / P_F for b = 1, (1 - P_D) / (1 - P_F) for b = 0)."""
+    pd = np.asarray(p_detect, dtype=float)
+    with np.errstate(divide="ignore"):
+        return np.where(detected, pd / p_false, (1.0 - pd) / (1.0 - p_false))
+
+
+def posterior(prior: np.ndarray, ratio: np.ndarray) -> np.ndarray:
+    """Eq 18 as an odds update: p' = p r / (1 - p + p r). Several looks at one cell combine by
+    multiplying their ratios, exactly as applying eq 18 once per look."""
+    p = np.clip(prior, 0.0, 1.0)
+    with np.errstate(invalid="ignore"):
+        out = p * ratio / (1.0 - p + p * ratio)
+    return np.where(np.isnan(out), (p > 0).astype(float), out)  # r = inf with p > 0: certain
+
+
 def bayes_update(
     prior: np.ndarray, detected: np.ndarray, p_detect: np.ndarray | float, p_false: float
 ) -> np.ndarray:
@@ -40,8 +57,4 @@ def bayes_update(
     ``detected`` true:  P_D p / (P_F + (P_D - P_F) p)
     ``detected`` false: (1 - P_D) p / (1 - P_F + (P_F - P_D) p)
     """
-    p = np.clip(prior, 0.0, 1.0)
-    pd = np.asarray(p_detect, dtype=float)
-    positive = pd * p / (p_false + (pd - p_false) * p)
-    negative = (1.0 - pd) * p / (1.0 - p_false + (p_false - pd) * p)
-    return np.where(detected, positive, negative)
+    return posterior(prior, likelihood_ratio(detected, p_detect, p_false))

@@ -26,7 +26,7 @@ from scipy.special import ndtr
 from planner.config import PlannerConfig
 from planner.grid import Grid
 from planner.scenario import TargetSpec
-from planner.sensor_model import bayes_update, detection_probability
+from planner.sensor_model import detection_probability, likelihood_ratio, posterior
 
 #: Quadrature sizes for the ring integrals and the cell-to-cell motion kernels.
 RING_ANGLES = 128
@@ -124,25 +124,87 @@ def ring_kernel(radius_cells: float) -> np.ndarray:
     return displacement_kernel(radius_cells * np.cos(theta), radius_cells * np.sin(theta))
 
 
+def has_square_symmetry(kernel: np.ndarray) -> bool:
+    """A 3x3 kernel unchanged by the square's reflections: centre, edge and corner weights only."""
+    k = kernel
+    return k.shape == (3, 3) and np.allclose(k, k.T) and np.allclose(k, k[::-1]) and np.allclose(k, k[:, ::-1])
+
+
+class SquareStencil:
+    """Convolution of N maps (N, nx, ny) with a 3x3 kernel of the square's symmetry
+    (``has_square_symmetry``), edges reflected, in place: a 9-point stencil on an edge-padded
+    copy, in the maps' dtype, with work buffers kept between calls (each step's forecast would
+    otherwise allocate, and fault in, several map-sized temporaries)."""
+
+    def __init__(self, shape: tuple[int, int, int], dtype: np.dtype) -> None:
+        n, nx, ny = shape
+        self.padded = np.empty((n, nx + 2, ny + 2), dtype=dtype)
+        self.vertical = np.empty((n, nx, ny + 2), dtype=dtype)
+        self.out = np.empty(shape, dtype=dtype)
+        self.work = np.empty(shape, dtype=dtype)
+
+    def apply(self, maps: np.ndarray, kernel: np.ndarray, box: tuple[int, int, int, int] | None = None) -> None:
+        """Replace ``maps`` by its convolution with ``kernel``. With ``box = (x0, x1, y0, y1)``
+        the caller promises every cell outside ``[x0, x1) x [y0, y1)`` is zero: only the box
+        grown by one cell (all the kernel can reach) is computed."""
+        n, nx, ny = maps.shape
+        x0, x1, y0, y1 = (0, nx, 0, ny) if box is None else box
+        x0, x1, y0, y1 = max(x0 - 1, 0), min(x1 + 1, nx), max(y0 - 1, 0), min(y1 + 1, ny)
+        a, b = x1 - x0, y1 - y0
+        centre, edge, corner = float(kernel[1, 1]), float(kernel[0, 1]), float(kernel[0, 0])
+        p = self.padded[:, : a + 2, : b + 2]
+        vertical, out, work = self.vertical[:, :a, : b + 2], self.out[:, :a, :b], self.work[:, :a, :b]
+        region = maps[:, x0:x1, y0:y1]
+        p[:, 1:-1, 1:-1] = region
+        # reflected at the area's edge; elsewhere the cells beyond the grown box are zero
+        p[:, 0, 1:-1] = maps[:, 0, y0:y1] if x0 == 0 else 0.0
+        p[:, -1, 1:-1] = maps[:, nx - 1, y0:y1] if x1 == nx else 0.0
+        p[:, :, 0] = p[:, :, 1] if y0 == 0 else 0.0
+        p[:, :, -1] = p[:, :, -2] if y1 == ny else 0.0
+        np.add(p[:, :-2, :], p[:, 2:, :], out=vertical)  # above + below, padded sideways
+        np.add(vertical[:, :, :-2], vertical[:, :, 2:], out=out)  # the four corners
+        out *= corner
+        np.add(vertical[:, :, 1:-1], p[:, 1:-1, :-2], out=work)  # the four edges
+        work += p[:, 1:-1, 2:]
+        work *= edge
+        out += work
+        np.multiply(region, centre, out=work)
+        out += work
+        region[...] = out
+
+
+def tighten_box(maps: np.ndarray, box: tuple[int, int, int, int], negligible: np.ndarray) -> tuple[int, int, int, int]:
+    """Shrink ``box`` (x0, x1, y0, y1) of maps (N, nx, ny) past border rows and columns whose
+    values all lie below ``negligible`` (N,), zeroing them: a few strips per call, so the work
+    stays proportional to the box's perimeter."""
+    x0, x1, y0, y1 = box
+    limit = negligible[:, None]
+    for _ in range(2):
+        if x1 - x0 > 1 and (maps[:, x0, y0:y1] < limit).all():
+            maps[:, x0, y0:y1] = 0.0
+            x0 += 1
+        if x1 - x0 > 1 and (maps[:, x1 - 1, y0:y1] < limit).all():
+            maps[:, x1 - 1, y0:y1] = 0.0
+            x1 -= 1
+        if y1 - y0 > 1 and (maps[:, x0:x1, y0] < limit).all():
+            maps[:, x0:x1, y0] = 0.0
+            y0 += 1
+        if y1 - y0 > 1 and (maps[:, x0:x1, y1 - 1] < limit).all():
+            maps[:, x0:x1, y1 - 1] = 0.0
+            y1 -= 1
+    return x0, x1, y0, y1
+
+
 def convolve_reflect(maps: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """Convolve each (nx, ny) map of ``maps`` (..., nx, ny) with a 2-D kernel, edges reflected.
-
-    The 3x3 kernels of eq 21 at the paper's speeds have the symmetry of the square, so they are
-    applied as a 9-point stencil on an edge-padded copy (twice as fast as ``ndimage.correlate``);
-    any other kernel goes through ``scipy.ndimage.convolve``."""
-    k = kernel
-    symmetric = k.shape == (3, 3) and np.allclose(k, k.T) and np.allclose(k, k[::-1]) and np.allclose(k, k[:, ::-1])
-    if not symmetric:
-        full = k.reshape((1,) * (maps.ndim - 2) + k.shape)
-        return ndimage.convolve(maps, full, mode="reflect")
-    pad = [(0, 0)] * (maps.ndim - 2) + [(1, 1), (1, 1)]
-    p = np.pad(maps, pad, mode="symmetric")
-    columns = p[..., :-2, :] + p[..., 2:, :]  # the cells above and below, padded sideways
-    centre, edge, corner = float(k[1, 1]), float(k[0, 1]), float(k[0, 0])  # keep the maps' dtype
-    out = centre * maps
-    out += edge * (columns[..., 1:-1] + p[..., 1:-1, :-2] + p[..., 1:-1, 2:])
-    out += corner * (columns[..., :-2] + columns[..., 2:])
-    return out
+    The 3x3 kernels of eq 21 at the paper's speeds have the square's symmetry and take the
+    stencil; any other kernel goes through ``scipy.ndimage.convolve``."""
+    if has_square_symmetry(kernel) and maps.ndim == 3:
+        out = maps.copy()
+        SquareStencil(maps.shape, maps.dtype).apply(out, kernel)
+        return out
+    full = kernel.reshape((1,) * (maps.ndim - 2) + kernel.shape)
+    return ndimage.convolve(maps, full, mode="reflect")
 
 
 def shift_with_reflection(maps: np.ndarray, shift: int, axis: int) -> np.ndarray:
@@ -236,6 +298,9 @@ class TargetProbabilityMaps:
     """
 
     RESUM_PERIOD = 25
+    #: Expected targets in a cell below which a known-speed layer's cell is set to zero, so its
+    #: forecast only touches the box where the target can be (docs/parameters.md).
+    NEGLIGIBLE = 1e-9
 
     def __init__(self, targets: tuple[TargetSpec, ...], cfg: PlannerConfig, n_uavs: int) -> None:
         self.cfg = cfg
@@ -261,16 +326,38 @@ class TargetProbabilityMaps:
         dt = cfg.step_s
         self.wiener_1d = wiener_kernel_1d(cfg.delta_e_km_per_sqrt_s * np.sqrt(dt) / cfg.cell_km)
         self.ring_kernels: dict[int, np.ndarray] = {}
+        self.ring_symmetric: dict[int, bool] = {}
+        self.ring_box: dict[int, tuple[int, int, int, int]] = {}
+        self.stencil = SquareStencil(self.maps.shape[1:], self.maps.dtype)
         self.shift_rate = np.zeros((len(self.specs), 2))  # cells per step
         self.shift_accum = np.zeros((len(self.specs), 2))
         for l, spec in enumerate(self.specs):
             step_cells = spec.speed_mps / 1000.0 * dt / cfg.cell_km
             if spec.kind == "known_speed":
                 self.ring_kernels[l] = ring_kernel(step_cells)
+                self.ring_symmetric[l] = has_square_symmetry(self.ring_kernels[l])
+                if self.ring_symmetric[l]:
+                    self.ring_box[l] = self._support_box(l)
             elif spec.kind == "known_velocity":
                 self.shift_rate[l] = step_cells * np.array(
                     [np.cos(spec.heading_rad), np.sin(spec.heading_rad)]
                 )
+
+    def _negligible_stored(self, layer: int) -> np.ndarray:
+        """Per UAV, the stored value below which a cell of ``layer`` holds fewer than
+        ``NEGLIGIBLE`` expected targets."""
+        return np.divide(self.NEGLIGIBLE, self.scale[layer], out=np.full(self.scale.shape[1], np.inf),
+                         where=self.scale[layer] > 0).astype(np.float32)  # fmt: skip
+
+    def _support_box(self, layer: int) -> tuple[int, int, int, int]:
+        """Zero the negligible cells of a layer and return the box holding the rest."""
+        maps = self.maps[layer]
+        maps[maps < self._negligible_stored(layer)[:, None, None]] = 0.0
+        xs = np.flatnonzero(maps.any(axis=(0, 2)))
+        ys = np.flatnonzero(maps.any(axis=(0, 1)))
+        if xs.size == 0:
+            return 0, 1, 0, 1
+        return int(xs[0]), int(xs[-1]) + 1, int(ys[0]), int(ys[-1]) + 1
 
     def forecast(self) -> None:
         """Propagate every UAV's map over one decision period (eq 19 with the kernels of eqs
@@ -282,7 +369,13 @@ class TargetProbabilityMaps:
                     layer = ndimage.convolve1d(layer, self.wiener_1d, axis=axis, mode="reflect")
                 self.maps[l] = layer
             elif spec.kind == "known_speed":
-                self.maps[l] = convolve_reflect(layer, self.ring_kernels[l])
+                if self.ring_symmetric[l]:
+                    self.stencil.apply(layer, self.ring_kernels[l], self.ring_box[l])
+                    x0, x1, y0, y1 = self.ring_box[l]
+                    grown = (max(x0 - 1, 0), min(x1 + 1, self.grid.nx), max(y0 - 1, 0), min(y1 + 1, self.grid.ny))
+                    self.ring_box[l] = tighten_box(layer, grown, self._negligible_stored(l))
+                else:
+                    self.maps[l] = convolve_reflect(layer, self.ring_kernels[l])
             elif spec.kind == "known_velocity":
                 # Exact sub-cell bookkeeping: move whole cells once the drift reaches half a cell,
                 # so the map is not blurred by repeated interpolation.
@@ -307,10 +400,12 @@ class TargetProbabilityMaps:
         look_detected: list[np.ndarray],
         look_origin_cells: np.ndarray,
     ) -> None:
-        """Apply one look per receiving UAV with eq 18 (detection probability from eq 17).
+        """Apply looks to the receiving UAVs' maps with eq 18 (detection probability from eq 17).
 
-        ``receivers`` (M,) are distinct UAV indices; look m covers ``look_cells[m]`` (K_m, 2)
-        with bits ``look_detected[m]`` and was taken from ``look_origin_cells[m]``.
+        Look m goes to UAV ``receivers[m]``, covers ``look_cells[m]`` (K_m, 2) with bits
+        ``look_detected[m]`` and was taken from ``look_origin_cells[m]``. A UAV may receive
+        several looks: the likelihood ratios of all looks at one of its cells are multiplied
+        and applied once, which equals applying eq 18 look by look.
         """
         if len(receivers) == 0:
             return
@@ -318,20 +413,23 @@ class TargetProbabilityMaps:
         sizes = np.array([len(c) for c in look_cells])
         cells = np.concatenate(look_cells)
         detected = np.concatenate(look_detected).astype(bool)
-        uav = np.repeat(receivers, sizes)
+        uav = np.repeat(np.asarray(receivers), sizes)
         origin = np.repeat(np.asarray(look_origin_cells), sizes, axis=0)
         distance = np.hypot(*((cells - origin) * grid.cell_km).T)
-        p_d = detection_probability(distance, cfg)
-        flat = grid.flat(cells)
+        ratio = likelihood_ratio(detected, detection_probability(distance, cfg), cfg.p_false)
+        keys, where = np.unique(uav * grid.size + grid.flat(cells), return_inverse=True)
+        with np.errstate(divide="ignore"):
+            log_ratio = np.bincount(where.ravel(), weights=np.log(ratio), minlength=len(keys))
+        uav, flat = keys // grid.size, keys % grid.size
         view = self.maps.reshape(len(self.specs), -1, grid.size)
         scale = self.scale[:, uav]  # (L, P)
-        prior = view[:, uav, flat] * scale
-        posterior = bayes_update(prior, detected[None, :], p_d[None, :], cfg.p_false)
-        stored = np.divide(posterior, scale, out=np.zeros_like(posterior), where=scale > 0).astype(np.float32)
-        change = stored.astype(np.float64) - view[:, uav, flat]
+        stored_before = view[:, uav, flat]
+        updated = posterior(stored_before * scale, np.exp(log_ratio)[None, :])
+        stored = np.divide(updated, scale, out=np.zeros_like(updated), where=scale > 0).astype(np.float32)
         view[:, uav, flat] = stored
-        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-        self.totals[:, receivers] += np.add.reduceat(change, starts, axis=1)
+        change = stored.astype(np.float64) - stored_before
+        for layer in range(len(self.specs)):
+            self.totals[layer] += np.bincount(uav, weights=change[layer], minlength=self.totals.shape[1])
 
     def decay_unobserved(self, observed: np.ndarray) -> None:
         """Eq 18, first case: cells no UAV looked at this step are multiplied by tau.
@@ -363,11 +461,15 @@ class TargetProbabilityMaps:
         existence = 1.0 - np.prod(1.0 - layers, axis=0)
         return np.where(inside, existence, 0.0)
 
-    def value_at(self, uav: int, cell: np.ndarray) -> float:
-        """Expected value of a target in a cell: layer masses weighting the layers' mean values."""
-        masses = self.maps[:, uav, cell[0], cell[1]] * self.scale[:, uav]
-        total = masses.sum()
-        return float(masses @ self.layer_values / total) if total > 0 else 0.0
+    def values_at(self, uavs: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """Expected value of a target in each cell (the layers' masses weighting their mean values)
+        for (UAV, cell) pairs: ``uavs`` (M,), ``cells`` (M, 2) inside the area."""
+        flat = self.grid.flat(cells)
+        view = self.maps.reshape(len(self.specs), -1, self.grid.size)
+        masses = view[:, uavs, flat] * self.scale[:, uavs]  # (L, M)
+        total = masses.sum(axis=0)
+        weighted = self.layer_values @ masses
+        return np.divide(weighted, total, out=np.zeros_like(weighted), where=total > 0)
 
     def existence_map(self, uav: int) -> np.ndarray:
         """The whole existence-probability map of one UAV (for figures and tests)."""

@@ -52,6 +52,8 @@ def run_offline(
             outcomes[i] = outcome
             if outcome.success:
                 recorder.record_engagement(k, int(i), outcome.target_id, outcome.value)
+            else:
+                recorder.record_engagement_miss()
         cells, headings, done = decision.next_cells, decision.next_headings, decision.done
         world.step()
         recorder.record_step(grid.centre_km(cells), planned_km=grid.centre_km(cells), done=done)

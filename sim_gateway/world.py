@@ -113,24 +113,26 @@ class World:
         cfg, grid = self.config, self.grid
         uav_xy_km = np.asarray(uav_xy_km, dtype=float).reshape(-1, 2)
         offsets = grid.disc_offsets(cfg.detection_radius_km)
+        reach = int(np.abs(offsets).max())
+        slot = np.full((2 * reach + 1, 2 * reach + 1), -1)  # footprint offset -> index in offsets
+        slot[offsets[:, 0] + reach, offsets[:, 1] + reach] = np.arange(len(offsets))
+        uav_cells = grid.cell_of(uav_xy_km)
+        cells = uav_cells[:, None, :] + offsets[None]  # (N, K, 2)
+        p_b1 = np.full(cells.shape[:2], cfg.p_false)
         live = np.flatnonzero(self.alive)
-        target_cells = grid.cell_of(self.positions[live])
-        target_flat = grid.flat(target_cells)
-        reports = []
-        for xy in uav_xy_km:
-            cells = grid.cell_of(xy[None, :])[0] + offsets
-            cells = cells[grid.inside(cells)]
-            flat = grid.flat(cells)
-            p_b1 = np.full(len(cells), cfg.p_false)
-            hit = np.isin(flat, target_flat)
-            if hit.any():
-                for k in np.flatnonzero(hit):
-                    here = live[target_flat == flat[k]]
-                    d = np.min(np.hypot(*(self.positions[here] - xy).T))
-                    p_b1[k] = max(float(detection_probability(d, cfg)), cfg.p_false)
-            detected = self.rng.random(len(cells)) < p_b1
-            reports.append(SensorReport(cells, detected))
-        return reports
+        if live.size:
+            rel = grid.cell_of(self.positions[live])[None, :, :] - uav_cells[:, None, :]  # (N, T, 2)
+            near = (np.abs(rel) <= reach).all(axis=2)
+            uav, target = np.nonzero(near)
+            k = slot[rel[uav, target, 0] + reach, rel[uav, target, 1] + reach]
+            hit = k >= 0
+            uav, target, k = uav[hit], target[hit], k[hit]
+            d = np.hypot(*(self.positions[live[target]] - uav_xy_km[uav]).T)
+            # several targets in one cell: the nearest one decides the bit's probability
+            np.maximum.at(p_b1, (uav, k), np.maximum(detection_probability(d, cfg), cfg.p_false))
+        detected = self.rng.random(p_b1.shape) < p_b1
+        inside = grid.inside(cells)
+        return [SensorReport(cells[i][inside[i]], detected[i][inside[i]]) for i in range(len(cells))]
 
     # ------------------------------------------------------------------ engagement
 

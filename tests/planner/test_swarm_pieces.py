@@ -62,7 +62,8 @@ def test_threat_repulsion_grows_toward_the_threat_and_vanishes_outside():
 def test_morse_repulsion_matches_eq27():
     cfg = CFG
     others = np.array([[0.0, 0.0], [2.0, 0.0]])
-    f = morse_repulsion(np.array([[[0.0, 0.0]]]), others, np.array([[False, True], [True, False]]), cfg)[0, 0]
+    points = others[:, None, :]  # each UAV's force at its own position
+    f = morse_repulsion(points, others, np.array([[False, True], [True, False]]), cfg)[0, 0]
     d, c, b, r0 = 2.0, cfg.morse_c_km, cfg.morse_b, cfg.morse_r0_km
     expected = (b / c) * np.exp(d / c) / (np.exp(d / c) - np.exp(r0 / c)) ** 2
     assert f[0] == pytest.approx(-expected) and f[1] == pytest.approx(0.0)
