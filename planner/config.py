@@ -41,7 +41,8 @@ class PlannerConfig:
     p_false: float = 0.1  # P_F
     tpm_decay_tau: float = 1.0  # tau of eq 18 for cells outside the view (open; 1 = no decay)
     confirm_threshold: float = 0.5  # cell existence probability that confirms a target (open)
-    pursue_threshold: float = 0.2  # existence probability worth flying back for a closer look (open)
+    pursue_threshold: float = 0.1  # existence probability worth flying back for a closer look (open)
+    pursue_range_km: float = 6.0  # farthest cell a UAV flies to for a look or an engagement (open)
     engage_radius_km: float = 1.0  # attack (engagement) radius
 
     # --- target priors and motion (eqs 10-14, 19-22) ---
@@ -108,7 +109,7 @@ class PlannerConfig:
                 raise ConfigError(f"parameter {f.name!r} is NaN; give a number")
         positive = (
             "grid_nx grid_ny cell_km step_s speed_mps max_turn_deg detection_radius_km "
-            "engage_radius_km n_topo sensing_radius_km coop_radius_init_km morse_c_km "
+            "engage_radius_km pursue_range_km n_topo sensing_radius_km coop_radius_init_km morse_c_km "
             "min_separation_km tau_max global_update_period_steps escape_steps max_range_km"
         ).split()
         for name in positive:

@@ -99,6 +99,21 @@ class SafetyModel:
         return inside & self.edge_safe[headings, x, y] & self.grid.inside(nxt) & self.viable[headings, nx_, ny_]
 
     @cached_property
+    def freedom(self) -> np.ndarray:
+        """freedom[h, x, y]: how many allowed moves (``move_allowed``) a UAV that arrived at
+        (x, y) with heading h has next. 1 means a single way on: two UAVs in such states near
+        each other (a corner of the area, a gap between threats) can be left no separated pair
+        of moves, so the separation claim avoids entering them when others are close."""
+        grid = self.grid
+        ix, iy = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny), indexing="ij")
+        cells = np.stack([ix, iy], axis=-1)
+        count = np.zeros((8, grid.nx, grid.ny), dtype=np.int64)
+        for h in range(8):
+            for t in self.turns:
+                count[h] += self.move_allowed(cells, np.full(grid.shape, (h + t) % 8))
+        return count
+
+    @cached_property
     def _reversed_graph(self) -> csr_matrix:
         """The safe moves as a sparse graph with reversed edges (distances *to* a cell)."""
         grid = self.grid

@@ -182,7 +182,7 @@ class HapfAcoPlanner:
         self._apply_looks(reports, listen, positions)
 
         # 3. confirmation and the engagement choice
-        self._update_tracks(reports, listen)
+        self._update_tracks(reports, listen, hears)
 
         # 4. pheromone (eqs 30-34)
         self._update_pheromone(flying)
@@ -243,7 +243,7 @@ class HapfAcoPlanner:
             self.tpm.decay_unobserved(observed)
         self.tpm.renormalise()
 
-    def _update_tracks(self, reports: Sequence[SensorReport | None], listen: np.ndarray) -> None:
+    def _update_tracks(self, reports: Sequence[SensorReport | None], listen: np.ndarray, hears: np.ndarray) -> None:
         """Section 3.2.1: choose the cell each UAV goes for. Candidates are the cells it just heard
         a detection in and the cells around its current track (the belief peak moves with the target).
         A cell whose existence probability reaches ``pursue_threshold`` is worth a closer look
@@ -268,7 +268,8 @@ class HapfAcoPlanner:
         if not rows:
             return
         rows_all, cells_all = np.concatenate(rows), np.concatenate(cells)
-        keep = self.grid.inside(cells_all)
+        reach = np.hypot(*((cells_all - self.cells[rows_all]) * cfg.cell_km).T)
+        keep = self.grid.inside(cells_all) & (reach <= cfg.pursue_range_km)
         rows_all, cells_all = rows_all[keep], cells_all[keep]
         # one look per distinct (UAV, cell): heard footprints overlap
         keys = np.unique(rows_all * self.grid.size + self.grid.flat(cells_all))
@@ -287,6 +288,17 @@ class HapfAcoPlanner:
         first = np.r_[True, rows_all[order][1:] != rows_all[order][:-1]]
         chosen = order[first]
         self.track[rows_all[chosen]] = cells_all[chosen]
+        self._leave_to_nearer(hears)
+
+    def _leave_to_nearer(self, hears: np.ndarray) -> None:
+        """One UAV per target: a UAV drops its track when a UAV it hears goes for the same or an
+        adjacent cell from nearer (ties to the lower index), instead of the swarm converging."""
+        tracking = self.track[:, 0] >= 0
+        same = (np.abs(self.track[:, None, :] - self.track[None, :, :]).max(axis=2) <= 1)
+        same &= tracking[:, None] & tracking[None, :] & hears
+        gap = np.hypot(*(self.track - self.cells).T)
+        nearer = (gap[None, :] < gap[:, None]) | ((gap[None, :] == gap[:, None]) & (np.arange(self.n)[None, :] < np.arange(self.n)[:, None]))
+        self.track[(same & nearer).any(axis=1)] = -1
 
     def engage_probability(self, uavs: np.ndarray, cells: np.ndarray) -> np.ndarray:
         """Probability, as UAV ``uavs[m]`` believes, that a target lies within the engage radius
@@ -342,6 +354,7 @@ class HapfAcoPlanner:
         step_len = HEADING_LENGTHS[cand_head] * cfg.cell_km
         allowed = np.zeros(cand_head.shape, dtype=bool)
         home_dist = np.zeros(cand_head.shape)
+        freedom = np.zeros(cand_head.shape, dtype=np.int64)
         clipped_x = np.clip(cand[..., 0], 0, grid.nx - 1)
         clipped_y = np.clip(cand[..., 1], 0, grid.ny - 1)
         threat_sets, group = np.unique(self.known_threats, axis=0, return_inverse=True)
@@ -350,6 +363,7 @@ class HapfAcoPlanner:
             model = self.safety_model(known)
             here = np.broadcast_to(self.cells[members][:, None, :], cand[members].shape)
             allowed[members] = model.move_allowed(here, cand_head[members])
+            freedom[members] = model.freedom[cand_head[members], clipped_x[members], clipped_y[members]]
             fields = model.distances_home_km(self.homes_key)  # (N, nx, ny), cached per model
             home_dist[members] = fields[members[:, None], clipped_x[members], clipped_y[members]]
         home_dist = np.where(grid.inside(cand), home_dist, np.inf)
@@ -437,6 +451,14 @@ class HapfAcoPlanner:
         order = np.argsort(-np.where(np.isfinite(scores), scores, -1e300), axis=1, kind="stable")
         ranked = np.concatenate([chosen_first[:, None], order], axis=1)
         ranked = np.array([list(dict.fromkeys(r)) for r in ranked])
+        # C_c ahead of time: with other UAVs close, a move into a state with a single way on
+        # (freedom 1) comes after every other allowed move
+        gaps = pairwise_distances(positions) + np.diag(np.full(n, np.inf))
+        crowded = (gaps <= cfg.separation_sense_km + cfg.cell_km).any(axis=1)
+        rows = np.arange(n)[:, None]
+        cornered = (freedom[rows, ranked] <= 1) & crowded[:, None]
+        last = cornered.astype(np.int64) + 2 * ~feasible[rows, ranked]  # forbidden moves stay last
+        ranked = np.take_along_axis(ranked, np.argsort(last, axis=1, kind="stable"), axis=1)
         pick = claim_cells(
             ranked, cand, feasible, positions, flying, cfg.cell_km, cfg.min_separation_km, cfg.separation_sense_km
         )
