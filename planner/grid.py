@@ -128,6 +128,37 @@ def disc_overlap(radius_km: float, cell_km: float, samples: int = 32) -> tuple[n
     return np.array(offsets, dtype=np.int64).reshape(-1, 2), np.array(fractions)
 
 
+def steps_to_reach(max_turn_deg: float, reach_cells: int) -> np.ndarray:
+    """Fewest turn-limited moves from a UAV at the origin with heading h to each cell offset:
+    ``steps[h, dx + r, dy + r]`` (r = ``reach_cells``; a large number where the window does not
+    hold a path). A point inside the turning circle needs a detour that the angle to it hides;
+    this table, found once by breadth-first search over (heading, cell), gives the true count."""
+    r = reach_cells
+    side = 2 * r + 1
+    turns = turn_options(max_turn_deg)
+    unreached = np.iinfo(np.int64).max // 4
+    steps = np.full((8, side, side), unreached, dtype=np.int64)
+    for h0 in range(8):
+        seen = np.zeros((8, side, side), dtype=bool)
+        frontier = [(h0, r, r)]
+        seen[h0, r, r] = True
+        steps[h0, r, r] = 0
+        depth = 0
+        while frontier:
+            depth += 1
+            nxt = []
+            for h, x, y in frontier:
+                for t in turns:
+                    h2 = (h + t) % 8
+                    x2, y2 = x + HEADING_STEPS[h2][0], y + HEADING_STEPS[h2][1]
+                    if 0 <= x2 < side and 0 <= y2 < side and not seen[h2, x2, y2]:
+                        seen[h2, x2, y2] = True
+                        steps[h0, x2, y2] = min(steps[h0, x2, y2], depth)
+                        nxt.append((h2, x2, y2))
+            frontier = nxt
+    return steps
+
+
 def turn_options(max_turn_deg: float) -> np.ndarray:
     """Heading changes allowed in one step, e.g. [-1, 0, 1] for 45 degrees (constraint C_m)."""
     k = int(np.floor(max_turn_deg / 45.0 + 1e-9))

@@ -38,6 +38,7 @@ from planner.grid import (
     corridor_offsets,
     disc_overlap,
     heading_of_angle,
+    steps_to_reach,
 )
 from planner.pheromone import PheromoneMaps
 from planner.potential_field import attraction, morse_repulsion, threat_repulsion
@@ -104,7 +105,8 @@ class HapfAcoPlanner:
         self.coverage_count = np.zeros(n, dtype=np.int64)
         self.stall_steps = np.zeros(n, dtype=np.int64)
         self.escape_goal = np.full((n, 2), -1, dtype=np.int64)
-        self.track = np.full((n, 2), -1, dtype=np.int64)  # confirmed target each UAV goes for
+        self.track = np.full((n, 2), -1, dtype=np.int64)  # the cell each UAV goes for, or -1
+        self.track_confirmed = np.zeros(n, dtype=bool)  # ... and whether a target is confirmed there
         self.target_ids = np.array([t.id for t in scenario.targets], dtype=np.int64)
         self.known_engaged = np.zeros((n, len(self.target_ids)), dtype=bool)
         self.engaged_applied = self.known_engaged.copy()  # removed from that UAV's TPM already
@@ -113,6 +115,8 @@ class HapfAcoPlanner:
         self.track_window = self.grid.disc_offsets(2.0 * cfg.cell_km)
         # a candidate is one cell away and the force needs one more cell around the footprint
         self.window_reach = int(np.abs(self.footprint).max()) + 1
+        self.pursuit_reach = int(np.ceil(cfg.pursue_range_km / cfg.cell_km)) + 2
+        self.pursuit_steps = steps_to_reach(cfg.max_turn_deg, self.pursuit_reach)
         self.engage_cells, self.engage_fractions = disc_overlap(cfg.engage_radius_km, cfg.cell_km)
         self.centre_index = int(np.flatnonzero((self.footprint == 0).all(axis=1))[0])
         self.corridor, self.corridor_weights = corridor_offsets(
@@ -288,6 +292,7 @@ class HapfAcoPlanner:
         first = np.r_[True, rows_all[order][1:] != rows_all[order][:-1]]
         chosen = order[first]
         self.track[rows_all[chosen]] = cells_all[chosen]
+        self.track_confirmed[rows_all[chosen]] = confirmed[chosen]
         self._leave_to_nearer(hears)
 
     def _leave_to_nearer(self, hears: np.ndarray) -> None:
@@ -346,6 +351,21 @@ class HapfAcoPlanner:
         force = force + threat_repulsion(centres, self.threat_xy, self.threat_r, self.known_threats, cfg)
         force = force + morse_repulsion(centres, positions, neighbours, cfg)
         return force
+
+    def _pursuit_scores(self, cand: np.ndarray, cand_head: np.ndarray, moves: np.ndarray, feasible: np.ndarray) -> np.ndarray:
+        """Scores of the candidates for reaching each UAV's track cell: fewest turn-limited moves
+        from the candidate (``steps_to_reach``), ties to the smaller angle; beyond the table's
+        window, the angle to the cell (eq 35's deterministic rule)."""
+        r = self.pursuit_reach
+        offset = self.track[:, None, :] - cand  # (N, C, 2)
+        near = (np.abs(offset) <= r).all(axis=2)
+        ox = np.clip(offset[..., 0] + r, 0, 2 * r)
+        oy = np.clip(offset[..., 1] + r, 0, 2 * r)
+        steps = np.where(near, self.pursuit_steps[cand_head, ox, oy], 10**6).astype(float)
+        angle = -deterministic_scores(moves, (self.track - self.cells).astype(float), np.ones_like(feasible))
+        # a suspect is circled (looked at from all sides, eq 35); a confirmed target is flown to
+        steps = np.where(self.track_confirmed[:, None], steps, 0.0)
+        return np.where(feasible, -steps - angle / (2 * np.pi), -np.inf)
 
     def _decide(self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray) -> StepDecision:
         cfg, grid, n = self.cfg, self.grid, self.n
@@ -438,8 +458,7 @@ class HapfAcoPlanner:
             modes[escaping] = MODES.index("escape")
         engaging = (self.track[:, 0] >= 0) & flying
         if engaging.any():
-            eng = deterministic_scores(moves, (self.track - self.cells).astype(float), feasible)
-            scores = np.where(engaging[:, None], eng, scores)
+            scores = np.where(engaging[:, None], self._pursuit_scores(cand, cand_head, moves, feasible), scores)
             modes[engaging] = MODES.index("engage")
         returning = self.returning & flying
         if returning.any():
@@ -454,7 +473,7 @@ class HapfAcoPlanner:
         # C_c ahead of time: with other UAVs close, a move into a state with a single way on
         # (freedom 1) comes after every other allowed move
         gaps = pairwise_distances(positions) + np.diag(np.full(n, np.inf))
-        crowded = (gaps <= cfg.separation_sense_km + cfg.cell_km).any(axis=1)
+        crowded = (gaps <= cfg.separation_sense_km + 2 * np.sqrt(2) * cfg.cell_km).any(axis=1)  # two steps closing
         rows = np.arange(n)[:, None]
         cornered = (freedom[rows, ranked] <= 1) & crowded[:, None]
         last = cornered.astype(np.int64) + 2 * ~feasible[rows, ranked]  # forbidden moves stay last

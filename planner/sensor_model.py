@@ -44,9 +44,14 @@ def posterior(prior: np.ndarray, ratio: np.ndarray) -> np.ndarray:
     """Eq 18 as an odds update: p' = p r / (1 - p + p r). Several looks at one cell combine by
     multiplying their ratios, exactly as applying eq 18 once per look."""
     p = np.clip(prior, 0.0, 1.0)
-    with np.errstate(invalid="ignore"):
-        out = p * ratio / (1.0 - p + p * ratio)
-    return np.where(np.isnan(out), (p > 0).astype(float), out)  # r = inf with p > 0: certain
+    with np.errstate(invalid="ignore", divide="ignore"):
+        weighted = p * ratio
+        out = weighted / (1.0 - p + weighted)
+    bad = np.isnan(out)
+    if bad.any():  # r = inf (P_F = 0): certain unless p = 0; p = 1 with r = 0 (P_D = 1): gone
+        certain = np.broadcast_to(np.isinf(ratio), out.shape) & (np.broadcast_to(p, out.shape) > 0)
+        out[bad] = certain[bad].astype(float)
+    return out
 
 
 def bayes_update(

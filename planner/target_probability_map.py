@@ -428,8 +428,7 @@ class TargetProbabilityMaps:
         stored = np.divide(updated, scale, out=np.zeros_like(updated), where=scale > 0).astype(np.float32)
         view[:, uav, flat] = stored
         change = stored.astype(np.float64) - stored_before
-        for layer in range(len(self.specs)):
-            self.totals[layer] += np.bincount(uav, weights=change[layer], minlength=self.totals.shape[1])
+        np.add.at(self.totals.T, uav, change.T)
 
     def decay_unobserved(self, observed: np.ndarray) -> None:
         """Eq 18, first case: cells no UAV looked at this step are multiplied by tau.

@@ -7,7 +7,14 @@ from hypothesis import strategies as st
 
 from planner.config import ConfigError, PlannerConfig
 from planner.constraints import SafetyModel, segment_clearance
-from planner.grid import Grid, candidate_moves, heading_change_deg
+from planner.grid import (
+    Grid,
+    candidate_moves,
+    corridor_offsets,
+    disc_overlap,
+    heading_change_deg,
+    steps_to_reach,
+)
 from planner.pheromone import PheromoneMaps
 from planner.potential_field import attraction, morse_repulsion, threat_repulsion
 from planner.topology import adapt_radius, adjacency, pairwise_distances
@@ -141,3 +148,44 @@ def test_config_rejects_bad_values_with_a_clear_message():
         PlannerConfig(p_detect=1.5)
     with pytest.raises(ConfigError, match="tau_min"):
         PlannerConfig(tau_min=2.0)
+
+
+def test_corridor_weights_the_footprints_ahead_and_leaves_out_the_candidates_own():
+    footprint = GRID.disc_offsets(3.0)
+    offsets, weights = corridor_offsets(footprint, steps=4, discount=0.5)
+    east = {tuple(o): w for o, w in zip(offsets[0], weights[0], strict=True) if w > 0}
+    assert (0, 0) not in east and (3, 0) not in east  # in the candidate's own footprint
+    assert east[(4, 0)] == pytest.approx(0.5) and east[(5, 0)] == pytest.approx(0.25)
+    assert east[(6, 0)] == pytest.approx(0.125) and (7, 0) not in east
+    north = {tuple(o) for o, w in zip(offsets[2], weights[2], strict=True) if w > 0}
+    assert north == {(-y, x) for x, y in east}  # the same corridor turned by 90 degrees
+
+
+def test_disc_overlap_shares_sum_to_the_disc_area():
+    offsets, shares = disc_overlap(1.0, 1.0, samples=64)
+    assert shares.sum() == pytest.approx(np.pi, rel=2e-3)
+    own = shares[(offsets == 0).all(axis=1)][0]
+    assert own == pytest.approx(1.0)  # a 1 km disc covers its own 1 km cell entirely
+    side = shares[(offsets == [1, 0]).all(axis=1)][0]
+    assert 0.3 < side < 0.5
+
+
+def test_freedom_counts_the_ways_on_and_is_one_in_a_corner():
+    model = SafetyModel(GRID, np.zeros((0, 2)), np.zeros(0), 0.0, 45.0)
+    assert model.freedom[0, 50, 50] == 3  # open sky: left, straight, right
+    # heading east one cell from the east edge: only the turn that stays inside and viable
+    assert model.freedom[0, 98, 50] < 3
+    assert (model.freedom >= 1)[model.viable].all()  # a viable state always has a way on
+
+
+def test_steps_to_reach_counts_the_detour_around_the_turning_circle():
+    steps = steps_to_reach(45.0, 6)
+    r = 6
+    assert steps[0, r, r] == 0 and steps[0, r + 3, r] == 3  # straight ahead
+    assert steps[0, r + 1, r + 1] == 1  # 45 degrees left is one move
+    behind = steps[0, r - 1, r]  # the cell just behind needs a loop: at least 5 moves
+    assert behind >= 5
+    beside = steps[0, r, r + 1]  # the cell alongside: inside the turning circle, more than 1
+    assert beside > 1
+    # every heading sees the same table turned: east's ahead is north's ahead
+    assert steps[2, r, r + 3] == 3

@@ -144,3 +144,44 @@ def test_known_velocity_layer_moves_without_blurring():
     mean = lambda m: (m.sum(axis=1) * GRID.centres_x_km).sum() / m.sum()  # noqa: E731
     assert mean(end) - mean(start) == pytest.approx(30.0, abs=0.6)
     assert end.max() == pytest.approx(start.max(), rel=1e-5)  # same shape, not smeared
+
+
+def test_looks_at_one_cell_combine_exactly_as_sequential_eq18():
+    targets = (TargetSpec(1, "known_position", 50, 50, 1), TargetSpec(2, "unknown_position", 0, 0, 1))
+    together = TargetProbabilityMaps(targets, CFG, n_uavs=1)
+    apart = TargetProbabilityMaps(targets, CFG, n_uavs=1)
+    offsets = GRID.disc_offsets(CFG.detection_radius_km)
+    rng = np.random.default_rng(3)
+    origins = np.array([[50, 50], [51, 49], [49, 52]])
+    looks = [o + offsets for o in origins]
+    bits = [rng.random(len(offsets)) < 0.5 for _ in looks]
+    together.apply_looks(np.zeros(3, int), looks, bits, origins)
+    for look, bit, origin in zip(looks, bits, origins, strict=True):
+        apart.apply_looks(np.zeros(1, int), [look], [bit], origin[None])
+    assert np.allclose(together.maps, apart.maps, rtol=1e-5, atol=1e-12)
+    assert np.allclose(together.totals, apart.totals, rtol=1e-9)
+    assert together.totals == pytest.approx(together.maps.sum(axis=(2, 3), dtype=np.float64), rel=1e-6)
+
+
+def test_eq18_at_the_sensor_limits():
+    prior = np.array([0.0, 0.3, 1.0, 0.5])
+    # P_F = 0: a detection makes any possible target certain, an impossible one stays impossible
+    assert bayes_update(prior, np.ones(4, bool), 1.0, 0.0) == pytest.approx([0.0, 1.0, 1.0, 1.0])
+    # P_D = 1: a miss rules the cell out, even a certain one
+    assert bayes_update(prior, np.zeros(4, bool), 1.0, 0.0) == pytest.approx([0.0, 0.0, 0.0, 0.0])
+
+
+def test_boxed_known_speed_forecast_matches_the_full_grid_convolution():
+    targets = (TargetSpec(1, "known_speed", 12, 50, 1, speed_mps=50),)
+    tpm = TargetProbabilityMaps(targets, CFG, n_uavs=2)
+    reference = tpm.maps[0].astype(np.float64).copy()
+    box_start = tpm.ring_box[0]
+    assert (box_start[1] - box_start[0]) * (box_start[3] - box_start[2]) < 0.7 * GRID.size  # real saving
+    for _ in range(40):
+        tpm.forecast()
+        reference = convolve_reflect(reference, tpm.ring_kernels[0])
+    x0, x1, y0, y1 = tpm.ring_box[0]
+    outside = np.ones(GRID.shape, bool)
+    outside[x0:x1, y0:y1] = False
+    assert not tpm.maps[0][:, outside].any()  # the box holds all the mass it claims to
+    assert np.allclose(tpm.maps[0], reference, atol=1e-8)  # the x = 12 edge reflects as before
