@@ -1,9 +1,14 @@
 """End-to-end benchmark: the full paper 10-UAV scenario flown over loopback UDP MAVLink
-(`swarmplan demo`: simulator subprocess + daemon) next to the offline run of the same seed.
+(`swarmplan demo`: simulator subprocess + daemon, lockstep by default) next to the offline run
+of the same seeds.
 
-    python benchmarks/bench_end_to_end.py [--seeds 1 2 3] [--speedup 100] [--steps 250]
+    python benchmarks/bench_end_to_end.py [--seeds 1 2 3 4 5] [--speedup X] [--steps 250]
 
-Prints wall time, coverage, engaged count/value, returned, minimum separation and violations.
+Prints, per seed, wall time, coverage, engaged count/value, returned, minimum separation and the
+violations measured from telemetry (threat, separation, turn, range), plus the simulator's own
+count of fence (threat circle) breaches along the whole flown path; then whether every MAVLink
+run took under 60 s, had zero violations, and had coverage / engaged value within the spread
+(min..max) of the offline runs of the same seeds. ``--speedup X`` flies paced instead of lockstep.
 """
 
 from __future__ import annotations
@@ -36,7 +41,16 @@ def swarmplan_json(args: list[str]) -> dict:
     return json.loads(proc.stdout)
 
 
-def row(kind: str, seed: int, r: dict) -> str:
+def fence_breaches(out: Path) -> str:
+    """The simulator's count of threat-circle entries (its summary, the last line of sim.log)."""
+    try:
+        last = (out / "sim.log").read_text().strip().splitlines()[-1]
+        return str(json.loads(last).get("fence_breaches", "?"))
+    except (OSError, IndexError, ValueError):
+        return "?"
+
+
+def row(kind: str, seed: int, r: dict, breaches: str = "-") -> str:
     v = r["violations"]
     sep = r["min_separation_km"]
     return (
@@ -44,29 +58,32 @@ def row(kind: str, seed: int, r: dict) -> str:
         f"{r['engaged_count']:>7} "
         f"{r['engaged_value']:>6g} {r['returned_count']:>8} "
         f"{'-' if sep is None else f'{sep:.2f}':>7} "
-        f"{v['threat']:>6} {v['separation']:>4} {v['turn']:>4} {v['range']:>5}"
+        f"{v['threat']:>6} {v['separation']:>4} {v['turn']:>4} {v['range']:>5} {breaches:>6}"
     )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="paper-10uav")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[1])
-    parser.add_argument("--speedup", type=float, default=100.0)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5])
+    parser.add_argument("--speedup", type=float, default=None, help="paced, not lockstep")
     parser.add_argument("--steps", type=int, default=None)
     args = parser.parse_args()
     steps = ["--steps", str(args.steps)] if args.steps else []
     print(
         f"{'run':<8} {'seed':>4} {'wall s':>8} {'cover %':>8} {'engaged':>7} {'value':>6} "
         f"{'returned':>8} "
-        f"{'min sep':>7} {'threat':>6} {'sep':>4} {'turn':>4} {'range':>5}"
+        f"{'min sep':>7} {'threat':>6} {'sep':>4} {'turn':>4} {'range':>5} {'fence':>6}"
     )
+    pace = [] if args.speedup is None else ["--speedup", f"{args.speedup:g}"]
+    offline_runs, mavlink_runs = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
             offline = swarmplan_json(
                 ["run", args.scenario, "--seed", str(seed), *steps, "--out", f"{tmp}/off{seed}"]
             )
             print(row("offline", seed, offline), flush=True)
+            offline_runs.append(offline)
             e2e = swarmplan_json(
                 [
                     "demo",
@@ -74,18 +91,49 @@ def main() -> None:
                     "--seed",
                     str(seed),
                     *steps,
-                    "--speedup",
-                    f"{args.speedup:g}",
+                    *pace,
                     "--out",
                     f"{tmp}/e2e{seed}",
                 ]
             )
-            print(row("mavlink", seed, e2e), flush=True)
+            print(row("mavlink", seed, e2e, fence_breaches(Path(tmp) / f"e2e{seed}")), flush=True)
+            mavlink_runs.append(e2e)
             print(
                 f"{'':<13} overrides {e2e.get('envelope_overrides')} lost {e2e.get('lost_uavs')} "
                 f"refused {e2e.get('refused_commands')}",
                 flush=True,
             )
+
+    verdict(offline_runs, mavlink_runs)
+
+
+def verdict(offline: list[dict], mavlink: list[dict]) -> None:
+    """The issue's bar: < 60 s wall, zero violations, coverage/engaged within the offline spread."""
+    if not offline or not mavlink:
+        return
+    lines = []
+    for key, scale, unit in (
+        ("coverage", 100, "%"),
+        ("engaged_value", 1, ""),
+        ("engaged_count", 1, ""),
+    ):
+        lo = min(r[key] for r in offline) * scale
+        hi = max(r[key] for r in offline) * scale
+        got = [r[key] * scale for r in mavlink]
+        inside = sum(lo <= g <= hi for g in got)
+        mean_off = sum(r[key] for r in offline) * scale / len(offline)
+        mean_mav = sum(got) / len(got)
+        lines.append(
+            f"{key:<14} offline {lo:.1f}..{hi:.1f}{unit} (mean {mean_off:.1f}), mavlink mean "
+            f"{mean_mav:.1f}{unit}; {inside}/{len(got)} mavlink runs inside the offline spread"
+        )
+    worst_wall = max(r["wall_time_s"] for r in mavlink)
+    violations = sum(sum(r["violations"].values()) for r in mavlink)
+    print()
+    print(f"mavlink wall time: max {worst_wall:.1f} s (target < 60 s)")
+    print(f"mavlink violations, all seeds: {violations} (target 0)")
+    for line in lines:
+        print(line)
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
+from mavlink_bridge.signing import KEY_ENV, load_signing_key
 from mavlink_bridge.waypoint_export import export_all
 from planner.errors import UserError
 from planner.scenario import load_scenario
@@ -64,6 +65,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="speed of the vehicles' clock (SITL --speedup); paces steps only for "
         "vehicles that send no sensor looks (default 1)",
     )
+    parser.add_argument(
+        "--checkpoint",
+        type=Path,
+        metavar="PATH",
+        help="write the planner state here (atomically) after every step, to --resume from",
+    )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="carry on from --checkpoint (a restarted daemon); flying vehicles are not "
+        "re-armed or taken off again",
+    )
+    parser.add_argument(
+        "--signing-key-file",
+        type=Path,
+        metavar="PATH",
+        help="MAVLink 2 signing key (64 hex characters or 32 bytes): sign everything sent, "
+        f"refuse unsigned frames; default ${KEY_ENV} if set (never a command-line value)",
+    )
+    parser.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="the vehicles are `swarmplan sim --lockstep`: grant simulated time one decision "
+        "step at a time (as fast as possible, repeatable for a seed)",
+    )
     parser.add_argument("--tlog", type=Path, help="telemetry log (default OUT/mission.tlog)")
     parser.add_argument(
         "--out", type=Path, default=Path("out/daemon"), help="output folder (default out/daemon)"
@@ -81,6 +107,8 @@ def validate(args: argparse.Namespace) -> None:
         raise UserError(f"--expect must be a positive integer, got {args.expect}")
     if args.threat_margin_km < 0:
         raise UserError("--threat-margin-km must be >= 0")
+    if args.resume and args.checkpoint is None:
+        raise UserError("--resume needs --checkpoint PATH (the file to resume from)")
 
 
 def print_step(status: StepStatus) -> None:
@@ -112,6 +140,10 @@ def main(args: argparse.Namespace) -> int:
         lost_after_s=args.lost_after,
         threat_margin_km=args.threat_margin_km,
         time_scale=args.time_scale,
+        lockstep=args.lockstep,
+        checkpoint_path=args.checkpoint,
+        resume=args.resume,
+        signing_key=load_signing_key(args.signing_key_file),
         tlog_path=args.tlog or out / "mission.tlog",
         progress=None
         if quiet

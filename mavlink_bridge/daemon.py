@@ -29,17 +29,29 @@ from typing import Any
 
 import numpy as np
 
+from mavlink_bridge.checkpoint import (
+    LOOP_STATE,
+    Checkpoint,
+    CheckpointWriter,
+    load_for_mission,
+    mission_fingerprint,
+    resume_loop_state,
+)
 from mavlink_bridge.discovery import wait_for_vehicles, wait_until_ready
+from mavlink_bridge.flight_envelope import FlightChoice, FlightEnvelope
+from mavlink_bridge.flight_prediction import PlaneModel
 from mavlink_bridge.guided_commands import (
     Command,
     CommandRefusedError,
     arm_command,
     engagement_command,
     reposition_command,
+    request_message_command,
     require_accepted,
     send_commands,
     set_mode_command,
 )
+from mavlink_bridge.lockstep_clock import LockstepClock
 from mavlink_bridge.mission_upload import FenceCircle, upload_fence
 from mavlink_bridge.protocol import (
     PLANE_MODE_GUIDED,
@@ -48,7 +60,7 @@ from mavlink_bridge.protocol import (
     mavlink,
     result_name,
 )
-from mavlink_bridge.safety_envelope import SafetyEnvelope
+from mavlink_bridge.safety_envelope import EnvelopeDecision, SafetyEnvelope
 from mavlink_bridge.sensor_looks import look_report
 from mavlink_bridge.swarm_link import SwarmLink
 from mavlink_bridge.tlog import TlogWriter
@@ -81,13 +93,28 @@ class DaemonOptions:
     #: guided targets lead the next cell by this many legs along the planned direction, so a
     #: plane passes through the cell centre on time instead of arriving and circling it
     lead_steps: float = 1.0
+    #: the flight-path envelope (flight_envelope.py): predict each plane's path this far ahead
+    #: (simulated s; 0 turns it off) and keep it clear of threats and of the other planes' paths
+    prediction_horizon_s: float = 30.0
+    predicted_threat_margin_km: float = 0.25
+    predicted_separation_margin_km: float = 0.3
+    bank_limit_deg: float = 45.0  # ArduPlane ROLL_LIMIT_DEG: sets the predicted turn radius
     max_refusals: int = 5  # consecutive refused guided targets of one vehicle that end the run
     #: measured legs come from telemetry, not cell centres: a turn counts as a C_m violation only
     #: beyond phi_max plus this (the envelope itself never commands more than phi_max)
     turn_tolerance_deg: float = 15.0
     time_scale: float = 1.0  # vehicles' clock speed; paces steps only when no looks arrive
+    #: the vehicles are ``swarmplan sim --lockstep``: grant simulated time one decision period at
+    #: a time (mavlink_bridge/lockstep_clock.py); the run is then repeatable for a seed
+    lockstep: bool = False
     command_retry_s: float = 0.3
     command_attempts: int = 5
+    #: arm / mode commands of the launch are not time-critical: try them longer over a lossy link
+    launch_command_attempts: int = 12
+    #: write the planner and loop state here after every step (mavlink_bridge/checkpoint.py)
+    checkpoint_path: Path | None = None
+    resume: bool = False  # carry on from checkpoint_path instead of starting afresh
+    signing_key: bytes | None = None  # MAVLink 2 signing (mavlink_bridge/signing.py)
     tlog_path: Path | None = None
     progress: Callable[[str], None] | None = None
     on_step: Callable[[StepStatus], None] | None = None
@@ -149,11 +176,38 @@ class MissionDaemon:
         self.events: list[LinkEvent] = []
         self.tlog: TlogWriter | None = None
         self.link: SwarmLink | None = None
-        self.overrides = {"area": 0, "threat": 0, "separation": 0, "range": 0}
+        self.overrides = {
+            "area": 0,
+            "threat": 0,
+            "separation": 0,
+            "range": 0,
+            "predicted_threat": 0,
+            "predicted_separation": 0,
+        }
+        self.flight_envelope = (
+            FlightEnvelope(
+                self.envelope,
+                PlaneModel(speed_mps=cfg.speed_mps, bank_limit_deg=options.bank_limit_deg),
+                step_s=cfg.step_s,
+                horizon_s=options.prediction_horizon_s,
+                threat_margin_km=options.predicted_threat_margin_km,
+                separation_margin_km=options.predicted_separation_margin_km,
+            )
+            if options.prediction_horizon_s > 0
+            else None
+        )
         self._look_gaps: list[float] = []
         self._last_step_wall = 0.0
         self.refused_commands = 0
         self._target_values = {t.id: t.value for t in scenario.targets}
+        self.fingerprint = mission_fingerprint(scenario, options.seed, self.n, self.steps)
+        self.checkpoints = (
+            None
+            if options.checkpoint_path is None
+            else CheckpointWriter(options.checkpoint_path, self.fingerprint)
+        )
+        self.resume_from: Checkpoint | None = None
+        self.clock: LockstepClock | None = None
 
     # ------------------------------------------------------------------ helpers
 
@@ -173,29 +227,48 @@ class MissionDaemon:
         xy = self.grid.centre_km(cells)
         return local_km_to_geodetic(xy[:, 0], xy[:, 1], self.scenario.origin)
 
-    def send(self, commands: list[Command]) -> list[Command]:
+    def send(self, commands: list[Command], attempts: int | None = None) -> list[Command]:
         assert self.link is not None
         return send_commands(
-            self.link, commands, self.options.command_retry_s, self.options.command_attempts
+            self.link,
+            commands,
+            self.options.command_retry_s,
+            attempts or self.options.command_attempts,
         )
 
     # ------------------------------------------------------------------ phases
 
     def connect(self) -> SwarmLink:
         if self.options.tlog_path is not None:
-            self.tlog = TlogWriter(self.options.tlog_path)
+            self.tlog = TlogWriter(self.options.tlog_path, append=self.options.resume)
         expected = set(self.system_ids)
         self.link = SwarmLink.open(
-            self.options.connect, self.tlog, accept_system_id=lambda s: s in expected
+            self.options.connect,
+            self.tlog,
+            accept_system_id=lambda s: s in expected,
+            signing_key=self.options.signing_key,
         )
+        if self.options.lockstep:
+            self.clock = LockstepClock(self.link, self.scenario.config.step_s)
         return self.link
+
+    def wait_sim(self, done: Callable[[], bool], timeout_s: float) -> bool:
+        """Pump until ``done()``; against a lockstep simulator grant simulated time meanwhile
+        (``timeout_s`` then counts simulated seconds)."""
+        assert self.link is not None
+        if self.clock is None:
+            return self.link.pump_until(done, timeout_s)
+        vehicles = [self.vehicle(i) for i in range(self.n)]
+        return self.clock.run_until(done, vehicles, timeout_s)
 
     def discover(self) -> None:
         assert self.link is not None
         self.say(f"listening on {self.link.describe()} for {self.n} vehicles")
         wait_for_vehicles(self.link, self.system_ids, self.options.discovery_timeout_s, self.say)
         self.say(f"all {self.n} vehicles heard; waiting for them to finish initialising")
-        wait_until_ready(self.link, self.system_ids, self.options.ready_timeout_s)
+        wait_until_ready(
+            self.link, self.system_ids, self.options.ready_timeout_s, wait=self.wait_sim
+        )
 
     def upload_threats(self) -> None:
         assert self.link is not None
@@ -220,7 +293,8 @@ class MissionDaemon:
         todo = [self.vehicle(i) for i in range(self.n) if not self.vehicle(i).armed]
         for attempt in range(attempts):
             started = time.monotonic()
-            results = self.send([arm_command(v) for v in todo])
+            tries = self.options.launch_command_attempts
+            results = self.send([arm_command(v) for v in todo], tries)
             todo = [c.vehicle for c in results if not c.accepted]
             if not todo:
                 break
@@ -240,9 +314,15 @@ class MissionDaemon:
         """TAKEOFF mode, wait for the climb, then GUIDED."""
         assert self.link is not None
         vehicles = [self.vehicle(i) for i in range(self.n)]
-        require_accepted(self.send([set_mode_command(v, PLANE_MODE_TAKEOFF) for v in vehicles]))
         climb = min(self.options.takeoff_altitude_m, self.scenario.altitude_m)
-        if not self.link.pump_until(
+        attempts = self.options.launch_command_attempts
+        # vehicles already flying (a restarted daemon, airborne SITL) go straight to GUIDED
+        self.link.pump_until(lambda: all(v.has_position for v in vehicles), 2.0)
+        on_ground = [v for v in vehicles if not (v.armed and v.relative_alt_m >= climb)]
+        require_accepted(
+            self.send([set_mode_command(v, PLANE_MODE_TAKEOFF) for v in on_ground], attempts)
+        )
+        if not self.wait_sim(
             lambda: all(v.relative_alt_m >= climb for v in vehicles), self.options.takeoff_timeout_s
         ):
             low = [str(v.system_id) for v in vehicles if v.relative_alt_m < climb]
@@ -250,7 +330,9 @@ class MissionDaemon:
                 f"vehicle {', '.join(low)} did not climb to {climb:g} m within "
                 f"{self.options.takeoff_timeout_s:g} s of TAKEOFF; check its takeoff setup"
             )
-        require_accepted(self.send([set_mode_command(v, PLANE_MODE_GUIDED) for v in vehicles]))
+        require_accepted(
+            self.send([set_mode_command(v, PLANE_MODE_GUIDED) for v in vehicles], attempts)
+        )
         self.say("airborne, GUIDED")
 
     def return_to_launch(self) -> list[str]:
@@ -321,6 +403,8 @@ class MissionDaemon:
         Vehicles that send no looks at all (e.g. ArduPlane SITL) are paced by the wall clock:
         one step per ``step_s / time_scale`` seconds."""
         assert self.link is not None
+        if self.clock is not None:
+            return self._lockstep_step(step, consumed)
         start = time.monotonic()
         first_fresh: float | None = None
         any_looks = any(self.vehicle(i).latest_look >= 0 for i in range(self.n))
@@ -356,10 +440,84 @@ class MissionDaemon:
             consumed[i] = look.index
         return fresh
 
+    def choose_flight(
+        self,
+        positions: np.ndarray,
+        cells: np.ndarray,
+        headings: np.ndarray,
+        checked: EnvelopeDecision,
+        last_target: list[tuple[float, float] | None],
+        flown_km: np.ndarray,
+        home_km: np.ndarray,
+        active: np.ndarray,
+    ) -> FlightChoice:
+        """Guided targets whose predicted flight is safe (flight_envelope.py); without the
+        flight-path envelope, the aim points of the checked cells."""
+        lead = self.options.lead_steps
+        if self.flight_envelope is None:
+            aims = np.array(
+                [
+                    self.envelope.aim_point_km(cells[i], checked.next_cells[i], lead)
+                    for i in range(self.n)
+                ]
+            )
+            return FlightChoice(aims, checked.next_cells, checked.next_headings)
+        courses = np.empty(self.n)
+        for i in range(self.n):
+            v = self.vehicle(i)
+            if math.hypot(v.vn_mps, v.ve_mps) > 1.0:
+                courses[i] = math.atan2(v.vn_mps, v.ve_mps)  # course over ground, from east
+            else:
+                courses[i] = int(headings[i]) * math.pi / 4
+        previous = np.array([t if t is not None else (np.nan, np.nan) for t in last_target])
+        choice = self.flight_envelope.choose(
+            positions, courses, cells, headings, checked.next_cells, checked.next_headings,
+            previous, flown_km, home_km, active, lead,
+        )  # fmt: skip
+        for reason, count in choice.overrides.items():
+            self.overrides[reason] += count
+        return choice
+
+    def _lockstep_step(self, step: int, consumed: list[int]) -> dict[int, Look]:
+        """Lockstep: grant one decision period and wait until every vehicle still heard holds at
+        its end; its look of that instant has then arrived (same socket, sent before)."""
+        assert self.clock is not None
+        vehicles = [self.vehicle(i) for i in range(self.n)]
+        self.clock.advance(vehicles, on_pump=lambda: self._update_links(step))
+        fresh = {
+            i: v.looks[v.latest_look]
+            for i, v in enumerate(vehicles)
+            if v.latest_look > consumed[i] and not v.lost
+        }
+        for i, look in fresh.items():
+            consumed[i] = look.index
+        return fresh
+
+    def request_homes(self) -> None:
+        """Ask every vehicle whose home is not known yet for HOME_POSITION (REQUEST_MESSAGE):
+        the launch point is each UAV's start and return point, and ArduPilot streams it rarely."""
+        assert self.link is not None
+        missing = [self.vehicle(i) for i in range(self.n) if self.vehicle(i).home is None]
+        if missing:
+            home = mavlink.MAVLINK_MSG_ID_HOME_POSITION
+            self.send([request_message_command(v, home) for v in missing])
+            self.link.pump_until(lambda: all(v.home is not None for v in missing), 1.0)
+
+    def release_clock(self) -> None:
+        """Lockstep over: let the simulator run on its own (the vehicles fly their RTL)."""
+        if self.clock is not None and self.link is not None:
+            self.clock.release(list(self.link.vehicles.values()))
+
     def fly(self) -> MissionReport:
         """Run discovery to RTL and return the result measured over MAVLink."""
         HapfAcoPlanner, MissionRecorder = _import_planner()
         started = time.monotonic()
+        if self.options.resume:  # a bad checkpoint fails now, before any vehicle is touched
+            if self.options.checkpoint_path is None:
+                raise UserError("--resume needs --checkpoint PATH (the file to resume from)")
+            self.resume_from = load_for_mission(
+                self.options.checkpoint_path, self.fingerprint, HapfAcoPlanner
+            )
         if self.link is None:
             self.connect()
         try:
@@ -367,14 +525,17 @@ class MissionDaemon:
             self.upload_threats()
             self.arm()
             self.take_off()
+            self.request_homes()
             result = self._decision_loop(HapfAcoPlanner, MissionRecorder, started)
         except BaseException:
             failures = self.return_to_launch() if self.link is not None else []
             for line in failures:
                 self.say(f"warning: {line}")
+            self.release_clock()
             self.close()
             raise
         failures = self.return_to_launch()
+        self.release_clock()
         for line in failures:
             self.say(f"warning: {line}")
         self.say("mission over: RTL sent to every vehicle")
@@ -414,6 +575,7 @@ class MissionDaemon:
         flown_km = np.zeros(n)
         engagements: list[EngagementOutcome | None] = [None] * n
         engage_seq = [0] * n
+        pending_engage = [0] * n  # sequence number of an unanswered engagement, asked again
         refusals = [0] * n
         observed = np.zeros(self.grid.shape, dtype=bool)
         engaged_ids: set[int] = set()
@@ -421,7 +583,15 @@ class MissionDaemon:
         positions = self.grid.centre_km(cells)
         previous_centres = positions.copy()
         self.looks_missed = 0
-        for step in range(self.steps + 1):  # the start, then one record per decision step
+        first_step = 0
+        if self.resume_from is not None:  # a restarted daemon: the state after its last step
+            loop = resume_loop_state(self, self.resume_from, planner)
+            (planner, recorder, starts, home_km, cells, headings, commanded_cells,
+             commanded_headings, last_target, consumed, flown_km, engagements, engage_seq,
+             pending_engage, refusals, observed, engaged_ids, engaged_value, positions,
+             previous_centres) = (loop[name] for name in LOOP_STATE)  # fmt: skip
+            first_step = self.resume_from.step + 1
+        for step in range(first_step, self.steps + 1):  # the start, then one record per step
             looks = self.wait_for_step(step, consumed) if step > 0 else {}
             active = np.array([not self.vehicle(i).lost for i in range(n)])
             reports: list[SensorReport | None] = [None] * n
@@ -462,6 +632,10 @@ class MissionDaemon:
             )
             for o in checked.overrides:
                 self.overrides[o.reason] += 1
+            flight = self.choose_flight(
+                positions, cells, headings, checked, last_target, flown_km, home_km, active
+            )
+            checked.next_cells, checked.next_headings = flight.next_cells, flight.next_headings
             for i in range(
                 n
             ):  # distance flown so far, between measured cells (as the planner counts)
@@ -477,18 +651,21 @@ class MissionDaemon:
                 done=done,
             )
             # engagements first: the vehicle is where the planner asked for it
+            # an engagement left unanswered is asked again with the same sequence number (the
+            # camera replays its outcome, never engages twice) before any new one
             requests = [
-                (i, engagement_command(self.vehicle(i), engage_seq[i] + 1))
+                (i, engagement_command(self.vehicle(i), pending_engage[i] or engage_seq[i] + 1))
                 for i in range(n)
-                if active[i] and bool(decision.engage[i])
+                if active[i] and (bool(decision.engage[i]) or pending_engage[i])
             ]
-            for i, _ in requests:
-                engage_seq[i] += 1
+            for i, cmd in requests:
+                engage_seq[i] = max(engage_seq[i], int(cmd.params[3]))
             for i, cmd in zip(
                 [r[0] for r in requests], self.send([c for _, c in requests]), strict=True
             ):
+                pending_engage[i] = int(cmd.params[3]) if cmd.ack is None else 0
                 if cmd.ack is None:
-                    continue  # unanswered: the planner sees no outcome and may ask again
+                    continue  # unanswered: asked again at the next step
                 target = int(cmd.ack.result_param2) if cmd.accepted else 0
                 value = float(self._target_values.get(target, 0.0)) if target else 0.0
                 engagements[i] = EngagementOutcome(target != 0, target, value)
@@ -496,15 +673,10 @@ class MissionDaemon:
                     engaged_ids.add(target)
                     engaged_value += value
                     recorder.record_engagement(step, i, target, value)
+                elif not target:
+                    recorder.record_engagement_miss()
             # guided targets
-            aims = np.array(
-                [
-                    self.envelope.aim_point_km(
-                        cells[i], checked.next_cells[i], self.options.lead_steps
-                    )
-                    for i in range(n)
-                ]
-            )
+            aims = flight.aims_km
             lat, lon = local_km_to_geodetic(aims[:, 0], aims[:, 1], scenario.origin)
             moves = []
             for i in range(n):
@@ -550,6 +722,10 @@ class MissionDaemon:
                         sum(self.overrides.values()),
                     )
                 )
+            if self.checkpoints is not None:  # atomically, after every step
+                here = locals()  # (a comprehension has its own locals() before Python 3.12)
+                state = {name: here[name] for name in LOOP_STATE}
+                self.checkpoints.save(step, self, state, time.monotonic() - started)
             if done.all():
                 break
         extra = {
@@ -564,6 +740,11 @@ class MissionDaemon:
             ],
             "lost_uavs": sorted({e.uav for e in self.events if e.event == "lost"}),
             "frames_received": self.link.messages_received,
+            "stale_positions": sum(v.stale_positions for v in self.link.vehicles.values()),
+            "signing": (
+                None if self.link.signature_check is None else self.link.signature_check.counters()
+            ),
+            "resumed_from_step": None if self.resume_from is None else self.resume_from.step,
             "tlog": str(self.options.tlog_path) if self.options.tlog_path else None,
         }
         return recorder.result(

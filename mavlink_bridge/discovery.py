@@ -52,14 +52,22 @@ def wait_for_vehicles(
         link.pump(min(0.1, timeout_s - elapsed))
 
 
-def wait_until_ready(link: SwarmLink, system_ids: list[int], timeout_s: float) -> None:
+def wait_until_ready(
+    link: SwarmLink,
+    system_ids: list[int],
+    timeout_s: float,
+    wait: Callable[[Callable[[], bool], float], bool] | None = None,
+) -> None:
     """Pump until every vehicle reports system_status STANDBY (or ACTIVE): an autopilot refuses
-    uploads and arming while it initialises (ArduPilot: ~20 s for the EKF to get GPS)."""
+    uploads and arming while it initialises (ArduPilot: ~20 s for the EKF to get GPS).
+
+    ``wait(done, timeout_s)`` replaces ``link.pump_until`` (the daemon's lockstep clock grants
+    simulated time while it waits)."""
 
     def ready() -> bool:
         return all(link.vehicles[i].standby_or_active for i in system_ids)
 
-    if not link.pump_until(ready, timeout_s):
+    if not (wait or link.pump_until)(ready, timeout_s):
         waiting = [i for i in system_ids if not link.vehicles[i].standby_or_active]
         states = {enum_name("MAV_STATE", link.vehicles[i].system_status) for i in waiting}
         raise DiscoveryError(

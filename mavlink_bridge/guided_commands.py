@@ -40,11 +40,22 @@ class Command:
     target_component: int = AUTOPILOT_COMPONENT_ID
     attempts: int = 0
     ack: CommandAck | None = None
+    #: for a COMMAND_ACK that echoes which request it answers (result_param1 = ``progress``):
+    #: the value it must carry, so a late or duplicated ACK of an earlier request is not taken
+    echo: int | None = None
     _serial_before: int = field(default=0, repr=False)
 
     @property
     def key(self) -> tuple[int, int]:
         return (self.target_component, self.command)
+
+    def answered_by(self, ack: CommandAck) -> bool:
+        """True if ``ack`` (newer than the first send) answers this command."""
+        return (
+            ack.serial > self._serial_before
+            and (ack.component, ack.command) == self.key
+            and (self.echo is None or ack.progress == self.echo)
+        )
 
     @property
     def accepted(self) -> bool:
@@ -95,8 +106,7 @@ def send_commands(
     Returns the commands with ``ack`` set (None where no answer came after ``max_attempts``).
     Never raises for a refusal: the caller decides what a refusal means."""
     for cmd in commands:
-        existing = cmd.vehicle.acks.get(cmd.key)
-        cmd._serial_before = existing.serial if existing else 0
+        cmd._serial_before = cmd.vehicle.ack_serial
         cmd.ack = None
         cmd.send()
     last_send = time.monotonic()
@@ -104,12 +114,16 @@ def send_commands(
     def collect() -> bool:
         for cmd in commands:
             if cmd.ack is None:
-                ack = cmd.vehicle.acks.get(cmd.key)
-                if ack is not None and ack.serial > cmd._serial_before:
+                # every ack since the first send, oldest first: duplicated and late ones are in
+                # there too, and an IN_PROGRESS only says the final answer is still to come
+                for ack in list(cmd.vehicle.ack_log):
+                    if not cmd.answered_by(ack):
+                        continue
                     if ack.result == mavlink.MAV_RESULT_IN_PROGRESS:
                         cmd._serial_before = ack.serial
-                    else:
-                        cmd.ack = ack
+                        continue
+                    cmd.ack = ack
+                    break
         return all(c.ack is not None for c in commands)
 
     while not collect():
@@ -168,6 +182,11 @@ def reposition_command(
     )
 
 
+def request_message_command(vehicle: VehicleState, message_id: int) -> Command:
+    """MAV_CMD_REQUEST_MESSAGE: the vehicle ACKs, then sends the message once."""
+    return Command(vehicle, mavlink.MAV_CMD_REQUEST_MESSAGE, (message_id, 0, 0, 0, 0, 0, 0))
+
+
 def engagement_command(vehicle: VehicleState, sequence: int) -> Command:
     """An engagement request: MAV_CMD_IMAGE_START_CAPTURE to the camera (component 100), one
     image (param3 = 1, param2 = 0 interval), param4 = the engagement's sequence number (a retry
@@ -178,4 +197,5 @@ def engagement_command(vehicle: VehicleState, sequence: int) -> Command:
         mavlink.MAV_CMD_IMAGE_START_CAPTURE,
         (0, 0, 1, sequence, 0, 0, 0),
         target_component=CAMERA_COMPONENT_ID,
+        echo=sequence % 256,  # the camera's ACK carries the sequence number's low byte
     )

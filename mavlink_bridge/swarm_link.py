@@ -12,6 +12,7 @@ import time
 from collections.abc import Callable, Iterable
 
 from mavlink_bridge.protocol import AUTOPILOT_COMPONENT_ID, mavlink
+from mavlink_bridge.signing import SignatureCheck, sign_outgoing
 from mavlink_bridge.tlog import TlogWriter
 from mavlink_bridge.vehicle_link import Address, Endpoint, VehicleLink, open_endpoint
 from mavlink_bridge.vehicle_state import VehicleState
@@ -35,8 +36,14 @@ class SwarmLink:
         tlog: TlogWriter | None = None,
         heartbeat_period_s: float = 1.0,
         accept_system_id: Callable[[int], bool] | None = None,
+        signing_key: bytes | None = None,
     ) -> None:
         self.endpoints = endpoints
+        # MAVLink 2 signing: every frame we send is signed, every frame we hear is checked
+        self.signing_key = signing_key
+        self.signature_check = SignatureCheck(signing_key) if signing_key is not None else None
+        for endpoint in endpoints:
+            endpoint.signature_check = self.signature_check
         self.tlog = tlog
         self.heartbeat_period_s = heartbeat_period_s
         self.accept_system_id = accept_system_id or (lambda sysid: 1 <= sysid < 250)
@@ -47,6 +54,8 @@ class SwarmLink:
         self._last_heartbeat_s = -1e9
         # udpout peers that wait for our first word get their own GCS link until a vehicle answers
         self._openers = [VehicleLink(0, e, None, tlog) for e in endpoints if e.needs_first_word]
+        for opener in self._openers:
+            self._secure(opener)
         self.messages_received = 0
 
     @classmethod
@@ -108,7 +117,7 @@ class SwarmLink:
         if vehicle is None:
             if not self._is_new_vehicle(msg):
                 return
-            link = VehicleLink(sysid, endpoint, address, self.tlog)
+            link = self._secure(VehicleLink(sysid, endpoint, address, self.tlog))
             vehicle = VehicleState(sysid, link)
             self.vehicles[sysid] = vehicle
         elif address is not None and (
@@ -116,6 +125,12 @@ class SwarmLink:
         ):
             vehicle.link.moved(endpoint, address)
         vehicle.handle(msg, now)
+
+    def _secure(self, link: VehicleLink) -> VehicleLink:
+        """Sign what ``link`` sends (link id = the vehicle's system id: one stream each)."""
+        if self.signing_key is not None:
+            sign_outgoing(link.mav, self.signing_key, link.system_id)
+        return link
 
     def _is_new_vehicle(self, msg: mavlink.MAVLink_message) -> bool:
         return (

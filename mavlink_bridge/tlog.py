@@ -17,10 +17,12 @@ from typing import BinaryIO
 class TlogWriter:
     """Appends timestamped raw frames to a .tlog file; safe to call from several threads."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, append: bool = False) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file: BinaryIO | None = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        # append: a restarted (resumed) daemon continues the log of the one that died
+        mode = "ab" if append else "wb"
+        self._file: BinaryIO | None = open(self.path, mode)  # noqa: SIM115 - closed in close()
         self._lock = threading.Lock()
         self.frames = 0
 

@@ -22,6 +22,7 @@ import socket
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 from mavlink_bridge.protocol import GCS_COMPONENT_ID, GCS_SYSTEM_ID, mavlink
 from mavlink_bridge.tlog import TlogWriter
@@ -74,6 +75,12 @@ class Endpoint(ABC):
     host: str
     port: int
     stats: LinkStats = field(default_factory=LinkStats)
+    #: with MAVLink signing on (mavlink_bridge/signing.py): frames it refuses are dropped
+    signature_check: Any = None
+
+    def admits(self, msg: mavlink.MAVLink_message) -> bool:
+        """False for a frame the signature check refuses (unsigned, forged or replayed)."""
+        return self.signature_check is None or self.signature_check.accept_message(msg)
 
     @abstractmethod
     def fileno(self) -> int: ...
@@ -138,7 +145,7 @@ class UdpInEndpoint(Endpoint):
                 continue  # an ICMP error from an earlier send to a vehicle that went away
             self.stats.datagrams += 1
             for msg in _fresh_parser().parse_buffer(data) or ():
-                if _keep(msg, self.stats):
+                if _keep(msg, self.stats) and self.admits(msg):
                     out.append((msg, address))
         return out
 
@@ -223,7 +230,7 @@ class TcpEndpoint(Endpoint):
                 raise EndpointError(f"{self.spec} closed the connection; the vehicle went away")
             self.stats.datagrams += 1
             for msg in self.parser.parse_buffer(data) or ():
-                if _keep(msg, self.stats):
+                if _keep(msg, self.stats) and self.admits(msg):
                     out.append((msg, None))
         return out
 

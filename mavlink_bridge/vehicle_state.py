@@ -15,6 +15,11 @@ from dataclasses import dataclass, field
 from mavlink_bridge.protocol import AUTOPILOT_COMPONENT_ID, CAMERA_COMPONENT_ID, mavlink
 from mavlink_bridge.vehicle_link import VehicleLink
 
+#: Consecutive older-than-newest positions that mean a reboot rather than reordering.
+STALE_RUN_REBOOT = 3
+#: A look number this far beyond the newest one is refused (a real camera counts one by one).
+MAX_LOOK_JUMP = 10_000
+
 
 @dataclass
 class Look:
@@ -36,6 +41,8 @@ class CommandAck:
     result_param2: int
     received_s: float
     serial: int  # increases with every ack, so a waiter can tell a new one from an old one
+    component: int = AUTOPILOT_COMPONENT_ID
+    progress: int = 0  # result_param1; the camera echoes an engagement's sequence number here
 
 
 @dataclass
@@ -68,6 +75,12 @@ class VehicleState:
     # command acks by (component, command)
     acks: dict[tuple[int, int], CommandAck] = field(default_factory=dict)
     ack_serial: int = 0
+    #: the newest acks in arrival order: a waiter finds its own among late and duplicated ones
+    ack_log: deque[CommandAck] = field(default_factory=lambda: deque(maxlen=64))
+    #: GLOBAL_POSITION_INT frames dropped as older than the newest one (reordered / delayed),
+    #: and how many came in a row (a run of them means the vehicle rebooted: its clock restarted)
+    stale_positions: int = 0
+    _stale_run: int = 0
     # sensor looks by image index
     looks: dict[int, Look] = field(default_factory=dict)
     latest_look: int = -1
@@ -123,6 +136,16 @@ class VehicleState:
         self.system_status = msg.system_status
 
     def on_global_position_int(self, msg: mavlink.MAVLink_global_position_int_message) -> None:
+        if self.has_position and msg.time_boot_ms < self.time_boot_ms:
+            # older than what we have: delayed or reordered on the way. Three in a row: the
+            # autopilot's clock restarted (a reboot), so its new clock is the one to follow.
+            self._stale_run += 1
+            if self._stale_run < STALE_RUN_REBOOT:
+                self.stale_positions += 1
+                return
+        self._stale_run = 0
+        if not (-90e7 <= msg.lat <= 90e7 and -180e7 <= msg.lon <= 180e7):
+            return  # not a position (a corrupt or hostile frame)
         self.has_position = True
         self.lat_deg = msg.lat * 1e-7
         self.lon_deg = msg.lon * 1e-7
@@ -134,6 +157,8 @@ class VehicleState:
         self.position_s = self.last_heard_s
 
     def on_home_position(self, msg: mavlink.MAVLink_home_position_message) -> None:
+        if not (-90e7 <= msg.latitude <= 90e7 and -180e7 <= msg.longitude <= 180e7):
+            return  # not a position: a corrupt or hostile frame must not become a UAV's start
         self.home = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
 
     def on_statustext(self, msg: mavlink.MAVLink_statustext_message) -> None:
@@ -142,11 +167,22 @@ class VehicleState:
 
     def on_command_ack(self, msg: mavlink.MAVLink_command_ack_message) -> None:
         self.ack_serial += 1
-        self.acks[(msg.get_srcComponent(), msg.command)] = CommandAck(
-            msg.command, msg.result, msg.result_param2, self.last_heard_s, self.ack_serial
+        ack = CommandAck(
+            msg.command,
+            msg.result,
+            msg.result_param2,
+            self.last_heard_s,
+            self.ack_serial,
+            msg.get_srcComponent(),
+            msg.progress,
         )
+        self.acks[(ack.component, msg.command)] = ack
+        self.ack_log.append(ack)
 
     def on_camera_image_captured(self, msg: mavlink.MAVLink_camera_image_captured_message) -> None:
+        """A sensor look, possibly in parts. Parts may come twice (a duplicating link) or out of
+        order (a continuation before its first part): detections are merged as a set, and a
+        look counts as new (``latest_look``) once its first part is in."""
         if msg.get_srcComponent() != CAMERA_COMPONENT_ID or msg.capture_result != 1:
             return
         url = (
@@ -155,23 +191,24 @@ class VehicleState:
             else msg.file_url.decode("ascii", "replace")
         )
         url = url.rstrip("\x00")
-        if url.startswith("look+:"):
-            look = self.looks.get(msg.image_index)
-            if look is not None:
-                look.offsets.extend(parse_look_offsets(url[len("look+:") :]))
-            return
-        if not url.startswith("look:"):
+        first = url.startswith("look:")
+        if not first and not url.startswith("look+:"):
             return  # an ordinary photo, not a sensor look
-        self.looks[msg.image_index] = Look(
-            msg.image_index,
-            msg.lat * 1e-7,
-            msg.lon * 1e-7,
-            parse_look_offsets(url[len("look:") :]),
-            self.last_heard_s,
-        )
-        self.latest_look = max(self.latest_look, msg.image_index)
-        for old in [k for k in self.looks if k < msg.image_index - 20]:
-            del self.looks[old]
+        index = msg.image_index
+        if not (-90e7 <= msg.lat <= 90e7 and -180e7 <= msg.lon <= 180e7):
+            return  # not a position: a corrupt or hostile frame
+        if self.latest_look >= 0 and index > self.latest_look + MAX_LOOK_JUMP:
+            return  # a look number far ahead of any plausible one would stall every later look
+        offsets = parse_look_offsets(url[len("look:" if first else "look+:") :])
+        look = self.looks.get(index)
+        if look is None:
+            look = Look(index, msg.lat * 1e-7, msg.lon * 1e-7, [], self.last_heard_s)
+            self.looks[index] = look
+        look.offsets = list(dict.fromkeys([*look.offsets, *offsets]))
+        if first and index > self.latest_look:
+            self.latest_look = index
+            for old in [k for k in self.looks if k < index - 20]:
+                del self.looks[old]
 
     def on_mission_request_int(self, msg: mavlink.MAVLink_mission_request_int_message) -> None:
         self.mission_requests.append((msg.seq, msg.mission_type))

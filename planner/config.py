@@ -41,13 +41,17 @@ class PlannerConfig:
     p_false: float = 0.1  # P_F
     tpm_decay_tau: float = 1.0  # tau of eq 18 for cells outside the view (open; 1 = no decay)
     confirm_threshold: float = 0.5  # cell existence probability that confirms a target (open)
-    pursue_threshold: float = 0.1  # existence probability worth flying back for a closer look (open)
+    pursue_threshold: float = (
+        0.1  # existence probability worth flying back for a closer look (open)
+    )
     pursue_range_km: float = 6.0  # farthest cell a UAV flies to for a look or an engagement (open)
     engage_radius_km: float = 1.0  # attack (engagement) radius
 
     # --- target priors and motion (eqs 10-14, 19-22) ---
     delta_0_km: float = 5.0  # delta_0, std of the prior position error
-    delta_e_km_per_sqrt_s: float = 0.2  # delta_e, Wiener diffusion (paper's "2", read in 100 m/sqrt(s))
+    delta_e_km_per_sqrt_s: float = (
+        0.2  # delta_e, Wiener diffusion (paper's "2", read in 100 m/sqrt(s))
+    )
     t0_s: float = 50.0  # t_0, delay between tasking and arrival
 
     # --- dynamic topology (eqs 1-3) ---
@@ -86,7 +90,9 @@ class PlannerConfig:
     escape_steps: int = 10  # N_t
     eta_floor: float = 0.05  # keeps eta > 0 where no cell is new
     eta_tpm_weight: float = 1.0  # weight of TPM mass in the heuristic (open)
-    eta_lookahead_steps: int = 8  # straight steps ahead whose footprints count as coverage gain (open)
+    eta_lookahead_steps: int = (
+        8  # straight steps ahead whose footprints count as coverage gain (open)
+    )
     eta_lookahead_weight: float = 1.0  # weight of that look-ahead unsearched share in eta (open)
     eta_lookahead_discount: float = 0.85  # weight of each further step ahead (open)
 
@@ -107,18 +113,35 @@ class PlannerConfig:
                 raise ConfigError(f"parameter {f.name!r} must be a number, got {value!r}")
             if isinstance(value, float) and math.isnan(value):
                 raise ConfigError(f"parameter {f.name!r} is NaN; give a number")
-        positive = (
-            "grid_nx grid_ny cell_km step_s speed_mps max_turn_deg detection_radius_km "
-            "engage_radius_km pursue_range_km n_topo sensing_radius_km coop_radius_init_km morse_c_km "
-            "min_separation_km tau_max global_update_period_steps escape_steps max_range_km"
-        ).split()
+        positive = [
+            "grid_nx",
+            "grid_ny",
+            "cell_km",
+            "step_s",
+            "speed_mps",
+            "max_turn_deg",
+            "detection_radius_km",
+            "engage_radius_km",
+            "pursue_range_km",
+            "n_topo",
+            "sensing_radius_km",
+            "coop_radius_init_km",
+            "morse_c_km",
+            "min_separation_km",
+            "tau_max",
+            "global_update_period_steps",
+            "escape_steps",
+            "max_range_km",
+        ]
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"parameter {name!r} must be > 0, got {getattr(self, name)!r}")
         probabilities = "p_detect p_false tpm_decay_tau confirm_threshold pursue_threshold q0 env_perception_lambda"
         for name in probabilities.split():
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ConfigError(f"parameter {name!r} must be in [0, 1], got {getattr(self, name)}")
+                raise ConfigError(
+                    f"parameter {name!r} must be in [0, 1], got {getattr(self, name)}"
+                )
         if self.p_detect <= self.p_false:
             raise ConfigError("p_detect must be larger than p_false, or the sensor tells nothing")
         if not 0 < self.sensor_d_in_km < self.detection_radius_km:
@@ -130,7 +153,9 @@ class PlannerConfig:
         if not 0 <= self.morse_r0_km < self.min_separation_km:
             raise ConfigError("morse_r0_km must be in [0, min_separation_km)")
         if self.max_turn_deg < 45:
-            raise ConfigError("max_turn_deg below 45 leaves only straight flight on an 8-heading grid")
+            raise ConfigError(
+                "max_turn_deg below 45 leaves only straight flight on an 8-heading grid"
+            )
 
     # --- derived quantities ---
     @property
@@ -146,7 +171,9 @@ class PlannerConfig:
         return dataclasses.replace(self, **changes)
 
     @classmethod
-    def from_mapping(cls, values: dict[str, Any], base: PlannerConfig | None = None) -> PlannerConfig:
+    def from_mapping(
+        cls, values: dict[str, Any], base: PlannerConfig | None = None
+    ) -> PlannerConfig:
         """Build from a mapping (e.g. a scenario's ``[parameters]`` table), naming unknown keys."""
         known = {f.name: f for f in dataclasses.fields(cls)}
         unknown = sorted(set(values) - set(known))
@@ -156,9 +183,17 @@ class PlannerConfig:
             )
         clean: dict[str, Any] = {}
         for name, value in values.items():
-            if known[name].type == "float" and isinstance(value, int) and not isinstance(value, bool):
+            if (
+                known[name].type == "float"
+                and isinstance(value, int)
+                and not isinstance(value, bool)
+            ):
                 value = float(value)
-            if known[name].type == "float" and isinstance(value, str) and value.lower() in ("inf", "infinity"):
+            if (
+                known[name].type == "float"
+                and isinstance(value, str)
+                and value.lower() in ("inf", "infinity")
+            ):
                 value = math.inf
             clean[name] = value
         return dataclasses.replace(base or cls(), **clean)

@@ -23,7 +23,9 @@ from scipy.sparse.csgraph import dijkstra
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, Grid, turn_options
 
 
-def segment_clearance(p0: np.ndarray, p1: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+def segment_clearance(
+    p0: np.ndarray, p1: np.ndarray, centres: np.ndarray, radii: np.ndarray
+) -> np.ndarray:
     """Smallest (distance to centre - radius) over threats along segments p0->p1 (..., 2) km;
     +inf when there are no threats. Negative means the segment enters a threat."""
     if len(radii) == 0:
@@ -96,7 +98,12 @@ class SafetyModel:
         nxt = cells + HEADING_STEPS[headings]
         nx_ = np.clip(nxt[..., 0], 0, self.grid.nx - 1)
         ny_ = np.clip(nxt[..., 1], 0, self.grid.ny - 1)
-        return inside & self.edge_safe[headings, x, y] & self.grid.inside(nxt) & self.viable[headings, nx_, ny_]
+        return (
+            inside
+            & self.edge_safe[headings, x, y]
+            & self.grid.inside(nxt)
+            & self.viable[headings, nx_, ny_]
+        )
 
     @cached_property
     def freedom(self) -> np.ndarray:
@@ -138,4 +145,6 @@ class SafetyModel:
     @lru_cache(maxsize=16)  # noqa: B019 - one model per threat set, one tuple of homes per swarm
     def distances_home_km(self, homes_flat: tuple[int, ...]) -> np.ndarray:
         """``distance_home_km`` for several homes at once, (H, nx, ny)."""
-        return dijkstra(self._reversed_graph, indices=list(homes_flat)).reshape(-1, *self.grid.shape)
+        return dijkstra(self._reversed_graph, indices=list(homes_flat)).reshape(
+            -1, *self.grid.shape
+        )

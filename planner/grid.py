@@ -89,7 +89,9 @@ class Grid:
         return np.stack([dx[keep], dy[keep]], axis=1).astype(np.int64)
 
 
-def corridor_offsets(footprint: np.ndarray, steps: int, discount: float) -> tuple[np.ndarray, np.ndarray]:
+def corridor_offsets(
+    footprint: np.ndarray, steps: int, discount: float
+) -> tuple[np.ndarray, np.ndarray]:
     """The cells a UAV's footprint would sweep flying 2..``steps`` straight steps beyond a
     candidate cell, for each heading: ``(offsets (8, K, 2), weights (8, K))`` padded to a common
     K with weight 0. A cell's weight is ``discount ** (s - 1)`` for the first step s whose
@@ -112,7 +114,9 @@ def corridor_offsets(footprint: np.ndarray, steps: int, discount: float) -> tupl
     return offsets, weights
 
 
-def disc_overlap(radius_km: float, cell_km: float, samples: int = 32) -> tuple[np.ndarray, np.ndarray]:
+def disc_overlap(
+    radius_km: float, cell_km: float, samples: int = 32
+) -> tuple[np.ndarray, np.ndarray]:
     """Cells overlapping a disc of ``radius_km`` around a cell centre: ``(offsets (K, 2),
     fractions (K,))``, the share of each cell's area inside the disc (midpoint quadrature), so
     that a target uniform in cell o lies within the radius with probability ``fractions[o]``."""

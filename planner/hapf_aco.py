@@ -30,11 +30,10 @@ from scipy import ndimage
 from planner.config import PlannerConfig
 from planner.constraints import SafetyModel
 from planner.engagement import EngagementOutcome
+from planner.feasibility import MoveOptions, feasible_moves
 from planner.grid import (
-    HEADING_LENGTHS,
     HEADING_STEPS,
     Grid,
-    candidate_moves,
     corridor_offsets,
     disc_overlap,
     heading_of_angle,
@@ -96,7 +95,9 @@ class HapfAcoPlanner:
         self.info_headings = np.repeat(self.headings[None, :], n, axis=0)
         self.info_step = np.full((n, n), -(10**9))
         np.fill_diagonal(self.info_step, 0)
-        self.threat_xy = np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(-1, 2)
+        self.threat_xy = np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(
+            -1, 2
+        )
         self.threat_r = np.array([t.radius_km for t in scenario.threats], float)
         self.known_threats = np.full((n, len(self.threat_r)), scenario.threats_known)
         self.tpm = TargetProbabilityMaps(scenario.targets, cfg, n)
@@ -106,7 +107,9 @@ class HapfAcoPlanner:
         self.stall_steps = np.zeros(n, dtype=np.int64)
         self.escape_goal = np.full((n, 2), -1, dtype=np.int64)
         self.track = np.full((n, 2), -1, dtype=np.int64)  # the cell each UAV goes for, or -1
-        self.track_confirmed = np.zeros(n, dtype=bool)  # ... and whether a target is confirmed there
+        self.track_confirmed = np.zeros(
+            n, dtype=bool
+        )  # ... and whether a target is confirmed there
         self.target_ids = np.array([t.id for t in scenario.targets], dtype=np.int64)
         self.known_engaged = np.zeros((n, len(self.target_ids)), dtype=bool)
         self.engaged_applied = self.known_engaged.copy()  # removed from that UAV's TPM already
@@ -165,7 +168,9 @@ class HapfAcoPlanner:
         positions = self._positions_km()
         distances = pairwise_distances(positions)
         hears = adjacency(distances, self.radius_km, flying)
-        self.radius_km = np.where(flying, adapt_radius(self.radius_km, hears.sum(axis=1), cfg), self.radius_km)
+        self.radius_km = np.where(
+            flying, adapt_radius(self.radius_km, hears.sum(axis=1), cfg), self.radius_km
+        )
         listen = hears | np.eye(n, dtype=bool)
         listen &= flying[:, None]
         listen &= active[None, :]
@@ -175,7 +180,10 @@ class HapfAcoPlanner:
 
         # threats: detected within R + R_t, then shared with neighbours
         if len(self.threat_r):
-            seen = distances_to_threats(positions, self.threat_xy) <= self.threat_r + cfg.detection_radius_km
+            seen = (
+                distances_to_threats(positions, self.threat_xy)
+                <= self.threat_r + cfg.detection_radius_km
+            )
             self.known_threats |= seen & flying[:, None]
             self.known_threats |= (hears.astype(np.int64) @ self.known_threats.astype(np.int64)) > 0
 
@@ -201,7 +209,9 @@ class HapfAcoPlanner:
 
     # ------------------------------------------------------------------ beliefs
 
-    def _take_engagements(self, engagements: Sequence[EngagementOutcome | None] | None, hears: np.ndarray) -> None:
+    def _take_engagements(
+        self, engagements: Sequence[EngagementOutcome | None] | None, hears: np.ndarray
+    ) -> None:
         if engagements is not None:
             for i, outcome in enumerate(engagements):
                 if outcome is None:
@@ -214,7 +224,10 @@ class HapfAcoPlanner:
                 else:
                     # nothing within the engage radius: a certain negative look at this cell
                     self.tpm.apply_looks(
-                        np.array([i]), [self.cells[i][None, :]], [np.array([False])], self.cells[i][None, :]
+                        np.array([i]),
+                        [self.cells[i][None, :]],
+                        [np.array([False])],
+                        self.cells[i][None, :],
                     )
                 self.track[i] = -1
         self.known_engaged |= (hears.astype(np.int64) @ self.known_engaged.astype(np.int64)) > 0
@@ -222,7 +235,9 @@ class HapfAcoPlanner:
             self.tpm.remove_target(int(i), int(self.target_ids[t]), self.engaged_cells[t])
         self.engaged_applied = self.known_engaged.copy()
 
-    def _apply_looks(self, reports: Sequence[SensorReport | None], listen: np.ndarray, positions: np.ndarray) -> None:
+    def _apply_looks(
+        self, reports: Sequence[SensorReport | None], listen: np.ndarray, positions: np.ndarray
+    ) -> None:
         have = np.array([r is not None and len(r.cells) > 0 for r in reports], dtype=bool)
         pairs = listen & have[None, :]  # receiver i gets look j
         receivers, sources = np.nonzero(pairs)
@@ -231,7 +246,9 @@ class HapfAcoPlanner:
             return
         origins = self.grid.cell_of(positions)
         look_cells = [reports[j].cells for j in sources]
-        self.tpm.apply_looks(receivers, look_cells, [reports[j].detected for j in sources], origins[sources])
+        self.tpm.apply_looks(
+            receivers, look_cells, [reports[j].detected for j in sources], origins[sources]
+        )
         # coverage each UAV knows of, and the N_t counter of steps without a gain
         seen_by = np.repeat(receivers, [len(c) for c in look_cells])
         seen = np.concatenate(look_cells)
@@ -247,25 +264,31 @@ class HapfAcoPlanner:
             self.tpm.decay_unobserved(observed)
         self.tpm.renormalise()
 
-    def _update_tracks(self, reports: Sequence[SensorReport | None], listen: np.ndarray, hears: np.ndarray) -> None:
+    def _update_tracks(
+        self, reports: Sequence[SensorReport | None], listen: np.ndarray, hears: np.ndarray
+    ) -> None:
         """Section 3.2.1: choose the cell each UAV goes for. Candidates are the cells it just heard
         a detection in and the cells around its current track (the belief peak moves with the target).
         A cell whose existence probability reaches ``pursue_threshold`` is worth a closer look
         (the attraction of eq 24 toward a rising p); one that reaches ``confirm_threshold`` is a
         confirmed target, and confirmed targets come first, the higher value first. Batched over
         UAVs: one TPM read for all (UAV, cell) pairs."""
-        cfg, n = self.cfg, self.n
+        cfg = self.cfg
         rows: list[np.ndarray] = []
         cells: list[np.ndarray] = []
         tracking = np.flatnonzero((self.track[:, 0] >= 0) & ~self.done)
         if tracking.size:
             rows.append(np.repeat(tracking, len(self.track_window)))
-            cells.append((self.track[tracking][:, None, :] + self.track_window[None]).reshape(-1, 2))
+            cells.append(
+                (self.track[tracking][:, None, :] + self.track_window[None]).reshape(-1, 2)
+            )
         have = np.array([r is not None and len(r.cells) > 0 for r in reports], dtype=bool)
         receivers, sources = np.nonzero(listen & have[None, :] & ~self.done[:, None])
         if receivers.size:
             # only a detection (b = 1) raises a cell's probability: the cells worth checking
-            positive = [reports[j].cells[np.asarray(reports[j].detected, dtype=bool)] for j in sources]
+            positive = [
+                reports[j].cells[np.asarray(reports[j].detected, dtype=bool)] for j in sources
+            ]
             rows.append(np.repeat(receivers, [len(c) for c in positive]))
             cells.append(np.concatenate(positive))
         self.track[:] = -1
@@ -287,7 +310,9 @@ class HapfAcoPlanner:
         value = self.tpm.values_at(rows_all, cells_all)
         confirmed = p >= cfg.confirm_threshold
         # confirmed first (higher value first), then the likeliest value among the suspects
-        score = np.where(confirmed, 1.0 + value, 0.0) + np.where(confirmed, 0.0, p * value / (1.0 + value))
+        score = np.where(confirmed, 1.0 + value, 0.0) + np.where(
+            confirmed, 0.0, p * value / (1.0 + value)
+        )
         order = np.lexsort((-score, rows_all))
         first = np.r_[True, rows_all[order][1:] != rows_all[order][:-1]]
         chosen = order[first]
@@ -299,10 +324,13 @@ class HapfAcoPlanner:
         """One UAV per target: a UAV drops its track when a UAV it hears goes for the same or an
         adjacent cell from nearer (ties to the lower index), instead of the swarm converging."""
         tracking = self.track[:, 0] >= 0
-        same = (np.abs(self.track[:, None, :] - self.track[None, :, :]).max(axis=2) <= 1)
+        same = np.abs(self.track[:, None, :] - self.track[None, :, :]).max(axis=2) <= 1
         same &= tracking[:, None] & tracking[None, :] & hears
         gap = np.hypot(*(self.track - self.cells).T)
-        nearer = (gap[None, :] < gap[:, None]) | ((gap[None, :] == gap[:, None]) & (np.arange(self.n)[None, :] < np.arange(self.n)[:, None]))
+        nearer = (gap[None, :] < gap[:, None]) | (
+            (gap[None, :] == gap[:, None])
+            & (np.arange(self.n)[None, :] < np.arange(self.n)[:, None])
+        )
         self.track[(same & nearer).any(axis=1)] = -1
 
     def engage_probability(self, uavs: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -334,11 +362,15 @@ class HapfAcoPlanner:
         its cell, (N, 2r+1, 2r+1) (0 outside the area): one TPM read serves the footprint's
         forces and every candidate's footprint mass."""
         r = self.window_reach
-        offsets = np.stack(np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij"), axis=-1)
+        offsets = np.stack(
+            np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij"), axis=-1
+        )
         around = self.cells[:, None, None, :] + offsets[None]
         return self.tpm.existence_at(np.arange(self.n)[:, None, None], around)
 
-    def _forces(self, window: np.ndarray, positions: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    def _forces(
+        self, window: np.ndarray, positions: np.ndarray, neighbours: np.ndarray
+    ) -> np.ndarray:
         """Total APF force (N, K, 2) at the footprint cells of each UAV (eqs 24, 25, 27), from its
         existence ``window`` (``_existence_window``)."""
         cfg, r = self.cfg, self.window_reach
@@ -348,11 +380,15 @@ class HapfAcoPlanner:
         existence = window[:, ix, iy]  # (N, K, 3, 3)
         centres = self.grid.centre_km(self.cells[:, None, :] + self.footprint[None, :, :])
         force = attraction(existence, cfg)
-        force = force + threat_repulsion(centres, self.threat_xy, self.threat_r, self.known_threats, cfg)
+        force = force + threat_repulsion(
+            centres, self.threat_xy, self.threat_r, self.known_threats, cfg
+        )
         force = force + morse_repulsion(centres, positions, neighbours, cfg)
         return force
 
-    def _pursuit_scores(self, cand: np.ndarray, cand_head: np.ndarray, moves: np.ndarray, feasible: np.ndarray) -> np.ndarray:
+    def _pursuit_scores(
+        self, cand: np.ndarray, cand_head: np.ndarray, moves: np.ndarray, feasible: np.ndarray
+    ) -> np.ndarray:
         """Scores of the candidates for reaching each UAV's track cell: fewest turn-limited moves
         from the candidate (``steps_to_reach``), ties to the smaller angle; beyond the table's
         window, the angle to the cell (eq 35's deterministic rule)."""
@@ -362,51 +398,73 @@ class HapfAcoPlanner:
         ox = np.clip(offset[..., 0] + r, 0, 2 * r)
         oy = np.clip(offset[..., 1] + r, 0, 2 * r)
         steps = np.where(near, self.pursuit_steps[cand_head, ox, oy], 10**6).astype(float)
-        angle = -deterministic_scores(moves, (self.track - self.cells).astype(float), np.ones_like(feasible))
+        angle = -deterministic_scores(
+            moves, (self.track - self.cells).astype(float), np.ones_like(feasible)
+        )
         # a suspect is circled (looked at from all sides, eq 35); a confirmed target is flown to
         steps = np.where(self.track_confirmed[:, None], steps, 0.0)
         return np.where(feasible, -steps - angle / (2 * np.pi), -np.inf)
 
-    def _decide(self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray) -> StepDecision:
-        cfg, grid, n = self.cfg, self.grid, self.n
-        cand, cand_head = candidate_moves(self.cells, self.headings, cfg.max_turn_deg)  # (N, C, 2)
-        moves = (cand - self.cells[:, None, :]).astype(float)
-        step_len = HEADING_LENGTHS[cand_head] * cfg.cell_km
-        allowed = np.zeros(cand_head.shape, dtype=bool)
-        home_dist = np.zeros(cand_head.shape)
-        freedom = np.zeros(cand_head.shape, dtype=np.int64)
-        clipped_x = np.clip(cand[..., 0], 0, grid.nx - 1)
-        clipped_y = np.clip(cand[..., 1], 0, grid.ny - 1)
-        threat_sets, group = np.unique(self.known_threats, axis=0, return_inverse=True)
-        for g, known in enumerate(threat_sets):  # UAVs that know the same threats share a model
-            members = np.flatnonzero(group.ravel() == g)
-            model = self.safety_model(known)
-            here = np.broadcast_to(self.cells[members][:, None, :], cand[members].shape)
-            allowed[members] = model.move_allowed(here, cand_head[members])
-            freedom[members] = model.freedom[cand_head[members], clipped_x[members], clipped_y[members]]
-            fields = model.distances_home_km(self.homes_key)  # (N, nx, ny), cached per model
-            home_dist[members] = fields[members[:, None], clipped_x[members], clipped_y[members]]
-        home_dist = np.where(grid.inside(cand), home_dist, np.inf)
-        needed = self.distance_km[:, None] + step_len + home_dist + cfg.return_reserve_km
-        slack = np.inf if not np.isfinite(cfg.max_range_km) else cfg.max_range_km - needed
-        slack = np.where(np.isfinite(home_dist), slack, -np.inf)
-        in_range = slack >= 0
-        feasible = allowed & in_range
-        # If range cannot be kept (it always can unless the start is boxed in), keep safety only.
-        feasible = np.where(feasible.any(axis=1, keepdims=True), feasible, allowed)
+    def _move_options(self) -> MoveOptions:
+        """The candidate moves and the hard constraints on them (C_m, C_t, C_r)."""
+        return feasible_moves(
+            self.cells, self.headings, self.distance_km, self.homes_key, self.known_threats,
+            self.safety_model, self.cfg, self.grid,
+        )  # fmt: skip
 
-        # C_r: the return term takes over once the slack is nearly spent (eqs 35/37, omega_2 = 1)
+    def _update_return(self, opts: MoveOptions, flying: np.ndarray) -> None:
+        """C_r: the return term takes over once the range slack is nearly spent (eqs 35/37,
+        omega_2 = 1); a returning UAV back next to its start is done."""
+        cfg = self.cfg
         bounded = np.isfinite(cfg.max_range_km)
-        past_half = self.distance_km + step_len.min(axis=1) > cfg.max_range_km / 2
-        best_slack = np.where(feasible, slack, -np.inf).max(axis=1)
+        past_half = self.distance_km + opts.step_km.min(axis=1) > cfg.max_range_km / 2
+        best_slack = np.where(opts.feasible, opts.slack_km, -np.inf).max(axis=1)
         self.returning |= bounded & past_half & (best_slack < cfg.return_margin_km) & flying
         near_home = np.abs(self.cells - self.home).max(axis=1) <= 1
         self.done |= self.returning & near_home & flying
 
+    def _claim(
+        self, ranked: np.ndarray, opts: MoveOptions, positions: np.ndarray, flying: np.ndarray
+    ) -> np.ndarray:
+        """C_c: the chosen candidate of every UAV (``claim_cells``), with one step of foresight:
+        when another UAV is within two closing steps, a move into a state with a single way on
+        (``MoveOptions.freedom`` 1, e.g. between a threat and the area's edge) comes after every
+        other allowed move, so two UAVs are not left one cell with no separated pair of moves."""
+        cfg, n = self.cfg, self.n
+        gaps = pairwise_distances(positions) + np.diag(np.full(n, np.inf))
+        crowded = (gaps <= cfg.separation_sense_km + 2 * np.sqrt(2) * cfg.cell_km).any(axis=1)
+        rows = np.arange(n)[:, None]
+        cornered = (opts.freedom[rows, ranked] <= 1) & crowded[:, None]
+        last = cornered.astype(np.int64) + 2 * ~opts.feasible[rows, ranked]  # forbidden moves last
+        ranked = np.take_along_axis(ranked, np.argsort(last, axis=1, kind="stable"), axis=1)
+        return claim_cells(
+            ranked, opts.cells, opts.feasible, positions, flying, cfg.cell_km, cfg.min_separation_km,
+            cfg.separation_sense_km,
+        )  # fmt: skip
+
+    def _engage_requests(self, engaging: np.ndarray) -> np.ndarray:
+        """Engage once a target lies within the engage radius with probability at least
+        ``confirm_threshold`` (``engage_probability`` at the UAV's own cell)."""
+        engage = engaging.copy()
+        if engage.any():
+            who = np.flatnonzero(engage)
+            engage[who] = (
+                self.engage_probability(who, self.cells[who]) >= self.cfg.confirm_threshold
+            )
+        return engage
+
+    def _decide(self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray) -> StepDecision:
+        cfg, grid, n = self.cfg, self.grid, self.n
+        opts = self._move_options()
+        cand, cand_head, moves, feasible = opts.cells, opts.headings, opts.moves, opts.feasible
+        self._update_return(opts, flying)
+
         # potential field at the UAV and over its footprint (eqs 23-27)
         points = self.cells[:, None, :] + self.footprint[None, :, :]
         window = self._existence_window()
-        force = self._forces(window, positions, hears | (pairwise_distances(positions) <= cfg.separation_sense_km))
+        force = self._forces(
+            window, positions, hears | (pairwise_distances(positions) <= cfg.separation_sense_km)
+        )
         norms = np.hypot(force[..., 0], force[..., 1])
         inside_fp = grid.inside(points)
         force_max = np.where(inside_fp, norms, 0.0).max(axis=1)
@@ -423,17 +481,28 @@ class HapfAcoPlanner:
         unsearched = ~self.coverage[np.arange(n)[:, None, None], fx, fy] & fp_inside
         new_share = unsearched.sum(axis=2) / len(self.footprint)
         r = self.window_reach
-        offset = (cand - self.cells[:, None, :])[:, :, None, :] + self.footprint[None, None, :, :] + r
-        mass = window[np.arange(n)[:, None, None], offset[..., 0], offset[..., 1]].sum(axis=2)  # 0 outside
+        offset = (
+            (cand - self.cells[:, None, :])[:, :, None, :] + self.footprint[None, None, :, :] + r
+        )
+        mass = window[np.arange(n)[:, None, None], offset[..., 0], offset[..., 1]].sum(
+            axis=2
+        )  # 0 outside
         mass_share = mass / np.maximum(mass.max(axis=1, keepdims=True), 1e-12)
         ahead = cand[:, :, None, :] + self.corridor[cand_head]  # (N, C, K', 2)
         ahead_unsearched = ~self.coverage[
-            np.arange(n)[:, None, None], np.clip(ahead[..., 0], 0, grid.nx - 1), np.clip(ahead[..., 1], 0, grid.ny - 1)
+            np.arange(n)[:, None, None],
+            np.clip(ahead[..., 0], 0, grid.nx - 1),
+            np.clip(ahead[..., 1], 0, grid.ny - 1),
         ] & grid.inside(ahead)
         corridor_w = self.corridor_weights[cand_head]
-        ahead_share = (ahead_unsearched * corridor_w).sum(axis=2) / np.maximum(corridor_w.sum(axis=2), 1e-12)
+        ahead_share = (ahead_unsearched * corridor_w).sum(axis=2) / np.maximum(
+            corridor_w.sum(axis=2), 1e-12
+        )
         eta = (
-            cfg.eta_floor + new_share + cfg.eta_lookahead_weight * ahead_share + cfg.eta_tpm_weight * mass_share
+            cfg.eta_floor
+            + new_share
+            + cfg.eta_lookahead_weight * ahead_share
+            + cfg.eta_tpm_weight * mass_share
         )
         tau = self.pheromone.at(np.arange(n)[:, None], cand)
         weights = transition_weights(tau, eta, feasible, cfg)
@@ -453,45 +522,36 @@ class HapfAcoPlanner:
         modes[deterministic] = MODES.index("deterministic")
         escaping = stalled & (self.escape_goal[:, 0] >= 0) & ~deterministic
         if escaping.any():
-            esc = deterministic_scores(moves, (self.escape_goal - self.cells).astype(float), feasible)
+            esc = deterministic_scores(
+                moves, (self.escape_goal - self.cells).astype(float), feasible
+            )
             scores = np.where(escaping[:, None], esc, scores)
             modes[escaping] = MODES.index("escape")
         engaging = (self.track[:, 0] >= 0) & flying
         if engaging.any():
-            scores = np.where(engaging[:, None], self._pursuit_scores(cand, cand_head, moves, feasible), scores)
+            scores = np.where(
+                engaging[:, None], self._pursuit_scores(cand, cand_head, moves, feasible), scores
+            )
             modes[engaging] = MODES.index("engage")
         returning = self.returning & flying
         if returning.any():
-            scores = np.where(returning[:, None], range_scores(home_dist, feasible), scores)
+            scores = np.where(returning[:, None], range_scores(opts.home_km, feasible), scores)
             modes[returning] = MODES.index("return")
 
-        chosen_first = np.where(modes == MODES.index("heuristic"), choice, np.argmax(scores, axis=1))
+        chosen_first = np.where(
+            modes == MODES.index("heuristic"), choice, np.argmax(scores, axis=1)
+        )
         # rank: the rule's choice first, then the others by score
         order = np.argsort(-np.where(np.isfinite(scores), scores, -1e300), axis=1, kind="stable")
         ranked = np.concatenate([chosen_first[:, None], order], axis=1)
         ranked = np.array([list(dict.fromkeys(r)) for r in ranked])
-        # C_c ahead of time: with other UAVs close, a move into a state with a single way on
-        # (freedom 1) comes after every other allowed move
-        gaps = pairwise_distances(positions) + np.diag(np.full(n, np.inf))
-        crowded = (gaps <= cfg.separation_sense_km + 2 * np.sqrt(2) * cfg.cell_km).any(axis=1)  # two steps closing
-        rows = np.arange(n)[:, None]
-        cornered = (freedom[rows, ranked] <= 1) & crowded[:, None]
-        last = cornered.astype(np.int64) + 2 * ~feasible[rows, ranked]  # forbidden moves stay last
-        ranked = np.take_along_axis(ranked, np.argsort(last, axis=1, kind="stable"), axis=1)
-        pick = claim_cells(
-            ranked, cand, feasible, positions, flying, cfg.cell_km, cfg.min_separation_km, cfg.separation_sense_km
-        )
+        pick = self._claim(ranked, opts, positions, flying)
         rows = np.arange(n)
         next_cells = np.where(flying[:, None], cand[rows, pick], self.cells)
         next_headings = np.where(flying, cand_head[rows, pick], self.headings)
         modes[~flying] = MODES.index("hold")
 
-        # Engage once a confirmed target lies within the engage radius with probability at least
-        # confirm_threshold: each cell's existence weighted by its share inside the radius.
-        engage = engaging.copy()
-        if engage.any():
-            candidates = np.flatnonzero(engage)
-            engage[candidates] = self.engage_probability(candidates, self.cells[candidates]) >= cfg.confirm_threshold
+        engage = self._engage_requests(engaging)
         return StepDecision(next_cells, next_headings, engage, self.done.copy(), modes)
 
 

@@ -27,7 +27,9 @@ from planner.scenario import Scenario, UavStart
 
 
 class MissionRecorder:
-    def __init__(self, scenario: Scenario, starts: Sequence[UavStart], turn_tolerance_deg: float = 1e-6) -> None:
+    def __init__(
+        self, scenario: Scenario, starts: Sequence[UavStart], turn_tolerance_deg: float = 1e-6
+    ) -> None:
         cfg = scenario.config
         self.scenario = scenario
         self.cfg = cfg
@@ -37,7 +39,9 @@ class MissionRecorder:
         self.turn_tolerance_deg = turn_tolerance_deg
         self.covered = np.zeros(self.grid.shape, dtype=bool)
         self.footprint = self.grid.disc_offsets(cfg.detection_radius_km)
-        self.threat_xy = np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(-1, 2)
+        self.threat_xy = np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(
+            -1, 2
+        )
         self.threat_r = np.array([t.radius_km for t in scenario.threats], float)
         self.tracks: list[list[list[float]]] = [[] for _ in range(self.n)]
         self.planned: list[list[list[float]]] = [[] for _ in range(self.n)]
@@ -60,13 +64,17 @@ class MissionRecorder:
         count (lost or landed ones do not); ``planned_km`` is where the planner sent them next."""
         cfg = self.cfg
         pos = np.asarray(positions_km, dtype=float).reshape(self.n, 2)
-        airborne = np.ones(self.n, dtype=bool) if airborne is None else np.asarray(airborne, dtype=bool)
+        airborne = (
+            np.ones(self.n, dtype=bool) if airborne is None else np.asarray(airborne, dtype=bool)
+        )
         if done is not None:
             self._done |= np.asarray(done, dtype=bool)
         for i in range(self.n):
             self.tracks[i].append([round(float(pos[i, 0]), 4), round(float(pos[i, 1]), 4)])
             if planned_km is not None:
-                self.planned[i].append([round(float(planned_km[i][0]), 4), round(float(planned_km[i][1]), 4)])
+                self.planned[i].append(
+                    [round(float(planned_km[i][0]), 4), round(float(planned_km[i][1]), 4)]
+                )
         # coverage J_E (eq 4)
         cells = self.grid.cell_of(pos[airborne])[:, None, :] + self.footprint[None]
         cells = cells[self.grid.inside(cells)]
@@ -80,14 +88,18 @@ class MissionRecorder:
         self.distance_km += lengths
         moving = has_last & (lengths > 1e-9)
         if len(self.threat_r):
-            inside = segment_clearance(np.where(moving[:, None], self._last, pos), pos, self.threat_xy, self.threat_r)
+            inside = segment_clearance(
+                np.where(moving[:, None], self._last, pos), pos, self.threat_xy, self.threat_r
+            )
             self.violations["threat"] += int(np.sum((inside < -1e-9) & airborne))
         prev_ok = moving & ~np.isnan(self._last_leg[:, 0])
         if prev_ok.any():
             a = np.arctan2(self._last_leg[prev_ok, 1], self._last_leg[prev_ok, 0])
             b = np.arctan2(legs[prev_ok, 1], legs[prev_ok, 0])
             turn = np.degrees(np.abs(np.mod(b - a + np.pi, 2 * np.pi) - np.pi))
-            self.violations["turn"] += int(np.sum(turn > cfg.max_turn_deg + self.turn_tolerance_deg))
+            self.violations["turn"] += int(
+                np.sum(turn > cfg.max_turn_deg + self.turn_tolerance_deg)
+            )
         self._last_leg = np.where(moving[:, None], legs, self._last_leg)
         self._last = np.where(airborne[:, None], pos, self._last)
         if math.isfinite(cfg.max_range_km):
@@ -110,9 +122,18 @@ class MissionRecorder:
         self.steps += 1
 
     def record_engagement(self, step: int, uav: int, target_id: int, value: float) -> None:
-        self.engagements.append({"step": int(step), "uav": int(uav), "target_id": int(target_id), "value": float(value)})
+        self.engagements.append(
+            {"step": int(step), "uav": int(uav), "target_id": int(target_id), "value": float(value)}
+        )
         if self.engaged_curve:
             self.engaged_curve[-1] = len(self.engagements)
+
+    def break_legs(self) -> None:
+        """Start every UAV's chain of legs afresh: the next recorded position is not joined to
+        the last one by a leg (no distance, no turn, no threat crossing judged between them),
+        e.g. after an outage during which something other than the planner flew the vehicles."""
+        self._last[:] = np.nan
+        self._last_leg[:] = np.nan
 
     def record_engagement_miss(self) -> None:
         """An engagement was requested and nothing was within the engage radius."""
@@ -126,10 +147,14 @@ class MissionRecorder:
         near = np.abs(self.grid.cell_of(last) - self.grid.cell_of(self.starts)).max(axis=1) <= 1
         return near & (self.distance_km > 2 * self.cfg.step_km)
 
-    def result(self, seed: int, algorithm: str, wall_time_s: float, extra: dict | None = None) -> dict:
+    def result(
+        self, seed: int, algorithm: str, wall_time_s: float, extra: dict | None = None
+    ) -> dict:
         curve = np.array(self.coverage_curve)
         first = curve[: min(50, len(curve))]
-        slope = float(stats.linregress(np.arange(len(first)), first).slope) if len(first) >= 2 else 0.0
+        slope = (
+            float(stats.linregress(np.arange(len(first)), first).slope) if len(first) >= 2 else 0.0
+        )
         finite_sep = [s for s in self.min_separation_curve if math.isfinite(s)]
         returned = self.returned()
         sc = self.scenario
@@ -146,21 +171,35 @@ class MissionRecorder:
             "engaged_curve": list(self.engaged_curve),
             "engage_misses": int(self.engage_misses),
             "min_separation_km": float(min(finite_sep)) if finite_sep else None,
-            "min_separation_curve": [None if not math.isfinite(s) else round(s, 4) for s in self.min_separation_curve],
+            "min_separation_curve": [
+                None if not math.isfinite(s) else round(s, 4) for s in self.min_separation_curve
+            ],
             "mean_min_separation_curve": [
-                None if not math.isfinite(s) else round(s, 4) for s in self.mean_min_separation_curve
+                None if not math.isfinite(s) else round(s, 4)
+                for s in self.mean_min_separation_curve
             ],
             "returned_count": int(returned.sum()),
             "violations": dict(self.violations),
             "wall_time_s": float(wall_time_s),
             "uav_count": self.n,
             "min_separation_limit_km": sc.config.min_separation_km,
-            "max_range_km": sc.config.max_range_km if math.isfinite(sc.config.max_range_km) else None,
-            "origin": {"lat": sc.origin.lat_deg, "lon": sc.origin.lon_deg, "alt_m": sc.origin.alt_m},
+            "max_range_km": sc.config.max_range_km
+            if math.isfinite(sc.config.max_range_km)
+            else None,
+            "origin": {
+                "lat": sc.origin.lat_deg,
+                "lon": sc.origin.lon_deg,
+                "alt_m": sc.origin.alt_m,
+            },
             "altitude_m": sc.altitude_m,
             "area_km": list(sc.config.area_km),
-            "threats": [{"x_km": t.x_km, "y_km": t.y_km, "radius_km": t.radius_km} for t in sc.threats],
-            "targets": [{"id": t.id, "kind": t.kind, "x_km": t.x_km, "y_km": t.y_km, "value": t.value} for t in sc.targets],
+            "threats": [
+                {"x_km": t.x_km, "y_km": t.y_km, "radius_km": t.radius_km} for t in sc.threats
+            ],
+            "targets": [
+                {"id": t.id, "kind": t.kind, "x_km": t.x_km, "y_km": t.y_km, "value": t.value}
+                for t in sc.targets
+            ],
             "engagements": list(self.engagements),
             "uavs": [
                 {

@@ -54,7 +54,10 @@ class PheromoneMaps:
         area reads tau_min."""
         inside = self.grid.inside(cells)
         clipped = np.stack(
-            [np.clip(cells[..., 0], 0, self.grid.nx - 1), np.clip(cells[..., 1], 0, self.grid.ny - 1)],
+            [
+                np.clip(cells[..., 0], 0, self.grid.nx - 1),
+                np.clip(cells[..., 1], 0, self.grid.ny - 1),
+            ],
             axis=-1,
         )
         values = self.tau.reshape(len(self.tau), -1)[uavs, self.grid.flat(clipped)]

@@ -25,7 +25,11 @@ def attraction(existence: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
 
 
 def threat_repulsion(
-    points_km: np.ndarray, threat_xy: np.ndarray, threat_r: np.ndarray, known: np.ndarray, cfg: PlannerConfig
+    points_km: np.ndarray,
+    threat_xy: np.ndarray,
+    threat_r: np.ndarray,
+    known: np.ndarray,
+    cfg: PlannerConfig,
 ) -> np.ndarray:
     """Eq 25 for points (N, K, 2) and the threats each UAV knows (``known`` (N, T) bool).
 
@@ -40,7 +44,9 @@ def threat_repulsion(
     d_max = threat_r + cfg.detection_radius_km
     gap = np.maximum(dist - d0[None, None, :], 1e-3)
     magnitude = cfg.k_rep * (1.0 / gap**2 - 1.0 / (d_max - d0)[None, None, :] ** 2)
-    magnitude = np.where((dist <= d_max[None, None, :]) & known[:, None, :], np.maximum(magnitude, 0), 0.0)
+    magnitude = np.where(
+        (dist <= d_max[None, None, :]) & known[:, None, :], np.maximum(magnitude, 0), 0.0
+    )
     return np.sum(magnitude[..., None] * x / dist[..., None], axis=2)
 
 

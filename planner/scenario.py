@@ -25,6 +25,12 @@ TARGET_KINDS = ("unknown_position", "known_position", "known_speed", "known_velo
 
 BUILTIN_SCENARIOS = ("paper-2uav", "paper-10uav", "paper-20uav")
 
+#: Bounds that keep a scenario runnable (memory, time): the paper's grid is 10,000 cells, 250
+#: steps, 20 UAVs; MAVLink system ids leave room for at most 200 vehicles.
+MAX_GRID_CELLS = 250_000
+MAX_STEPS = 100_000
+MAX_UAVS = 200
+
 
 class ScenarioError(UserError, ValueError):
     """A scenario cannot be used; the message names the problem and the fix."""
@@ -185,10 +191,17 @@ def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
     except TypeError as exc:
         raise ScenarioError(f"scenario {source}: [parameters]: {exc}") from None
     width, height = config.area_km
+    if config.grid_nx * config.grid_ny > MAX_GRID_CELLS:
+        raise ScenarioError(
+            f"scenario {source}: [parameters] grid {config.grid_nx} x {config.grid_ny} has more "
+            f"than {MAX_GRID_CELLS:,} cells (every UAV keeps maps of it); use larger cell_km"
+        )
 
     steps = doc.get("steps", 250)
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps <= 0:
-        raise ScenarioError(f"scenario {source}: steps must be a positive integer, got {steps!r}")
+    if isinstance(steps, bool) or not isinstance(steps, int) or not 0 < steps <= MAX_STEPS:
+        raise ScenarioError(
+            f"scenario {source}: steps must be a positive integer up to {MAX_STEPS}, got {steps!r}"
+        )
 
     origin_t = _table(doc, "origin", source, {})
     _check_unknown(origin_t, {"lat", "lon", "alt_m"}, source, "origin")
@@ -293,8 +306,8 @@ def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
             parsed.append(start)
         starts = tuple(parsed)
     count = uavs.get("count", len(starts) if starts else None)
-    if isinstance(count, bool) or not isinstance(count, int) or count <= 0:
-        raise ScenarioError(f"scenario {source}: uavs.count must be a positive integer, got {count!r}")
+    if isinstance(count, bool) or not isinstance(count, int) or not 0 < count <= MAX_UAVS:
+        raise ScenarioError(f"scenario {source}: uavs.count must be a positive integer up to {MAX_UAVS}, got {count!r}")
     if starts is not None and count != len(starts):
         raise ScenarioError(
             f"scenario {source}: uavs.count = {count} but {len(starts)} uavs.start entries; make them agree"

@@ -32,7 +32,9 @@ def detection_probability(distance_km: np.ndarray | float, cfg: PlannerConfig) -
     return np.where(d <= d_in, cfg.p_detect, np.where(d <= d_out, ramp, cfg.p_false))
 
 
-def likelihood_ratio(detected: np.ndarray, p_detect: np.ndarray | float, p_false: float) -> np.ndarray:
+def likelihood_ratio(
+    detected: np.ndarray, p_detect: np.ndarray | float, p_false: float
+) -> np.ndarray:
     """P(b | target) / P(b | no target) of one look at a cell: eq 18 multiplies a cell's odds
     of holding a target by it (P_D / P_F for b = 1, (1 - P_D) / (1 - P_F) for b = 0)."""
     pd = np.asarray(p_detect, dtype=float)

@@ -36,7 +36,9 @@ CELL_SAMPLES = 16
 # ----------------------------------------------------------------------------- initialisation
 
 
-def _cell_gaussian_mass(centre_x: np.ndarray, centre_y: np.ndarray, sigma: float, grid: Grid) -> np.ndarray:
+def _cell_gaussian_mass(
+    centre_x: np.ndarray, centre_y: np.ndarray, sigma: float, grid: Grid
+) -> np.ndarray:
     """Mass of isotropic Gaussians N(centre, sigma^2) in each cell, integrated exactly (eq 15).
 
     ``centre_x``/``centre_y`` are (A,) arrays; the result is (nx, ny), the average over the A
@@ -67,7 +69,10 @@ def ring_prior(target: TargetSpec, cfg: PlannerConfig, grid: Grid) -> np.ndarray
     radius = target.speed_mps / 1000.0 * cfg.t0_s
     theta = (np.arange(RING_ANGLES) + 0.5) * (2 * np.pi / RING_ANGLES)
     return _cell_gaussian_mass(
-        target.x_km + radius * np.cos(theta), target.y_km + radius * np.sin(theta), cfg.delta_0_km, grid
+        target.x_km + radius * np.cos(theta),
+        target.y_km + radius * np.sin(theta),
+        cfg.delta_0_km,
+        grid,
     )
 
 
@@ -127,7 +132,12 @@ def ring_kernel(radius_cells: float) -> np.ndarray:
 def has_square_symmetry(kernel: np.ndarray) -> bool:
     """A 3x3 kernel unchanged by the square's reflections: centre, edge and corner weights only."""
     k = kernel
-    return k.shape == (3, 3) and np.allclose(k, k.T) and np.allclose(k, k[::-1]) and np.allclose(k, k[:, ::-1])
+    return (
+        k.shape == (3, 3)
+        and np.allclose(k, k.T)
+        and np.allclose(k, k[::-1])
+        and np.allclose(k, k[:, ::-1])
+    )
 
 
 class SquareStencil:
@@ -143,7 +153,9 @@ class SquareStencil:
         self.out = np.empty(shape, dtype=dtype)
         self.work = np.empty(shape, dtype=dtype)
 
-    def apply(self, maps: np.ndarray, kernel: np.ndarray, box: tuple[int, int, int, int] | None = None) -> None:
+    def apply(
+        self, maps: np.ndarray, kernel: np.ndarray, box: tuple[int, int, int, int] | None = None
+    ) -> None:
         """Replace ``maps`` by its convolution with ``kernel``. With ``box = (x0, x1, y0, y1)``
         the caller promises every cell outside ``[x0, x1) x [y0, y1)`` is zero: only the box
         grown by one cell (all the kernel can reach) is computed."""
@@ -153,7 +165,11 @@ class SquareStencil:
         a, b = x1 - x0, y1 - y0
         centre, edge, corner = float(kernel[1, 1]), float(kernel[0, 1]), float(kernel[0, 0])
         p = self.padded[:, : a + 2, : b + 2]
-        vertical, out, work = self.vertical[:, :a, : b + 2], self.out[:, :a, :b], self.work[:, :a, :b]
+        vertical, out, work = (
+            self.vertical[:, :a, : b + 2],
+            self.out[:, :a, :b],
+            self.work[:, :a, :b],
+        )
         region = maps[:, x0:x1, y0:y1]
         p[:, 1:-1, 1:-1] = region
         # reflected at the area's edge; elsewhere the cells beyond the grown box are zero
@@ -173,7 +189,9 @@ class SquareStencil:
         region[...] = out
 
 
-def tighten_box(maps: np.ndarray, box: tuple[int, int, int, int], negligible: np.ndarray) -> tuple[int, int, int, int]:
+def tighten_box(
+    maps: np.ndarray, box: tuple[int, int, int, int], negligible: np.ndarray
+) -> tuple[int, int, int, int]:
     """Shrink ``box`` (x0, x1, y0, y1) of maps (N, nx, ny) past border rows and columns whose
     values all lie below ``negligible`` (N,), zeroing them: a few strips per call, so the work
     stays proportional to the box's perimeter."""
@@ -220,7 +238,10 @@ def shift_with_reflection(maps: np.ndarray, shift: int, axis: int) -> np.ndarray
     if shift > 0:
         src[axis], dst[axis] = slice(0, n - s), slice(s, n)
         out[tuple(dst)] += maps[tuple(src)]
-        src[axis], dst[axis] = slice(n - s, n), slice(n - 1, n - s - 1 if n - s - 1 >= 0 else None, -1)
+        src[axis], dst[axis] = (
+            slice(n - s, n),
+            slice(n - 1, n - s - 1 if n - s - 1 >= 0 else None, -1),
+        )
     else:
         src[axis], dst[axis] = slice(s, n), slice(0, n - s)
         out[tuple(dst)] += maps[tuple(src)]
@@ -269,7 +290,9 @@ def layer_specs(targets: tuple[TargetSpec, ...]) -> list[LayerSpec]:
     return specs
 
 
-def initial_layers(targets: tuple[TargetSpec, ...], cfg: PlannerConfig) -> tuple[list[LayerSpec], np.ndarray]:
+def initial_layers(
+    targets: tuple[TargetSpec, ...], cfg: PlannerConfig
+) -> tuple[list[LayerSpec], np.ndarray]:
     """Eqs 9-16 for every target, summed into layers: ``(specs, maps (L, nx, ny))``; each
     target contributes a normalised map, so layer l sums to its number of targets."""
     grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
@@ -372,7 +395,12 @@ class TargetProbabilityMaps:
                 if self.ring_symmetric[l]:
                     self.stencil.apply(layer, self.ring_kernels[l], self.ring_box[l])
                     x0, x1, y0, y1 = self.ring_box[l]
-                    grown = (max(x0 - 1, 0), min(x1 + 1, self.grid.nx), max(y0 - 1, 0), min(y1 + 1, self.grid.ny))
+                    grown = (
+                        max(x0 - 1, 0),
+                        min(x1 + 1, self.grid.nx),
+                        max(y0 - 1, 0),
+                        min(y1 + 1, self.grid.ny),
+                    )
                     self.ring_box[l] = tighten_box(layer, grown, self._negligible_stored(l))
                 else:
                     self.maps[l] = convolve_reflect(layer, self.ring_kernels[l])
@@ -425,7 +453,9 @@ class TargetProbabilityMaps:
         scale = self.scale[:, uav]  # (L, P)
         stored_before = view[:, uav, flat]
         updated = posterior(stored_before * scale, np.exp(log_ratio)[None, :])
-        stored = np.divide(updated, scale, out=np.zeros_like(updated), where=scale > 0).astype(np.float32)
+        stored = np.divide(updated, scale, out=np.zeros_like(updated), where=scale > 0).astype(
+            np.float32
+        )
         view[:, uav, flat] = stored
         change = stored.astype(np.float64) - stored_before
         np.add.at(self.totals.T, uav, change.T)
@@ -452,7 +482,8 @@ class TargetProbabilityMaps:
         grid = self.grid
         inside = grid.inside(cells)
         clipped = np.stack(
-            [np.clip(cells[..., 0], 0, grid.nx - 1), np.clip(cells[..., 1], 0, grid.ny - 1)], axis=-1
+            [np.clip(cells[..., 0], 0, grid.nx - 1), np.clip(cells[..., 1], 0, grid.ny - 1)],
+            axis=-1,
         )
         flat = grid.flat(clipped)
         view = self.maps.reshape(len(self.specs), -1, grid.size)
@@ -479,7 +510,9 @@ class TargetProbabilityMaps:
         """Expected number of layer ``layer``'s targets in each cell, as UAV ``uav`` believes."""
         return self.maps[layer, uav].astype(np.float64) * self.scale[layer, uav]
 
-    def remove_target(self, uav: int, target_id: int, cell: np.ndarray, radius_cells: int = 2) -> None:
+    def remove_target(
+        self, uav: int, target_id: int, cell: np.ndarray, radius_cells: int = 2
+    ) -> None:
         """A UAV learns that a target was serviced at ``cell``: its layer loses one target and the
         mass around the cell, and is renormalised."""
         l = self.layer_of_target.get(target_id)

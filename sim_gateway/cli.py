@@ -15,11 +15,13 @@ import os
 import signal
 import sys
 import threading
+from pathlib import Path
 
 os.environ.setdefault("MAVLINK20", "1")
 
 from planner.errors import UserError  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
+from sim_gateway.signing import load_signing_key  # noqa: E402
 
 HELP = (
     "run N simulated fixed-wing autopilots (ArduPlane-like) over UDP MAVLink in front of the world"
@@ -98,6 +100,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration-s", type=_positive_float, default=None, help="stop after this simulated time"
     )
+    parser.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="simulated time advances only as far as the ground station grants (SYSTEM_TIME); "
+        "as fast as possible and deterministic for a seed (docs/simulator.md)",
+    )
+    parser.add_argument(
+        "--lockstep-timeout",
+        type=_positive_float,
+        default=10.0,
+        help="wall s of ground-station silence after which lockstep is released (default 10)",
+    )
+    parser.add_argument(
+        "--signing-key-file",
+        type=Path,
+        metavar="PATH",
+        help="MAVLink 2 signing key (64 hex characters or 32 bytes): sign everything, refuse "
+        "unsigned or wrongly signed commands; default $SWARMPLAN_SIGNING_KEY if set",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
@@ -119,6 +140,9 @@ def main(args: argparse.Namespace) -> int:
         boot_s=args.boot_s,
         airborne=args.airborne,
         position_rate_hz=args.telemetry_hz,
+        signing_key=load_signing_key(args.signing_key_file),
+        lockstep=args.lockstep,
+        lockstep_timeout_s=args.lockstep_timeout,
     )
     with Simulator(scenario, options) as sim:
         n = len(sim.vehicles)
@@ -126,7 +150,13 @@ def main(args: argparse.Namespace) -> int:
         ports_out = f"{options.gcs_port}" if base is None else f"{base}..{base + n - 1}"
         dest = f"{options.gcs_host}:{ports_out}"
         ports = ",".join(str(s.local_port) for s in sim.sockets[:4]) + ("..." if n > 4 else "")
-        pace = "fast" if options.fast else f"{options.speedup:g}x"
+        pace = (
+            "fast"
+            if options.fast
+            else "lockstep (waiting for the ground station's grants)"
+            if options.lockstep
+            else f"{options.speedup:g}x"
+        )
         print(
             f"sim: {n} vehicles (sysid 1..{n}) of scenario {scenario.name!r}, "
             f"seed {options.seed}, {pace}; sending to udp {dest} "

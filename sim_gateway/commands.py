@@ -251,7 +251,7 @@ def command_image_start_capture(v: Vehicle, c: CommandArgs) -> Result:
         mavlink.MAVLink_command_ack_message(
             c.command,
             mavlink.MAV_RESULT_ACCEPTED,
-            progress=0,
+            progress=sequence % 256,  # result_param1: which request this answers
             result_param2=outcome.target_id,
             target_system=c.peer[0],
             target_component=c.peer[1],

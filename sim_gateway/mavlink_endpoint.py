@@ -44,6 +44,7 @@ class LinkStats:
     duplicates: int = 0  # the same frame delivered to several vehicle sockets
     rejected_commands: int = 0  # commands or values refused as out of range / unsupported
     ignored_messages: int = 0  # good frames no vehicle had a use for
+    stale_commands: int = 0  # commands overtaken by a newer one from the same sender (reordered)
     sent: int = 0
     by_type: dict[str, int] = field(default_factory=dict)
 
@@ -54,6 +55,9 @@ class DatagramParser:
     def __init__(self, stats: LinkStats) -> None:
         self._mav = mavlink.MAVLink(None)
         self.stats = stats
+        #: with MAVLink signing on (sim_gateway/signing.py): ``accept(frame, msg_id) -> bool``;
+        #: a refused frame is skipped whole (it is counted there) and never handled
+        self.signature_check = None
 
     def parse(self, data: bytes) -> list[mavlink.MAVLink_message]:
         """Good messages of one datagram, in order; the parser keeps nothing between calls."""
@@ -99,7 +103,11 @@ class DatagramParser:
                 pos += 1
                 continue
             junk_run = False
+            frame = data[pos : pos + length]
             pos += length
+            check = self.signature_check
+            if check is not None and not check.accept(bytes(frame), message.get_msgId()):
+                continue
             good.append(message)
         stats.frames += len(good)
         if bad:

@@ -48,7 +48,34 @@ def handle_heartbeat(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
     v.on_gcs_heartbeat(v.host.wall_s(), _peer(msg))
 
 
+#: A command whose sequence number is at most this far behind the sender's newest one, within
+#: REORDER_WINDOW_S, was overtaken on the way (a reordering link); further back it is a sender
+#: that restarted its counter (e.g. a restarted daemon), which is applied.
+REORDER_SEQ_WINDOW = 32
+REORDER_WINDOW_S = 2.0
+
+
+def overtaken(v: Vehicle, msg: mavlink.MAVLink_message) -> bool:
+    """True (and counted) if a newer command of the same sender was applied already.
+
+    MAVLink 2 gives every sender one 8-bit sequence counter per link, so a command that
+    arrives after a newer one from the same sender has a slightly smaller number. Applying it
+    would send the vehicle back to a stale target or mode; it is dropped without an ACK (the
+    sender has stopped waiting for it). Duplicates of one frame are filtered earlier."""
+    peer, seq, now = _peer(msg), msg.get_seq(), v.host.wall_s()
+    last = v.last_command.get(peer)
+    if last is not None and now - last[1] < REORDER_WINDOW_S:
+        behind = (last[0] - seq) % 256
+        if 0 < behind <= REORDER_SEQ_WINDOW:
+            v.host.stats.stale_commands += 1
+            return True
+    v.last_command[peer] = (seq, now)
+    return False
+
+
 def _dispatch_command(v: Vehicle, msg: mavlink.MAVLink_message, args: CommandArgs) -> None:
+    if overtaken(v, msg):
+        return
     if msg.target_component in (0, MAV_COMP_ID_AUTOPILOT1):
         table = COMMANDS
     elif msg.target_component == MAV_COMP_ID_CAMERA:
@@ -84,6 +111,8 @@ def handle_command_int(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
 
 
 def handle_set_mode(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
+    if overtaken(v, msg):
+        return
     ok = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED) and v.set_mode(
         msg.custom_mode
     )
@@ -142,6 +171,14 @@ def handle_timesync(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
         v.send(mavlink.MAVLink_timesync_message(now_ns, msg.ts1))
 
 
+def handle_system_time(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
+    """A ground station's SYSTEM_TIME without UTC (time_unix_usec 0) is a lockstep grant: the
+    simulator may run until ``time_boot_ms`` (sim_gateway/lockstep.py). With UTC it is the
+    station's clock, which a simulated vehicle has no use for."""
+    if msg.time_unix_usec == 0:
+        v.host.lockstep_grant(msg.time_boot_ms)
+
+
 Handler = Callable[[Vehicle, mavlink.MAVLink_message], None]
 
 HANDLERS: dict[str, Handler] = {
@@ -153,6 +190,7 @@ HANDLERS: dict[str, Handler] = {
     "SET_POSITION_TARGET_GLOBAL_INT": handle_set_position_target_global_int,
     "FILE_TRANSFER_PROTOCOL": handle_file_transfer_protocol,
     "TIMESYNC": handle_timesync,
+    "SYSTEM_TIME": handle_system_time,
     "PARAM_REQUEST_LIST": handle_param_request_list,
     "PARAM_REQUEST_READ": handle_param_request_read,
     "PARAM_SET": handle_param_set,
@@ -174,4 +212,5 @@ AUTOPILOT_ONLY = frozenset(HANDLERS) - {
     "COMMAND_INT",
     "SET_MODE",
     "TIMESYNC",
+    "SYSTEM_TIME",
 }

@@ -9,15 +9,21 @@ from collections.abc import Callable
 
 import numpy as np
 
+from planner.acoapf import AcoApfPlanner
 from planner.engagement import EngagementOutcome
 from planner.grid import Grid, heading_of_angle
 from planner.hapf_aco import HapfAcoPlanner
 from planner.metrics import MissionRecorder
+from planner.pso import PsoPlanner
 from planner.scenario import Scenario
 from sim_gateway.world import World
 
 #: Planners by the name users give on the command line.
-PLANNERS: dict[str, Callable] = {"hapf-aco": HapfAcoPlanner}
+PLANNERS: dict[str, Callable] = {
+    "hapf-aco": HapfAcoPlanner,
+    "acoapf": AcoApfPlanner,  # baseline, section 4.2 Algorithm 2
+    "pso": PsoPlanner,  # baseline, section 4.2 Algorithm 1
+}
 
 
 def run_offline(

@@ -11,9 +11,11 @@ One process, one thread, one loop. Each pass of the loop:
 3. when a telemetry frame is due (wall clock), sends the telemetry streams that are due.
 
 Time: ticks are due at ``tick * tick_s / speedup`` wall seconds after the start (real time is
-speedup 1); in fast mode they run back to back. Simulated time only ever moves in whole ticks and
-the world draws its randomness only from the seed, so a run without ground-station input is the
-same for the same seed whatever the speed, and commands take effect at tick boundaries.
+speedup 1); in fast mode they run back to back; in lockstep mode they run back to back up to the
+horizon the ground station granted, and the simulator holds there (``sim_gateway/lockstep.py``).
+Simulated time only ever moves in whole ticks and the world draws its randomness only from the
+seed, so a run without ground-station input is the same for the same seed whatever the speed,
+and commands take effect at tick boundaries (in lockstep, at the hold they were sent in).
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from sim_gateway import flight_modes as modes
 from sim_gateway.camera import look_urls
 from sim_gateway.fixed_wing import FleetKinematics
 from sim_gateway.geofence import FleetFence
+from sim_gateway.lockstep import LockstepGate
 from sim_gateway.mavlink_endpoint import DatagramParser, LinkStats, VehicleSocket
 from sim_gateway.message_handlers import AUTOPILOT_ONLY, HANDLERS
 from sim_gateway.mission_protocol import retry_upload
@@ -72,8 +75,21 @@ class SimOptions:
     boot_s: float = 20.0
     airborne: bool = False
     position_rate_hz: float = 10.0
+    signing_key: bytes | None = None  # MAVLink 2 signing (sim_gateway/signing.py); None: off
+    lockstep: bool = False  # hold at the horizon the ground station grants (SYSTEM_TIME)
+    lockstep_timeout_s: float = 10.0  # wall s of ground-station silence that end the lock
 
     def validate(self) -> None:
+        if self.fast and self.lockstep:
+            raise SimulatorError(
+                "--fast and --lockstep exclude each other: lockstep already runs as fast as the "
+                "ground station allows; drop one"
+            )
+        if not (math.isfinite(self.lockstep_timeout_s) and self.lockstep_timeout_s > 0):
+            raise SimulatorError(
+                f"--lockstep-timeout must be a positive number of seconds, got "
+                f"{self.lockstep_timeout_s}"
+            )
         if not (math.isfinite(self.speedup) and self.speedup > 0):
             raise SimulatorError(
                 f"--speedup must be a positive number, got {self.speedup}; e.g. --speedup 50"
@@ -167,6 +183,11 @@ class Simulator:
                 "--bind-host / --bind-base-port or stop what holds the port"
             ) from None
         self.sysids = {v.sysid: v for v in self.vehicles}
+        self.signature_check = None
+        if options.signing_key is not None:
+            from sim_gateway.signing import enable_signing
+
+            self.signature_check = enable_signing(self, options.signing_key)
         self.selector = selectors.DefaultSelector()
         for sock in self.sockets:
             self.selector.register(sock.sock, selectors.EVENT_READ, sock)
@@ -177,6 +198,8 @@ class Simulator:
         self.next_frame_wall = 0.0
         self.looks_sent = 0
         self.engagements = 0
+        self.lockstep = LockstepGate(options.lockstep, options.lockstep_timeout_s)
+        self.fence_breaches = 0
         self._home_cache: tuple[tuple[float, ...], list[int], list[int]] | None = None
         if options.airborne:
             self._start_airborne()
@@ -240,6 +263,10 @@ class Simulator:
 
     def time_boot_ms(self) -> int:
         return int(round(self.sim_time_s * 1000))
+
+    def lockstep_grant(self, time_boot_ms: int) -> None:
+        """A ground station's SYSTEM_TIME grant: run until ``time_boot_ms`` (lockstep mode)."""
+        self.lockstep.on_grant(time_boot_ms, self.wall_s())
 
     # ------------------------------------------------------------------ setup
 
@@ -339,6 +366,7 @@ class Simulator:
     def _check_fence(self) -> None:
         inside = self.fence.inside(self.fleet.x_m, self.fleet.y_m) & self.fleet.airborne
         for i in np.flatnonzero(inside & ~self.fence_breached):
+            self.fence_breaches += 1
             self.vehicles[i].on_fence_breach()
         for i in np.flatnonzero(~inside & self.fence_breached):
             self.vehicles[i].on_fence_clear()
@@ -432,6 +460,7 @@ class Simulator:
         wall_start = time.monotonic()
         tick_wall = opts.tick_s / opts.speedup
         next_progress = wall_start + progress_every_wall_s
+        pace_wall, pace_ticks = wall_start, start_ticks  # where real-time pacing counts from
         while True:
             if end_ticks is not None and self.ticks >= end_ticks:
                 break
@@ -440,11 +469,14 @@ class Simulator:
             now = time.monotonic()
             if wall_limit_s is not None and now - wall_start >= wall_limit_s:
                 break
-            if opts.fast:
+            if self.lockstep.locked:
+                if not self._lockstep_pass(now):
+                    pace_wall, pace_ticks = time.monotonic(), self.ticks  # released: pace anew
+            elif opts.fast:
                 self.poll(0.0)
                 self.tick()
             else:
-                due = wall_start + (self.ticks - start_ticks + 1) * tick_wall
+                due = pace_wall + (self.ticks - pace_ticks + 1) * tick_wall
                 wait = due - now
                 if wait > 0:
                     self.poll(min(wait, TELEMETRY_FRAME_S))
@@ -458,6 +490,46 @@ class Simulator:
             if on_progress is not None and now >= next_progress:
                 next_progress = now + progress_every_wall_s
                 on_progress(self)
+
+    def _lockstep_pass(self, now: float) -> bool:
+        """One pass of the loop in lockstep mode: tick if granted, else hold (and tell the
+        ground station once per horizon). Returns False once the lock is released."""
+        gate = self.lockstep
+        if gate.allows((self.ticks + 1) * self.options.tick_s):
+            self.poll(0.0)
+            self.tick()
+            return True
+        if gate.held_at_s != gate.horizon_s:
+            gate.held_at_s = gate.horizon_s
+            self.send_hold_marker()
+        self.poll(TELEMETRY_FRAME_S)
+        if gate.locked and gate.allows((self.ticks + 1) * self.options.tick_s):
+            # a new grant: read whatever else the ground station sent before it, so every
+            # command of this hold takes effect at this very tick, whatever the socket order
+            for _ in range(8):
+                if not self.poll(0.0):
+                    break
+        heard = [
+            v.failsafe.last_heartbeat_wall_s
+            for v in self.vehicles
+            if v.failsafe.last_heartbeat_wall_s is not None
+        ]
+        if gate.timed_out(time.monotonic(), max(heard) if heard else None):
+            print(
+                f"sim: lockstep released at t={self.sim_time_s:.1f}s: no grant or heartbeat from "
+                f"the ground station for {gate.timeout_wall_s:g} s; running at "
+                f"{self.options.speedup:g}x",
+                flush=True,
+            )
+        return gate.locked
+
+    def send_hold_marker(self) -> None:
+        """Lockstep hold: every vehicle sends HEARTBEAT then GLOBAL_POSITION_INT at the held
+        time, after anything it sent for this instant (the sensor look of a decision boundary)."""
+        snapshot = self.snapshot()
+        for v in self.vehicles:
+            v.send(BUILDERS["HEARTBEAT"](v, snapshot))
+            v.send(BUILDERS["GLOBAL_POSITION_INT"](v, snapshot))
 
     def close(self) -> None:
         if getattr(self, "selector", None) is not None:
@@ -490,4 +562,16 @@ class Simulator:
             "rejected_commands": s.rejected_commands,
             "ignored_messages": s.ignored_messages,
             "sent": s.sent,
+            "stale_commands": s.stale_commands,
+            **(
+                {}
+                if self.signature_check is None
+                else {
+                    "unsigned_refused": self.signature_check.unsigned_refused,
+                    "bad_signatures": self.signature_check.bad_signatures,
+                    "replays_refused": self.signature_check.replays,
+                }
+            ),
+            "fence_breaches": self.fence_breaches,
+            "lockstep_grants": self.lockstep.grants,
         }

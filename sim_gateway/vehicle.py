@@ -52,6 +52,7 @@ class VehicleHost(Protocol):
     def fence_circles(self, index: int) -> np.ndarray: ...
     def snapshot(self) -> FleetSnapshot: ...
     def home_amsl_m(self) -> float: ...
+    def lockstep_grant(self, time_boot_ms: int) -> None: ...
 
 
 @dataclass
@@ -99,6 +100,9 @@ class Vehicle:
         self.item_arrived = False
         self.jumps_left: dict[int, int] = {}
         self.last_gcs: tuple[int, int] = (255, 190)  # (sysid, compid) of the last GCS heard
+        #: per sender (sysid, compid): MAVLink sequence number and wall time of its newest
+        #: command, so a command overtaken on the way (reordered) is not applied after it
+        self.last_command: dict[tuple[int, int], tuple[int, float]] = {}
         self.apply_params()
 
     # ------------------------------------------------------------------ state

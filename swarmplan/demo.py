@@ -21,9 +21,11 @@ from planner.scenario import BUILTIN_SCENARIOS, load_scenario
 
 HELP = "fly a scenario end to end: the MAVLink simulator and the planner daemon on loopback UDP"
 
-#: Simulated seconds per wall second. The paper's 250 steps are 2500 s simulated: ~25 s of
-#: flight at 100x, plus start-up; the daemon keeps up with 10 UAVs on one core at this pace.
-DEFAULT_SPEEDUP = 100.0
+#: By default the simulator runs in lockstep with the daemon (``swarmplan sim --lockstep``): as
+#: fast as both can go, and the same seed gives the same flight and result. ``--speedup X`` paces
+#: it at X simulated seconds per wall second instead (what a SITL run looks like; not repeatable).
+#: After the mission (RTL) a lockstep simulator runs on at this speed until it is stopped.
+RELEASED_SPEEDUP = 100.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,8 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--speedup",
         type=float,
-        default=DEFAULT_SPEEDUP,
-        help=f"simulated seconds per wall second (default {DEFAULT_SPEEDUP:g})",
+        default=None,
+        help="pace the simulator at this many simulated seconds per wall second instead of "
+        "lockstep (default: lockstep, as fast as possible and repeatable for a seed)",
     )
     parser.add_argument(
         "--out",
@@ -55,9 +58,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def start_simulator(
-    scenario: str, seed: int, speedup: float, port: int, log: Path
+    scenario: str, seed: int, speedup: float | None, port: int, log: Path
 ) -> subprocess.Popen:
-    """``python -m swarmplan sim`` sending to our port; its output goes to ``log``."""
+    """``python -m swarmplan sim`` sending to our port (``--lockstep`` when ``speedup`` is
+    None); its output goes to ``log``."""
+    pace = ["--lockstep", "--speedup", f"{RELEASED_SPEEDUP:g}"]
+    if speedup is not None:
+        pace = ["--speedup", f"{speedup:g}"]
     command = [
         sys.executable,
         "-m",
@@ -67,8 +74,7 @@ def start_simulator(
         scenario,
         "--seed",
         str(seed),
-        "--speedup",
-        f"{speedup:g}",
+        *pace,
         "--gcs-host",
         "127.0.0.1",
         "--gcs-port",
@@ -100,8 +106,8 @@ def last_line(path: Path) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.speedup <= 0:
-        raise UserError(f"--speedup must be > 0, got {args.speedup}")
+    if args.speedup is not None and not (0 < args.speedup < float("inf")):
+        raise UserError(f"--speedup must be a positive number, got {args.speedup}")
     if args.steps is not None and args.steps <= 0:
         raise UserError(f"--steps must be a positive integer, got {args.steps}")
     scenario = load_scenario(args.scenario)
@@ -122,7 +128,8 @@ def main(args: argparse.Namespace) -> int:
     )
 
     def on_step(status: StepStatus) -> None:
-        bar.update(1)
+        if status.step > 0:  # step 0 is the start: the bar counts decision steps
+            bar.update(1)
         bar.set_postfix_str(
             f"coverage {status.coverage * 100:.1f}% engaged {status.engaged} active {status.active}"
         )
@@ -131,6 +138,7 @@ def main(args: argparse.Namespace) -> int:
         if not quiet:
             bar.write(f"demo: {text}", file=sys.stderr)
 
+    lockstep = args.speedup is None
     options = DaemonOptions(
         connect=["udpin:127.0.0.1:0"],
         seed=args.seed,
@@ -138,8 +146,9 @@ def main(args: argparse.Namespace) -> int:
         discovery_timeout_s=30.0,
         ready_timeout_s=60.0,
         takeoff_timeout_s=60.0,
-        lost_after_s=max(1.0, 200.0 / args.speedup),
-        time_scale=args.speedup,
+        lost_after_s=3.0 if lockstep else max(1.0, 200.0 / args.speedup),
+        time_scale=RELEASED_SPEEDUP if lockstep else args.speedup,
+        lockstep=lockstep,
         tlog_path=out / "mission.tlog",
         progress=say,
         on_step=on_step,
@@ -150,7 +159,8 @@ def main(args: argparse.Namespace) -> int:
     sim_log = out / "sim.log"
     sim = start_simulator(args.scenario, args.seed, args.speedup, port, sim_log)
     say(
-        f"simulator started (pid {sim.pid}, {scenario.uav_count} vehicles, {args.speedup:g}x) "
+        f"simulator started (pid {sim.pid}, {scenario.uav_count} vehicles, "
+        f"{'lockstep' if lockstep else f'{args.speedup:g}x'}) "
         f"-> udp {port}"
     )
     started = time.monotonic()

@@ -181,9 +181,15 @@ class FakeSwarm(threading.Thread):
                 v.lon += de / d * step / (M_PER_DEG * math.cos(math.radians(v.lat)))
 
     def _ack(
-        self, v: FakeVehicle, mav: mavlink.MAVLink, command: int, result: int, p2: int = 0
+        self,
+        v: FakeVehicle,
+        mav: mavlink.MAVLink,
+        command: int,
+        result: int,
+        p2: int = 0,
+        progress: int = 0,
     ) -> None:
-        v.send(mav, mav.command_ack_encode(command, result, 0, p2, 255, 190))
+        v.send(mav, mav.command_ack_encode(command, result, progress, p2, 255, 190))
 
     def _receive(self, v: FakeVehicle) -> None:
         while True:
@@ -219,7 +225,10 @@ class FakeSwarm(threading.Thread):
                 self._ack(v, v.ap, msg.command, mavlink.MAV_RESULT_ACCEPTED)
             elif msg.command == mavlink.MAV_CMD_IMAGE_START_CAPTURE and msg.target_component == 100:
                 v.engagement_seq.add(int(msg.param4))
-                self._ack(v, v.cam, msg.command, mavlink.MAV_RESULT_ACCEPTED, 0)
+                # the camera echoes the sequence number (low byte) in result_param1
+                self._ack(
+                    v, v.cam, msg.command, mavlink.MAV_RESULT_ACCEPTED, 0, int(msg.param4) % 256
+                )
             else:
                 self._ack(v, v.ap, msg.command, mavlink.MAV_RESULT_UNSUPPORTED)
         elif kind == "COMMAND_INT":

@@ -1,0 +1,327 @@
+"""The daemon's checkpoint: the planner's state and the decision loop's own, written atomically
+after every decision step, so a daemon killed mid-mission (``kill -9``, a crash, a power cut)
+can be started again with ``--resume`` and carry on from the last step it finished.
+
+File format (version 1): a 64-byte header, then a pickle (protocol 5) of a :class:`Checkpoint`.
+
+* header: ``MAGIC`` (16 bytes), format version (uint32), payload length (uint64), the SHA-256
+  of the payload (32 bytes), 4 reserved bytes; all little-endian.
+* payload: the planner object as it is (``HapfAcoPlanner``: TPMs, pheromone maps, coverage,
+  tracks, its random generator...), the recorder, and the loop variables of
+  ``MissionDaemon._decision_loop`` named in :data:`LOOP_STATE`.
+
+Writing: into ``PATH.tmp`` in the same folder, flushed and fsync'ed, then ``os.replace`` over
+``PATH`` (atomic on POSIX and Windows), then the folder is fsync'ed: a reader sees the previous
+checkpoint or the new one, never a mix, whenever the writer dies.
+
+Reading checks, in order: the file exists and is readable, the magic, the version, the length
+and the digest (a torn or corrupted file), and that it belongs to this mission (scenario name and
+content, seed, vehicle count, steps). Unpickling is restricted to the classes a checkpoint holds
+(numpy arrays and generators, the planner's own classes, plain containers): a checkpoint file is
+data, and a crafted one must not run code. Every failure is one :class:`CheckpointError` line
+saying what is wrong and what to do.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import pickle
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from planner.errors import UserError
+from planner.scenario import Scenario
+
+MAGIC = b"SWARMPLAN-CKPT\x00\x01"
+VERSION = 1
+_HEADER = struct.Struct("<16sIQ32s4x")  # 64 bytes
+
+#: The decision loop's variables a checkpoint holds (see MissionDaemon._decision_loop).
+LOOP_STATE = (
+    "planner",
+    "recorder",
+    "starts",
+    "home_km",
+    "cells",
+    "headings",
+    "commanded_cells",
+    "commanded_headings",
+    "last_target",
+    "consumed",
+    "flown_km",
+    "engagements",
+    "engage_seq",
+    "pending_engage",
+    "refusals",
+    "observed",
+    "engaged_ids",
+    "engaged_value",
+    "positions",
+    "previous_centres",
+)
+
+#: The daemon's own counters carried across a restart.
+DAEMON_STATE = ("overrides", "refused_commands", "looks_missed", "events")
+
+
+class CheckpointError(UserError):
+    """A checkpoint cannot be written, read, or used for this mission."""
+
+
+def mission_fingerprint(scenario: Scenario, seed: int, vehicles: int, steps: int) -> str:
+    """What makes a checkpoint belong to one mission: the scenario (name and content), the
+    planner seed, the vehicle count and the planned steps."""
+    text = repr((scenario, seed, vehicles, steps))
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+@dataclass
+class Checkpoint:
+    """The state after decision step ``step`` (0 = the start) of one mission."""
+
+    fingerprint: str
+    step: int
+    loop: dict[str, Any]
+    daemon: dict[str, Any]
+    wall_time_s: float = 0.0  # mission wall time so far (for the result)
+    saved_unix_s: float = 0.0
+    notes: dict[str, Any] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------- writing
+
+
+def write_checkpoint(path: str | Path, checkpoint: Checkpoint) -> int:
+    """Write ``checkpoint`` to ``path`` atomically; returns the bytes written."""
+    path = Path(path)
+    payload = pickle.dumps(checkpoint, protocol=5)
+    header = _HEADER.pack(MAGIC, VERSION, len(payload), hashlib.sha256(payload).digest())
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(header)
+            f.write(payload)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        _fsync_dir(path.parent)
+    except OSError as exc:
+        raise CheckpointError(
+            f"cannot write checkpoint {path} ({exc.strerror or exc}); choose another "
+            f"--checkpoint path with free space"
+        ) from None
+    return len(header) + len(payload)
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make the rename itself durable (POSIX); a no-op where folders cannot be opened."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+class CheckpointWriter:
+    """Writes the loop state after every step; counts and times the writes."""
+
+    def __init__(self, path: str | Path, fingerprint: str) -> None:
+        self.path = Path(path)
+        self.fingerprint = fingerprint
+        self.writes = 0
+        self.bytes = 0
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CheckpointError(
+                f"cannot create the folder of checkpoint {self.path} ({exc.strerror})"
+            ) from None
+
+    def save(self, step: int, daemon: Any, loop: dict[str, Any], wall_time_s: float) -> None:
+        import time
+
+        missing = [name for name in LOOP_STATE if name not in loop]
+        if missing:
+            raise ValueError(f"checkpoint of step {step} lacks {', '.join(missing)}")
+        state = {name: getattr(daemon, name) for name in DAEMON_STATE}
+        checkpoint = Checkpoint(
+            self.fingerprint, step, dict(loop), state, wall_time_s, time.time()
+        )
+        self.bytes = write_checkpoint(self.path, checkpoint)
+        self.writes += 1
+
+
+# ---------------------------------------------------------------------------- reading
+
+#: numpy names a checkpoint may contain (arrays, scalars, dtypes, random generators).
+_NUMPY_NAMES = {
+    "_reconstruct",
+    "scalar",
+    "ndarray",
+    "dtype",
+    "_frombuffer",
+    "__generator_ctor",
+    "__bit_generator_ctor",
+    "__randomstate_ctor",
+    "Generator",
+    "PCG64",
+    "SeedSequence",
+    "_unpickle",
+    "__pyx_unpickle_SeedSequence",
+}
+#: scipy.sparse matrices (the planner keeps some operators sparse).
+_SPARSE_NAMES = {"csr_matrix", "csc_matrix", "coo_matrix", "csr_array", "csc_array", "coo_array"}
+_BUILTINS = {
+    "set",
+    "frozenset",
+    "complex",
+    "slice",
+    "range",
+    "tuple",
+    "list",
+    "dict",
+    "bytearray",
+    "bytes",
+    "float",
+    "int",
+    "bool",
+    "str",
+    "getattr",
+}
+_MODULE_PREFIXES = ("planner.", "mavlink_bridge.checkpoint", "mavlink_bridge.daemon")
+
+
+class _RestrictedUnpickler(pickle.Unpickler):
+    """Only the classes a checkpoint is made of; anything else is a corrupt (or crafted) file."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        allowed = (
+            (module == "builtins" and name in _BUILTINS)
+            or (module.split(".")[0] == "numpy" and name in _NUMPY_NAMES)
+            or (module.startswith("scipy.sparse") and name in _SPARSE_NAMES)
+            or (module == "collections" and name in ("deque", "OrderedDict"))
+            or (module == "copyreg" and name == "_reconstructor")
+            or (
+                (module.startswith(_MODULE_PREFIXES) or module in ("planner",))
+                and not name.startswith("_")
+            )
+        )
+        if not allowed:
+            raise pickle.UnpicklingError(f"{module}.{name} is not part of a checkpoint")
+        value = super().find_class(module, name)
+        if module.startswith(_MODULE_PREFIXES) and not isinstance(value, type):
+            raise pickle.UnpicklingError(f"{module}.{name} is not a class")
+        return value
+
+
+def read_checkpoint(path: str | Path) -> Checkpoint:
+    """Read and verify a checkpoint file (format, version, digest); any problem is one line."""
+    path = Path(path)
+    hint = "delete it to start the mission afresh, or give another --checkpoint"
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise CheckpointError(
+            f"no checkpoint at {path} to resume from; run without --resume to start the mission"
+        ) from None
+    except OSError as exc:
+        raise CheckpointError(f"cannot read checkpoint {path} ({exc.strerror})") from None
+    if len(data) < _HEADER.size:
+        raise CheckpointError(f"checkpoint {path} is truncated ({len(data)} bytes); {hint}")
+    magic, version, length, digest = _HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise CheckpointError(f"{path} is not a swarmplan checkpoint (bad magic); {hint}")
+    if version != VERSION:
+        raise CheckpointError(
+            f"checkpoint {path} has format version {version}, this daemon reads {VERSION}; {hint}"
+        )
+    payload = data[_HEADER.size :]
+    if len(payload) != length:
+        raise CheckpointError(
+            f"checkpoint {path} is truncated ({len(payload)} of {length} payload bytes); {hint}"
+        )
+    if hashlib.sha256(payload).digest() != digest:
+        raise CheckpointError(f"checkpoint {path} is corrupt (checksum mismatch); {hint}")
+    try:
+        checkpoint = _RestrictedUnpickler(io.BytesIO(payload)).load()
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure is a bad file
+        raise CheckpointError(
+            f"checkpoint {path} cannot be loaded ({type(exc).__name__}: {exc}); {hint}"
+        ) from None
+    if not isinstance(checkpoint, Checkpoint):
+        raise CheckpointError(f"checkpoint {path} holds no mission state; {hint}")
+    missing = [n for n in LOOP_STATE if n not in checkpoint.loop]
+    missing += [n for n in DAEMON_STATE if n not in checkpoint.daemon]
+    if missing:
+        raise CheckpointError(
+            f"checkpoint {path} lacks {', '.join(missing)} (written by another version); {hint}"
+        )
+    return checkpoint
+
+
+def load_for_mission(path: str | Path, fingerprint: str, planner_cls: type) -> Checkpoint:
+    """A checkpoint of this very mission whose planner is ``planner_cls``; else CheckpointError."""
+    checkpoint = read_checkpoint(path)
+    if checkpoint.fingerprint != fingerprint:
+        raise CheckpointError(
+            f"checkpoint {path} belongs to another mission (scenario, seed, vehicle count or "
+            f"steps differ); resume with the same options, or start afresh without --resume"
+        )
+    planner = checkpoint.loop["planner"]
+    if type(planner) is not planner_cls:
+        raise CheckpointError(
+            f"checkpoint {path} holds a {type(planner).__name__}, not a {planner_cls.__name__}"
+        )
+    return checkpoint
+
+
+def restore_daemon_state(daemon: Any, checkpoint: Checkpoint) -> dict[str, Any]:
+    """Put the daemon's counters back; returns the loop variables (by LOOP_STATE name)."""
+    for name in DAEMON_STATE:
+        setattr(daemon, name, checkpoint.daemon[name])
+    return checkpoint.loop
+
+
+def check_planner_layout(restored: Any, fresh: Any, path: str | Path) -> None:
+    """The restored planner has the attributes this code's planner has (same planner version)."""
+    old, new = set(vars(restored)), set(vars(fresh))
+    if old != new:
+        diff = sorted(old ^ new)[:4]
+        raise CheckpointError(
+            f"checkpoint {path} was written by another planner version (state differs in "
+            f"{', '.join(diff)}); start the mission afresh without --resume"
+        )
+
+
+def resume_loop_state(daemon: Any, checkpoint: Checkpoint, fresh_planner: Any) -> dict[str, Any]:
+    """The decision loop's variables from ``checkpoint``, with the daemon's counters restored.
+
+    ``fresh_planner`` is the planner this code builds for the mission: the restored one must
+    have the same layout (a checkpoint of another planner version is refused)."""
+    check_planner_layout(checkpoint.loop["planner"], fresh_planner, daemon.options.checkpoint_path)
+    break_measured_legs(checkpoint.loop["recorder"])
+    daemon.say(
+        f"resuming from the checkpoint of step {checkpoint.step} "
+        f"({daemon.options.checkpoint_path})"
+    )
+    return restore_daemon_state(daemon, checkpoint)
+
+
+def break_measured_legs(recorder: Any) -> None:
+    """The outage is not a leg: while the daemon was down the autopilots' failsafe flew the
+    vehicles (loitering, circling), so the straight chord from the last position before the
+    crash to the first one after it, and the turns at its ends, say nothing about the
+    planner's path. The recorder starts each UAV's leg chain afresh after a restart (threat
+    and separation are still judged at every recorded position; the distance flown during the
+    outage is not in the recorder's total, while the safety envelope's range account, between
+    measured cells, includes it)."""
+    recorder.break_legs()

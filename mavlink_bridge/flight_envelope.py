@@ -1,0 +1,222 @@
+"""The flight-path layer of the safety envelope: judge the path each plane will really fly.
+
+The cell-level envelope (``safety_envelope.py``) checks the planner's next cells. A plane does
+not fly cell centres: it turns on a ~1 km radius, lags on 1.41 km diagonal legs and circles a
+point it reaches. So before a guided target is sent, the daemon predicts the flown path
+(``flight_prediction.py``) over ``horizon_s`` (three decision steps by default: long enough to
+reach a target two legs ahead) and accepts a target only if
+
+* the predicted path, and the chord between its positions at the decision instants (what the
+  result's threat count measures), keeps ``threat_margin_km`` clear of every threat circle;
+* so does the loiter circle around the target: a plane that gets no newer target circles
+  there, so every accepted target leaves a safe way on (the "keep going" candidate below);
+* at every predicted second it stays ``min_separation_km + separation_margin_km`` from the
+  predicted path of every UAV already settled this step.
+
+Candidates, in order: the cell-level envelope's choice; the other cells reachable within
+phi_max that pass the cell-level rules, nearest the planner's cell first; the target the plane
+already flies to (keep going); the centre of its current cell (circle here). The first safe one
+is sent; when none is, the one that breaks the rules least. Replacements are counted as
+``predicted_threat`` / ``predicted_separation`` overrides.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mavlink_bridge.flight_prediction import PlaneModel, predict_paths
+from mavlink_bridge.safety_envelope import SafetyEnvelope
+from planner.constraints import segment_clearance
+from planner.grid import HEADING_STEPS, heading_of_angle, turn_options
+
+
+@dataclass
+class FlightChoice:
+    """The guided target of every UAV and the cell/heading it stands for."""
+
+    aims_km: np.ndarray  # (N, 2)
+    next_cells: np.ndarray  # (N, 2)
+    next_headings: np.ndarray  # (N,)
+    overrides: dict[str, int] = field(default_factory=dict)
+    min_clearance_km: float = np.inf  # predicted, over the accepted paths
+    min_separation_km: float = np.inf
+
+
+@dataclass
+class _Candidate:
+    cell: np.ndarray
+    heading: int
+    aim: np.ndarray
+    derived: bool = False  # cell/heading come from the predicted path (keep / circle)
+
+
+@dataclass(frozen=True)
+class FlightEnvelope:
+    """Chooses each plane's guided target from its predicted flight path."""
+
+    cells: SafetyEnvelope
+    model: PlaneModel
+    step_s: float = 10.0
+    horizon_s: float = 30.0
+    threat_margin_km: float = 0.25
+    separation_margin_km: float = 0.3
+
+    def choose(
+        self,
+        positions_km: np.ndarray,
+        courses_rad: np.ndarray,
+        cells: np.ndarray,
+        headings: np.ndarray,
+        proposed_cells: np.ndarray,
+        proposed_headings: np.ndarray,
+        previous_aims_km: np.ndarray,
+        flown_km: np.ndarray,
+        home_km: np.ndarray,
+        active: np.ndarray,
+        lead: float,
+    ) -> FlightChoice:
+        """Guided targets for every UAV (inactive ones keep the proposal; nothing is sent)."""
+        grid = self.cells.grid
+        n = len(cells)
+        candidates: list[list[_Candidate]] = []
+        for i in range(n):
+            candidates.append(
+                self._candidates(
+                    cells[i],
+                    int(headings[i]),
+                    proposed_cells[i],
+                    int(proposed_headings[i]),
+                    previous_aims_km[i],
+                    float(flown_km[i]),
+                    home_km[i],
+                    lead,
+                )
+                if active[i]
+                else []
+            )
+        rows = [(i, k) for i in range(n) for k in range(len(candidates[i]))]
+        aims = np.array([candidates[i][k].aim for i, k in rows]).reshape(-1, 2)
+        paths = predict_paths(
+            self.model,
+            np.array([positions_km[i] for i, _ in rows]).reshape(-1, 2),
+            np.array([courses_rad[i] for i, _ in rows]),
+            aims,
+            self.horizon_s,
+        )
+        clearance = np.minimum(self._threat_clearance(paths), self._loiter_clearance(aims))
+        row_of = {key: r for r, key in enumerate(rows)}
+        out_aims = grid.centre_km(proposed_cells)
+        out_cells = np.array(proposed_cells, dtype=np.int64, copy=True)
+        out_headings = np.array(proposed_headings, dtype=np.int64, copy=True)
+        overrides = {"predicted_threat": 0, "predicted_separation": 0}
+        settled: list[np.ndarray] = []
+        need_sep = self.cells.min_separation_km + self.separation_margin_km
+        worst_clear, worst_sep = np.inf, np.inf
+        for i in range(n):
+            if not candidates[i]:
+                continue
+            best: tuple[float, int, float, float] | None = None
+            first_reason: str | None = None
+            for k, _cand in enumerate(candidates[i]):
+                r = row_of[(i, k)]
+                sep = self._separation(paths[r], settled)
+                threat_ok = clearance[r] >= self.threat_margin_km
+                sep_ok = sep >= need_sep
+                if k == 0 and not threat_ok:
+                    first_reason = "predicted_threat"
+                elif k == 0 and not sep_ok:
+                    first_reason = "predicted_separation"
+                if threat_ok and sep_ok:
+                    best = (np.inf, k, float(clearance[r]), sep)
+                    break
+                score = min(clearance[r] - self.threat_margin_km, sep - need_sep)
+                if best is None or score > best[0]:
+                    best = (score, k, float(clearance[r]), sep)
+            assert best is not None
+            _, k, clear, sep = best
+            if first_reason is not None:
+                overrides[first_reason] += 1
+            worst_clear, worst_sep = min(worst_clear, clear), min(worst_sep, sep)
+            cand = candidates[i][k]
+            path = paths[row_of[(i, k)]]
+            settled.append(path)
+            out_aims[i] = cand.aim
+            if cand.derived:
+                per_step = max(1, round(self.step_s))
+                end, before = path[min(per_step, len(path) - 1)], path[max(per_step - 1, 0)]
+                out_cells[i] = grid.cell_of(end)
+                move = end - before
+                out_headings[i] = (
+                    int(heading_of_angle(np.arctan2(move[1], move[0])))
+                    if np.any(move)
+                    else int(headings[i])
+                )
+            else:
+                out_cells[i], out_headings[i] = cand.cell, cand.heading
+        return FlightChoice(out_aims, out_cells, out_headings, overrides, worst_clear, worst_sep)
+
+    # ------------------------------------------------------------------ pieces
+
+    def _candidates(
+        self,
+        cell: np.ndarray,
+        heading: int,
+        proposed: np.ndarray,
+        proposed_heading: int,
+        previous_aim: np.ndarray,
+        flown_km: float,
+        home_km: np.ndarray,
+        lead: float,
+    ) -> list[_Candidate]:
+        env = self.cells
+        out = [_Candidate(proposed, proposed_heading, env.aim_point_km(cell, proposed, lead))]
+        others = []
+        for turn in turn_options(env.max_turn_deg):
+            h = int((heading + turn) % 8)
+            c = cell + HEADING_STEPS[h]
+            if np.array_equal(c, proposed) or env.static_reason(cell, c, flown_km, home_km):
+                continue
+            others.append((float(np.hypot(*(c - proposed))), h, c))
+        for _, h, c in sorted(others, key=lambda t: t[0]):
+            out.append(_Candidate(c, h, env.aim_point_km(cell, c, lead)))
+        if np.all(np.isfinite(previous_aim)):
+            out.append(_Candidate(cell, heading, np.asarray(previous_aim, float), derived=True))
+        out.append(_Candidate(cell, heading, env.grid.centre_km(cell), derived=True))
+        return out
+
+    def _loiter_clearance(self, aims_km: np.ndarray) -> np.ndarray:
+        """Distance (km) from the loiter circle around each aim to the nearest threat edge."""
+        env = self.cells
+        if len(env.threat_radius_km) == 0:
+            return np.full(len(aims_km), np.inf)
+        d = np.hypot(*(aims_km[:, None, :] - env.threat_xy_km[None]).transpose(2, 0, 1))
+        return (d - env.threat_radius_km[None]).min(axis=1) - self.model.loiter_radius_km
+
+    def _threat_clearance(self, paths: np.ndarray) -> np.ndarray:
+        """Smallest distance (km) of each predicted path to a threat edge: every predicted
+        second, and the chords between the decision instants (what the result measures)."""
+        env = self.cells
+        if len(env.threat_radius_km) == 0:
+            return np.full(len(paths), np.inf)
+        dense = segment_clearance(
+            paths[:, :-1], paths[:, 1:], env.threat_xy_km, env.threat_radius_km
+        ).min(axis=1)
+        per_step = max(1, round(self.step_s))
+        marks = paths[:, ::per_step]
+        if marks.shape[1] >= 2:
+            chords = segment_clearance(
+                marks[:, :-1], marks[:, 1:], env.threat_xy_km, env.threat_radius_km
+            ).min(axis=1)
+            dense = np.minimum(dense, chords)
+        return dense
+
+    @staticmethod
+    def _separation(path: np.ndarray, settled: list[np.ndarray]) -> float:
+        """Smallest distance (km) between ``path`` and any settled path at the same instant."""
+        if not settled:
+            return float(np.inf)
+        others = np.stack(settled)  # (K, S + 1, 2)
+        d = np.hypot(*(others - path[None]).transpose(2, 0, 1))
+        return float(d.min())

@@ -1,0 +1,100 @@
+"""ACOAPF baseline: ant colony optimisation with an artificial potential field (the paper's
+section 4.2, Algorithm 2, after its ref. [27]).
+
+The paper defines it by difference from HAPF-ACO: "a distributed ACO algorithm with an improved
+transition rule *without considering the range constraint*, and the APF is introduced *without
+considering the dynamic updating of the TPM*". So this planner is HAPF-ACO
+(``planner.hapf_aco.HapfAcoPlanner``: topology eqs 1-3, probe update eqs 17-18, APF eqs 23-27,
+pheromone eqs 28-34, transition rules eqs 35-37 with the N_t escape) with exactly two things
+taken out, and nothing else changed, so a comparison isolates what the paper claims they add:
+
+1. **No forecast update (eqs 19-22).** The TPM is initialised from the priors (eqs 9-16) and
+   updated by what the sensors see (eqs 17-18), but it is never propagated with the targets'
+   motion models: the swarm believes the targets stay where the prior put them.
+2. **No range term (C_r in eqs 35 and 37).** The planner neither keeps a return slack nor flies
+   home; it plans as if L_max were infinite.
+
+Safety constraints still hold: C_m (only turn-limited candidates), C_t (threat segments and the
+viability kernel of ``planner.constraints.SafetyModel``) and C_c (cells claimed in priority
+order) are the shared code of HAPF-ACO. Range is physics, not planning: a UAV that ignores it
+runs out of fuel. **Fair treatment of range (our choice):** when a UAV's distance flown leaves
+less than one diagonal step (sqrt(2) cells) of its L_max, it stops flying -- it is reported
+``done`` at its last cell, holds there and takes no further part (no looks, no engagements,
+no coverage gain, not counted for separation), and it is not ``returned`` because it is not at its
+start. So an ACOAPF run never records a range violation, and the cost of ignoring C_r shows up
+as UAVs lost before the end of the mission and a low ``returned_count``. With an infinite L_max
+(the paper's 2-UAV experiment) this rule never fires.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from planner.engagement import EngagementOutcome
+from planner.hapf_aco import HapfAcoPlanner, StepDecision
+from planner.scenario import Scenario, UavStart
+from planner.sensor_model import SensorReport
+from planner.target_probability_map import TargetProbabilityMaps
+
+
+class StaticTargetProbabilityMaps(TargetProbabilityMaps):
+    """TPMs without the forecast update of eqs 19-22: initialised (eqs 9-16) and probe-updated
+    (eqs 17-18, renormalised by eq 16) like HAPF-ACO's, but the targets are believed to stay put."""
+
+    def forecast(self) -> None:
+        """No motion model: the maps keep their mass where the last look left it."""
+        self.steps += 1
+
+
+def fuel_exhausted(distance_km: np.ndarray, max_range_km: float, cell_km: float) -> np.ndarray:
+    """C_r as physics: True where the next step (up to one diagonal, sqrt(2) cells) could take
+    the UAV past L_max. Always False for an unbounded range."""
+    if not math.isfinite(max_range_km):
+        return np.zeros(np.shape(distance_km), dtype=bool)
+    return np.asarray(distance_km) + math.sqrt(2.0) * cell_km > max_range_km + 1e-9
+
+
+class AcoApfPlanner(HapfAcoPlanner):
+    """ACOAPF (section 4.2, Algorithm 2): HAPF-ACO without the TPM forecast and the range term."""
+
+    algorithm = "acoapf"
+
+    def __init__(self, scenario: Scenario, starts: Sequence[UavStart], seed: int) -> None:
+        #: The airframe's real range (fuel), which the planner itself does not consider.
+        self.fuel_range_km = scenario.config.max_range_km
+        super().__init__(scenario.with_config(max_range_km=math.inf), starts, seed)
+        self.tpm = StaticTargetProbabilityMaps(scenario.targets, self.cfg, self.n)
+        self.flown_km = np.zeros(self.n)
+        self.out_of_fuel = np.zeros(self.n, dtype=bool)
+        self._last_cells = self.cells.copy()
+
+    def step(
+        self,
+        cells: np.ndarray,
+        headings: np.ndarray,
+        reports: Sequence[SensorReport | None],
+        engagements: Sequence[EngagementOutcome | None] | None = None,
+        active: np.ndarray | None = None,
+    ) -> StepDecision:
+        """HAPF-ACO's step (section 3.5) with the two omissions above; UAVs out of fuel are
+        passed to it as inactive, so they hold and the others keep clear of them (C_c)."""
+        cells = np.asarray(cells, dtype=np.int64).reshape(self.n, 2)
+        self.flown_km += np.hypot(*((cells - self._last_cells) * self.cfg.cell_km).T)
+        self._last_cells = cells.copy()
+        self.out_of_fuel |= fuel_exhausted(self.flown_km, self.fuel_range_km, self.cfg.cell_km)
+        reachable = (
+            np.ones(self.n, dtype=bool) if active is None else np.asarray(active, dtype=bool)
+        )
+        decision = super().step(
+            cells, headings, reports, engagements, reachable & ~self.out_of_fuel
+        )
+        return StepDecision(
+            decision.next_cells,
+            decision.next_headings,
+            decision.engage & ~self.out_of_fuel,
+            decision.done | self.out_of_fuel,
+            decision.modes,
+        )

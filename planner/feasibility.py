@@ -1,0 +1,83 @@
+"""The candidate moves of every UAV and which of them the hard constraints of eq 5 allow.
+
+For each UAV: the turn-limited candidate cells Omega (C_m, ``planner.grid.candidate_moves``),
+whether the move is threat-safe and viable (C_t and the area edge,
+``planner.constraints.SafetyModel.move_allowed``), and the range slack after it (C_r):
+``L_max - (L_past + step + D_left + reserve)``, with D_left the shortest threat-avoiding path
+home (``SafetyModel.distance_home_km``). This is the constraint part of HAPF-ACO's decision
+(section 3.4), written as one pure function so planners that choose differently (the PSO
+baseline) share it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from planner.config import PlannerConfig
+from planner.constraints import SafetyModel
+from planner.grid import HEADING_LENGTHS, Grid, candidate_moves
+
+
+@dataclass(frozen=True)
+class MoveOptions:
+    """Candidate moves (N UAVs x C candidates) and what the constraints say about them."""
+
+    cells: np.ndarray  # (N, C, 2) int, candidate next cells
+    headings: np.ndarray  # (N, C) int, heading after the move
+    moves: np.ndarray  # (N, C, 2) float, move vectors in cells
+    step_km: np.ndarray  # (N, C) leg length
+    allowed: np.ndarray  # (N, C) bool: C_m and C_t (and the area)
+    home_km: np.ndarray  # (N, C) D_left(k+1): shortest safe path home from the candidate
+    slack_km: np.ndarray  # (N, C) range slack after the move (inf when L_max is)
+    feasible: np.ndarray  # (N, C) bool: allowed and in range (safety only if range cannot be kept)
+    freedom: np.ndarray  # (N, C) int: allowed moves after this one (``SafetyModel.freedom``)
+
+
+def feasible_moves(
+    cells: np.ndarray,
+    headings: np.ndarray,
+    distance_km: np.ndarray,
+    home_flat: tuple[int, ...],
+    known_threats: np.ndarray,
+    safety_model: Callable[[np.ndarray], SafetyModel],
+    cfg: PlannerConfig,
+    grid: Grid,
+) -> MoveOptions:
+    """Eq 5's C_m, C_t and C_r over the candidate set Omega of eqs 35-37, for N UAVs.
+
+    ``known_threats[i]`` (N, T) bool says which threats UAV i knows; ``safety_model(known)``
+    returns the (cached) model of one such set, shared by every UAV that knows the same
+    threats. ``distance_km`` is L_past and ``home_flat`` every UAV's home cell (flat index).
+    """
+    cand, cand_head = candidate_moves(cells, headings, cfg.max_turn_deg)
+    moves = (cand - cells[:, None, :]).astype(float)
+    step_km = HEADING_LENGTHS[cand_head] * cfg.cell_km
+    allowed = np.zeros(cand_head.shape, dtype=bool)
+    home_km = np.zeros(cand_head.shape)
+    freedom = np.zeros(cand_head.shape, dtype=np.int64)
+    cx = np.clip(cand[..., 0], 0, grid.nx - 1)
+    cy = np.clip(cand[..., 1], 0, grid.ny - 1)
+    threat_sets, group = np.unique(known_threats, axis=0, return_inverse=True)
+    for g, known in enumerate(threat_sets):
+        members = np.flatnonzero(group.ravel() == g)
+        model = safety_model(known)
+        here = np.broadcast_to(cells[members][:, None, :], cand[members].shape)
+        allowed[members] = model.move_allowed(here, cand_head[members])
+        freedom[members] = model.freedom[cand_head[members], cx[members], cy[members]]
+        fields = model.distances_home_km(tuple(home_flat))  # (N, nx, ny), cached per model
+        home_km[members] = fields[members[:, None], cx[members], cy[members]]
+    home_km = np.where(grid.inside(cand), home_km, np.inf)
+    if np.isfinite(cfg.max_range_km):
+        slack = cfg.max_range_km - (
+            distance_km[:, None] + step_km + home_km + cfg.return_reserve_km
+        )
+    else:
+        slack = np.full(home_km.shape, np.inf)
+    slack = np.where(np.isfinite(home_km), slack, -np.inf)
+    feasible = allowed & (slack >= 0)
+    # If range cannot be kept (only when the start is boxed in), keep safety only.
+    feasible = np.where(feasible.any(axis=1, keepdims=True), feasible, allowed)
+    return MoveOptions(cand, cand_head, moves, step_km, allowed, home_km, slack, feasible, freedom)

@@ -1,0 +1,265 @@
+"""The figures of the paper's section 4, from an experiment's results (matplotlib, no display).
+
+=========================== ================= =================
+figure                      efficiency (4.2)  swarm (4.3)
+=========================== ================= =================
+paths of one run            Fig. 3            Fig. 8
+coverage over the steps     Fig. 4            Fig. 9
+engaged over the steps      Fig. 5            Fig. 10
+coverage metrics (box)      Fig. 6            Fig. 11
+engaged per run (box)       Fig. 7            Fig. 12
+separation over the steps   (2 UAVs)          Fig. 13
+=========================== ================= =================
+
+Curves are the mean over the seeds with a band of one standard deviation; box plots show every
+seed. The path figures reuse ``swarmplan.figures.plot_paths`` on the first seed of each
+(scenario, algorithm).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from swarmplan.experiment_stats import groups
+from swarmplan.figures import plot_paths, plt
+
+FIGURE_NUMBERS = {
+    "efficiency": {
+        "paths": 3,
+        "coverage": 4,
+        "engaged": 5,
+        "coverage_metrics": 6,
+        "engaged_box": 7,
+        "separation": 13,
+    },
+    "swarm": {
+        "paths": 8,
+        "coverage": 9,
+        "engaged": 10,
+        "coverage_metrics": 11,
+        "engaged_box": 12,
+        "separation": 13,
+    },
+}
+COLOURS = {"pso": "tab:green", "acoapf": "tab:orange", "hapf-aco": "tab:blue"}
+
+
+def _colour(algorithm: str) -> str:
+    return COLOURS.get(algorithm, "tab:gray")
+
+
+def _curves(runs: Sequence[dict], key: str, scale: float = 1.0) -> np.ndarray:
+    length = min(len(r[key]) for r in runs)
+    return np.array(
+        [[np.nan if v is None else float(v) * scale for v in r[key][:length]] for r in runs]
+    )
+
+
+def _scenarios(results: Sequence[dict]) -> list[str]:
+    return list(dict.fromkeys(scenario for scenario, _ in groups(results)))
+
+
+def _label(scenario: str, runs: Sequence[dict]) -> str:
+    return f"{scenario} ({runs[0]['uav_count']} UAVs)"
+
+
+def plot_mean_curves(
+    results: Sequence[dict], key: str, ylabel: str, title: str, path: Path, scale: float = 1.0
+) -> Path:
+    """Mean (and +-1 std band) over the seeds of a per-step curve, one panel per scenario."""
+    scenarios = _scenarios(results)
+    grouped = groups(results)
+    fig, axes = plt.subplots(1, len(scenarios), figsize=(6 * len(scenarios), 4.2), squeeze=False)
+    for ax, scenario in zip(axes[0], scenarios, strict=True):
+        for (sc, algorithm), runs in grouped.items():
+            if sc != scenario:
+                continue
+            curves = _curves(runs, key, scale)
+            mean, std = np.nanmean(curves, axis=0), np.nanstd(curves, axis=0)
+            steps = np.arange(len(mean))
+            ax.plot(steps, mean, color=_colour(algorithm), label=f"{algorithm} (n={len(runs)})")
+            ax.fill_between(
+                steps, mean - std, mean + std, color=_colour(algorithm), alpha=0.15, lw=0
+            )
+        ax.set_title(
+            _label(scenario, [r for (sc, _), rs in grouped.items() if sc == scenario for r in rs])
+        )
+        ax.set_xlabel("decision step")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_boxes(
+    results: Sequence[dict], metrics: Sequence[tuple[str, str, float]], title: str, path: Path
+) -> Path:
+    """Box plots (every seed as a point) of per-run metrics: one panel per (metric, scenario)."""
+    scenarios = _scenarios(results)
+    grouped = groups(results)
+    fig, axes = plt.subplots(
+        len(metrics),
+        len(scenarios),
+        figsize=(5 * len(scenarios), 3.8 * len(metrics)),
+        squeeze=False,
+    )
+    for row, (key, ylabel, scale) in enumerate(metrics):
+        for col, scenario in enumerate(scenarios):
+            ax = axes[row, col]
+            names, data = [], []
+            for (sc, algorithm), runs in grouped.items():
+                if sc == scenario:
+                    names.append(algorithm)
+                    data.append([r[key] * scale for r in runs if r[key] is not None])
+            ax.boxplot(data, tick_labels=names, showmeans=True)
+            for k, values in enumerate(data):
+                jitter = (
+                    np.linspace(-0.12, 0.12, len(values))
+                    if len(values) > 1
+                    else np.zeros(len(values))
+                )
+                ax.plot(k + 1 + jitter, values, ".", color=_colour(names[k]), alpha=0.6, ms=4)
+            ax.set_ylabel(ylabel)
+            ax.set_title(scenario)
+            ax.grid(alpha=0.3, axis="y")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_separation(results: Sequence[dict], title: str, path: Path) -> Path:
+    """Fig. 13: per step, the minimum distance between UAVs (lowest over the seeds, and its
+    mean), the average nearest-neighbour distance, and the safety distance d_min."""
+    grouped = groups(results)
+    keys = list(grouped)
+    cols = min(3, len(keys))
+    rows = -(-len(keys) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.5 * cols, 3.8 * rows), squeeze=False)
+    for ax, (scenario, algorithm) in zip(axes.ravel(), keys, strict=False):
+        runs = grouped[(scenario, algorithm)]
+        low = _curves(runs, "min_separation_curve")
+        mean_nn = _curves(runs, "mean_min_separation_curve")
+        steps = np.arange(low.shape[1])
+        with np.errstate(all="ignore"), _Quiet():
+            ax.plot(
+                steps,
+                np.nanmean(mean_nn, axis=0),
+                color="tab:blue",
+                lw=1,
+                label="average nearest distance",
+            )
+            ax.plot(
+                steps,
+                np.nanmean(low, axis=0),
+                color="tab:orange",
+                lw=1,
+                label="minimum distance (mean)",
+            )
+            ax.plot(
+                steps,
+                np.nanmin(low, axis=0),
+                color="tab:red",
+                lw=1,
+                label="minimum distance (lowest)",
+            )
+        d_min = runs[0]["min_separation_limit_km"]
+        ax.axhline(d_min, color="black", ls="--", lw=1, label=f"d_min = {d_min:g} km")
+        ax.set_yscale("log")
+        ax.set_title(f"{scenario} / {algorithm}", fontsize=9)
+        ax.set_xlabel("decision step")
+        ax.set_ylabel("distance (km)")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    for ax in axes.ravel()[len(keys) :]:
+        ax.set_visible(False)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+class _Quiet:
+    """Silence numpy's all-NaN slice warnings (steps where fewer than two UAVs fly)."""
+
+    def __enter__(self):
+        import warnings
+
+        self._ctx = warnings.catch_warnings()
+        self._ctx.__enter__()
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return self
+
+    def __exit__(self, *exc):
+        return self._ctx.__exit__(*exc)
+
+
+def write_experiment_figures(
+    experiment: str, results: Sequence[dict], path_runs: Sequence[dict], out_dir: Path
+) -> list[Path]:
+    """Every figure of ``experiment`` into ``out_dir``; ``path_runs`` are the runs (with their
+    tracks) whose paths are drawn."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    n = FIGURE_NUMBERS[experiment]
+    written = []
+    for run in path_runs:
+        name = (
+            f"fig{n['paths']:02d}_paths_{run['scenario']}_{run['algorithm']}_seed{run['seed']}.png"
+        )
+        written.append(plot_paths(run, out_dir / name))
+    written.append(
+        plot_mean_curves(
+            results,
+            "coverage_curve",
+            "coverage J_E (%)",
+            f"Fig. {n['coverage']}: coverage over the decision steps",
+            out_dir / f"fig{n['coverage']:02d}_coverage.png",
+            scale=100,
+        )
+    )
+    written.append(
+        plot_mean_curves(
+            results,
+            "engaged_curve",
+            "targets engaged",
+            f"Fig. {n['engaged']}: targets engaged over the decision steps",
+            out_dir / f"fig{n['engaged']:02d}_engaged.png",
+        )
+    )
+    written.append(
+        plot_boxes(
+            results,
+            [
+                ("coverage", "coverage after the last step (%)", 100),
+                ("coverage_slope_50", "slope over the first 50 steps (%/step)", 100),
+            ],
+            f"Fig. {n['coverage_metrics']}: coverage metrics",
+            out_dir / f"fig{n['coverage_metrics']:02d}_coverage_metrics.png",
+        )
+    )
+    written.append(
+        plot_boxes(
+            results,
+            [("engaged_count", "targets engaged per run", 1)],
+            f"Fig. {n['engaged_box']}: mission execution efficiency",
+            out_dir / f"fig{n['engaged_box']:02d}_engaged_box.png",
+        )
+    )
+    written.append(
+        plot_separation(
+            results,
+            f"Fig. {n['separation']}: separation between UAVs",
+            out_dir / f"fig{n['separation']:02d}_separation.png",
+        )
+    )
+    return written

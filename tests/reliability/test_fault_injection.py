@@ -1,0 +1,193 @@
+"""Fault injection: the daemon and the simulator over a link that loses, delays, duplicates and
+reorders datagrams (tests/reliability/udp_fault_relay.py), and the protocol pieces that make
+them cope: acknowledged retries, stale-telemetry detection by timestamps, and engagements that
+happen once however often (and in whatever order) their requests arrive."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MAVLINK20", "1")
+
+from collections import deque  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
+from reliability_harness import last_json, start_swarmplan, stop  # noqa: E402
+from udp_fault_relay import FaultProfile, FaultRelay  # noqa: E402
+
+from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
+from mavlink_bridge.guided_commands import engagement_command  # noqa: E402
+from mavlink_bridge.vehicle_state import CommandAck, VehicleState  # noqa: E402
+from planner.scenario import load_scenario  # noqa: E402
+from sim_gateway.simulator import SimOptions, Simulator  # noqa: E402
+
+STEPS = 15
+
+
+def _frame(msg, seq: int, sysid: int = 255, compid: int = 190) -> bytes:
+    mav = ml.MAVLink(None, sysid, compid)
+    mav.seq = seq % 256
+    return bytes(msg.pack(mav))
+
+
+# ---------------------------------------------------------------------- the mission over a bad link
+
+
+@pytest.mark.timeout(150)
+def test_ten_uav_mission_at_20_percent_loss_and_100ms_jitter_has_no_violations(tmp_path: Path):
+    scenario = load_scenario("paper-10uav")
+    daemon = MissionDaemon(
+        scenario,
+        DaemonOptions(
+            connect=["udpin:127.0.0.1:0"],
+            seed=4,
+            steps=STEPS,
+            lockstep=True,  # simulated time waits for the daemon: as fast as the link allows
+            lost_after_s=3.0,
+            discovery_timeout_s=30,
+            command_retry_s=0.2,  # a little above this link's worst round trip (2 x 100 ms)
+            time_scale=100,
+            tlog_path=tmp_path / "m.tlog",
+        ),
+    )
+    link = daemon.connect()
+    profile = FaultProfile(loss=0.2, jitter_s=0.1, duplicate=0.05, reorder=0.05)
+    relay = FaultRelay(link.endpoints[0].port, scenario.uav_count, profile, seed=4)
+    relay.start()
+    log = tmp_path / "sim.log"
+    sim = start_swarmplan(
+        ["sim", "--scenario", "paper-10uav", "--seed", "4", "--lockstep", "--speedup", "100",
+         "--per-vehicle-ports", str(relay.base_port), "--quiet"],
+        log,
+    )  # fmt: skip
+    try:
+        result = daemon.fly().result
+    finally:
+        stop(sim)
+        relay.stop()
+    summary = last_json(log)
+    c = relay.counters
+    # the link really was that bad, both ways
+    assert 0.16 < c.dropped / c.received < 0.24
+    assert c.duplicated > 50 and c.reordered > 50 and c.by_direction["down"] > 500
+    # and the mission completed, every UAV every step, with no safety violation
+    assert result["steps"] == STEPS
+    assert all(len(u["track_km"]) == STEPS + 1 for u in result["uavs"])
+    assert result["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
+    assert result["lost_uavs"] == []
+    assert summary is not None and summary["fence_breaches"] == 0
+    # the simulator saw the duplicates and dropped them; no engagement was lost or doubled
+    assert summary["duplicates"] > 0
+    assert result["engaged_count"] == len(scenario.targets) - summary["targets_left"]
+
+
+# ---------------------------------------------------------------------- engagements happen once
+
+
+@pytest.fixture
+def sim() -> Simulator:
+    options = SimOptions(gcs_port=9, airborne=True, boot_s=0.0)  # sends go nowhere
+    simulator = Simulator(load_scenario("paper-2uav"), options)
+    yield simulator
+    simulator.close()
+
+
+def test_duplicated_and_reordered_engagement_requests_engage_once(sim: Simulator):
+    engaged = []
+    sim.engage = lambda index: engaged.append(index) or type(sim).engage(sim, index)
+    requests = {
+        seq: ml.MAVLink_command_long_message(
+            1, 100, ml.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 0, 1, seq, 0, 0, 0
+        )
+        for seq in (1, 2, 3)
+    }
+    # sequence numbers 1, 2, 3 sent (MAVLink seq 10, 11, 12); the link duplicates every one,
+    # delivers 3 before 2, and a retry of 1 (new MAVLink seq) comes last
+    order = [(1, 10), (1, 10), (3, 12), (2, 11), (3, 12), (2, 11), (1, 13)]
+    for engagement, seq in order:
+        sim.handle_datagram(_frame(requests[engagement], seq))
+    assert engaged == [0, 0]  # engagement 1 and 3 once each; 2 arrived overtaken (stale)
+    assert sim.stats.duplicates == 3
+    assert sim.stats.stale_commands == 1
+    assert sorted(sim.vehicles[0].engagements._by_sequence) == [1, 3]
+
+
+def test_a_reposition_overtaken_on_the_way_is_not_applied(sim: Simulator):
+    vehicle = sim.vehicles[0]
+    lat0, lon0 = sim.origin.lat_deg, sim.origin.lon_deg
+
+    def reposition(north_deg: float):
+        return ml.MAVLink_command_int_message(
+            1, 1, ml.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, ml.MAV_CMD_DO_REPOSITION, 0, 0,
+            -1, 1, 0, 0, round((lat0 + north_deg) * 1e7), round((lon0 + 0.3) * 1e7), 500,
+        )  # fmt: skip
+
+    sim.handle_datagram(_frame(reposition(0.5), 21))  # the newer target arrives first
+    newer = (vehicle.guided.x_m, vehicle.guided.y_m)
+    sim.handle_datagram(_frame(reposition(0.1), 20))  # the older one, delayed on the way
+    assert (vehicle.guided.x_m, vehicle.guided.y_m) == newer
+    assert sim.stats.stale_commands == 1
+    # a sender that restarted its counter far behind (a restarted daemon) is obeyed
+    sim.handle_datagram(_frame(reposition(0.2), 200))
+    assert (vehicle.guided.x_m, vehicle.guided.y_m) != newer
+
+
+# ---------------------------------------------------------------------- the daemon's side
+
+
+class _Link:
+    mav = None
+
+
+def _position(time_boot_ms: int, lat: float) -> ml.MAVLink_message:
+    msg = ml.MAVLink_global_position_int_message(
+        time_boot_ms, round(lat * 1e7), 1490000000, 600000, 500000, 10000, 0, 0, 9000
+    )
+    msg._header = ml.MAVLink_header(msg.id, srcSystem=1, srcComponent=1)
+    return msg
+
+
+def test_stale_positions_are_dropped_and_a_reboot_is_followed():
+    v = VehicleState(1, _Link())
+    v.handle(_position(5000, -35.0))
+    v.handle(_position(4000, -35.5))  # delayed: older than what we have
+    assert (v.time_boot_ms, v.lat_deg) == (5000, pytest.approx(-35.0))
+    assert v.stale_positions == 1
+    v.handle(_position(6000, -35.1))
+    assert v.lat_deg == pytest.approx(-35.1)
+    for t in (100, 200, 300):  # the clock restarted: a reboot, not reordering
+        v.handle(_position(t, -35.2))
+    assert (v.time_boot_ms, v.lat_deg) == (300, pytest.approx(-35.2))
+
+
+def _look(index: int, url: str) -> ml.MAVLink_message:
+    msg = ml.MAVLink_camera_image_captured_message(
+        0, 0, 0, -353000000, 1490000000, 0, 0, [1, 0, 0, 0], index, 1, url.encode()
+    )
+    msg._header = ml.MAVLink_header(msg.id, srcSystem=1, srcComponent=100)
+    return msg
+
+
+def test_look_parts_duplicated_or_out_of_order_merge_into_one_look():
+    v = VehicleState(1, _Link())
+    v.handle(_look(7, "look+:3,3"))  # the continuation overtook its first part
+    assert v.latest_look == -1  # not a look yet
+    v.handle(_look(7, "look:0,1;-2,0"))
+    v.handle(_look(7, "look:0,1;-2,0"))  # duplicated
+    v.handle(_look(7, "look+:3,3"))
+    assert v.latest_look == 7
+    assert sorted(v.looks[7].offsets) == [(-2, 0), (0, 1), (3, 3)]
+    v.handle(_look(4_000_000_000, "look:"))  # an absurd look number cannot stall later looks
+    assert v.latest_look == 7
+
+
+def test_a_late_engagement_ack_is_not_taken_for_the_next_request():
+    v = VehicleState(1, _Link())
+    cmd = engagement_command(v, 5)
+    cmd._serial_before = 0
+    late = CommandAck(ml.MAV_CMD_IMAGE_START_CAPTURE, 0, 9, 0.0, 1, 100, 4)  # answers seq 4
+    mine = CommandAck(ml.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 0.0, 2, 100, 5)
+    v.ack_log = deque([late, mine])
+    assert not cmd.answered_by(late) and cmd.answered_by(mine)

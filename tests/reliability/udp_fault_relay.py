@@ -1,0 +1,155 @@
+"""A UDP relay that loses, delays, duplicates and reorders datagrams, for fault injection between
+the planner daemon and the simulator on loopback.
+
+Wiring: the simulator runs with ``--per-vehicle-ports BASE`` (vehicle ``i`` sends to
+``BASE + i``); the relay binds ``BASE .. BASE + N - 1`` and forwards what vehicle ``i`` sends to
+the daemon's port *from its socket ``i``*, so the daemon sees each vehicle at its own address and
+its replies come back to socket ``i``, which forwards them to the vehicle. Each direction of each
+datagram independently:
+
+* is dropped with probability ``loss``;
+* waits ``delay_s`` plus a uniform ``[0, jitter_s]`` (so datagrams overtake each other);
+* with probability ``reorder``, waits ``reorder_hold_s`` more (it arrives after later ones);
+* with probability ``duplicate``, is sent twice (the copy with its own delay).
+
+All randomness comes from one ``random.Random(seed)``; the timing of the operating system still
+varies, so a run is reproducible in its fault rates, not to the datagram.
+"""
+
+from __future__ import annotations
+
+import heapq
+import random
+import selectors
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+
+Address = tuple[str, int]
+
+
+@dataclass(frozen=True)
+class FaultProfile:
+    loss: float = 0.0
+    delay_s: float = 0.0
+    jitter_s: float = 0.0
+    duplicate: float = 0.0
+    reorder: float = 0.0
+    reorder_hold_s: float = 0.05
+
+
+@dataclass
+class RelayCounters:
+    received: int = 0
+    forwarded: int = 0
+    dropped: int = 0
+    duplicated: int = 0
+    reordered: int = 0
+    by_direction: dict[str, int] = field(default_factory=lambda: {"up": 0, "down": 0})
+
+
+def bind_port_block(count: int, host: str = "127.0.0.1", tries: int = 50) -> list[socket.socket]:
+    """``count`` UDP sockets bound to consecutive free ports (the first one's port is the base)."""
+    for _ in range(tries):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.bind((host, 0))
+            base = probe.getsockname()[1]
+        if base + count > 65535:
+            continue
+        socks: list[socket.socket] = []
+        try:
+            for k in range(count):
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(s)
+                s.bind((host, base + k))
+            return socks
+        except OSError:
+            for s in socks:
+                s.close()
+    raise RuntimeError(f"no block of {count} free UDP ports on {host}")
+
+
+class FaultRelay(threading.Thread):
+    """Relays N vehicles to one daemon port through a faulty link (see the module docstring)."""
+
+    def __init__(self, daemon_port: int, count: int, profile: FaultProfile, seed: int) -> None:
+        super().__init__(daemon=True, name="fault-relay")
+        self.daemon_addr: Address = ("127.0.0.1", daemon_port)
+        self.profile = profile
+        self.rng = random.Random(seed)
+        self.socks = bind_port_block(count)
+        for s in self.socks:
+            s.setblocking(False)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        self.base_port = self.socks[0].getsockname()[1]
+        self.vehicle_addr: list[Address | None] = [None] * count
+        self.counters = RelayCounters()
+        self.enabled = threading.Event()  # cleared: a plain relay (no faults)
+        self.enabled.set()
+        self._queue: list[tuple[float, int, int, bytes, Address]] = []
+        self._order = 0
+        self._halt = threading.Event()
+        self._selector = selectors.DefaultSelector()
+        for index, s in enumerate(self.socks):
+            self._selector.register(s, selectors.EVENT_READ, index)
+
+    def _schedule(self, index: int, data: bytes, dest: Address, direction: str) -> None:
+        p, rng, c = self.profile, self.rng, self.counters
+        c.received += 1
+        faulty = self.enabled.is_set()
+        if faulty and rng.random() < p.loss:
+            c.dropped += 1
+            return
+        copies = 2 if faulty and rng.random() < p.duplicate else 1
+        c.duplicated += copies - 1
+        now = time.monotonic()
+        for _ in range(copies):
+            wait = p.delay_s + rng.uniform(0.0, p.jitter_s) if faulty else 0.0
+            if faulty and rng.random() < p.reorder:
+                wait += p.reorder_hold_s
+                c.reordered += 1
+            self._order += 1
+            heapq.heappush(self._queue, (now + wait, self._order, index, data, dest))
+            c.by_direction[direction] += 1
+
+    def _release_due(self) -> None:
+        now = time.monotonic()
+        while self._queue and self._queue[0][0] <= now:
+            _, _, index, data, dest = heapq.heappop(self._queue)
+            try:
+                self.socks[index].sendto(data, dest)
+                self.counters.forwarded += 1
+            except OSError:
+                pass  # nobody listening (yet / any more): the datagram is lost, as on a radio
+
+    def run(self) -> None:
+        while not self._halt.is_set():
+            timeout = 0.005
+            if self._queue:
+                timeout = max(0.0, min(timeout, self._queue[0][0] - time.monotonic()))
+            for key, _ in self._selector.select(timeout):
+                index: int = key.data
+                sock = self.socks[index]
+                for _ in range(256):
+                    try:
+                        data, addr = sock.recvfrom(65535)
+                    except (BlockingIOError, InterruptedError):
+                        break
+                    except OSError:
+                        continue  # ICMP port unreachable from an earlier send
+                    if addr == self.daemon_addr:
+                        target = self.vehicle_addr[index]
+                        if target is not None:
+                            self._schedule(index, data, target, "down")
+                    else:
+                        self.vehicle_addr[index] = addr
+                        self._schedule(index, data, self.daemon_addr, "up")
+            self._release_due()
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join(5)
+        self._selector.close()
+        for s in self.socks:
+            s.close()

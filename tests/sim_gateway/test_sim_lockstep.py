@@ -1,0 +1,94 @@
+"""Lockstep: simulated time moves only as far as the ground station grants (SYSTEM_TIME without
+UTC), the vehicles say where they hold, a release lets it run, a real clock is not a grant."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from sim_harness import GroundStation, start_sim
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _times(gcs, sysid: int, seconds: float) -> list[int]:
+    """time_boot_ms of every GLOBAL_POSITION_INT of one vehicle heard within ``seconds``."""
+    out = []
+    deadline = time.monotonic() + seconds
+    while (left := deadline - time.monotonic()) > 0:
+        m = gcs.wait("GLOBAL_POSITION_INT", sysid, timeout=left)
+        if m is not None:
+            out.append(m.time_boot_ms)
+    return out
+
+
+def test_time_holds_until_granted_then_runs_to_the_horizon(gcs, sim_factory):
+    running = sim_factory(lockstep=True, speedup=1.0, airborne=True)
+    sim = running.sim
+    gcs.heartbeat()
+    held = _times(gcs, 1, 1.0)
+    assert held and set(held) == {0}  # nobody granted anything: simulated time stays at 0
+    # a ground station's real clock (UTC set) is not a grant
+    gcs.mav.system_time_send(1_700_000_000_000_000, 5000)
+    assert set(_times(gcs, 2, 0.5)) == {0}
+    # grant 10 s: the vehicles run there at once (speedup 1 would take 10 s) and hold
+    gcs.mav.system_time_send(0, 10_000)
+    marker = gcs.wait("GLOBAL_POSITION_INT", 1, timeout=5, cond=lambda m: m.time_boot_ms > 0)
+    assert marker is not None and marker.time_boot_ms == 10_000
+    assert set(_times(gcs, 1, 0.5)) == {10_000}
+    assert sim.sim_time_s == 10.0 and sim.decision_step == 1
+    # the look of that instant came before the hold marker
+    look = [m for m in [gcs.wait("CAMERA_IMAGE_CAPTURED", 1, timeout=0.1)] if m]
+    assert all(m.time_boot_ms <= 10_000 for m in look)
+    # release: it runs on at its own pace
+    gcs.mav.system_time_send(0, 0xFFFFFFFF)
+    later = gcs.wait("GLOBAL_POSITION_INT", 1, timeout=5, cond=lambda m: m.time_boot_ms > 10_000)
+    assert later is not None
+    assert sim.summary()["lockstep_grants"] == 1  # one horizon granted; the release is not one
+
+
+def test_same_commands_at_the_same_holds_fly_the_same_path():
+    """Two lockstep runs, a guided target sent at the same hold: identical positions, however
+    long the ground station took before and after its command."""
+    tracks = []
+    for pause in (0.0, 0.4):
+        gcs = GroundStation()
+        running = start_sim(gcs.port, lockstep=True, airborne=True, seed=3)
+        try:
+            gcs.ensure_peer()
+            gcs.heartbeat()
+            gcs.mav.system_time_send(0, 10_000)
+            here = gcs.wait("GLOBAL_POSITION_INT", 1, 5, cond=lambda m: m.time_boot_ms == 10_000)
+            assert here is not None
+            time.sleep(pause)
+            ack = gcs.command_int(
+                1, 192, 6, p2=1, x=here.lat + 200_000, y=here.lon - 100_000, z=100.0
+            )
+            assert ack is not None and ack.result == 0
+            time.sleep(pause)
+            gcs.mav.system_time_send(0, 40_000)
+            m = gcs.wait("GLOBAL_POSITION_INT", 1, 5, cond=lambda m: m.time_boot_ms == 40_000)
+            assert m is not None
+            tracks.append((m.lat, m.lon, m.hdg))
+        finally:
+            running.close()
+            gcs.close()
+    assert tracks[0] == tracks[1]
+
+
+def test_fast_and_lockstep_together_is_one_line_exit_2():
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run(
+        [sys.executable, "-m", "swarmplan", "sim", "--fast", "--lockstep", "--gcs-port", "9"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+        cwd=REPO,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--fast and --lockstep" in lines[0]
