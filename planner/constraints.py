@@ -53,11 +53,18 @@ class SafetyModel:
         ix, iy = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny), indexing="ij")
         cells = np.stack([ix, iy], axis=-1)
         start = grid.centre_km(cells)
+        # only moves starting within one diagonal step of a threat circle can touch it
+        if len(self.threat_r):
+            gap = np.hypot(*(start[..., None, :] - self.threat_xy).transpose(3, 0, 1, 2)) - self.threat_r
+            near = gap.min(axis=-1) <= np.sqrt(2) * grid.cell_km + 1e-9
+        else:
+            near = np.zeros(grid.shape, dtype=bool)
         safe = np.zeros((8, grid.nx, grid.ny), dtype=bool)
         for h in range(8):
             nxt = cells + HEADING_STEPS[h]
-            clearance = segment_clearance(start, grid.centre_km(nxt), self.threat_xy, self.threat_r)
-            safe[h] = grid.inside(nxt) & (clearance > 0)
+            clear = np.ones(grid.shape, dtype=bool)
+            clear[near] = segment_clearance(start[near], grid.centre_km(nxt[near]), self.threat_xy, self.threat_r) > 0
+            safe[h] = grid.inside(nxt) & clear
         #: edge_safe[h, x, y]: the move from (x, y) along heading h is inside and clear of threats.
         self.edge_safe = safe
         self.viable = self._viability_kernel()

@@ -10,7 +10,7 @@ headings; with a maximum turn of ``phi_max`` it can reach ``2 * floor(phi_max / 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 
@@ -132,6 +132,7 @@ def disc_overlap(
     return np.array(offsets, dtype=np.int64).reshape(-1, 2), np.array(fractions)
 
 
+@lru_cache(maxsize=8)
 def steps_to_reach(max_turn_deg: float, reach_cells: int) -> np.ndarray:
     """Fewest turn-limited moves from a UAV at the origin with heading h to each cell offset:
     ``steps[h, dx + r, dy + r]`` (r = ``reach_cells``; a large number where the window does not
@@ -160,6 +161,7 @@ def steps_to_reach(max_turn_deg: float, reach_cells: int) -> np.ndarray:
                         steps[h0, x2, y2] = min(steps[h0, x2, y2], depth)
                         nxt.append((h2, x2, y2))
             frontier = nxt
+    steps.setflags(write=False)  # shared by every planner of the process (cached)
     return steps
 
 
