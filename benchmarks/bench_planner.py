@@ -17,7 +17,10 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
-    print(f"{'scenario':<12} {'UAVs':>4} {'run (s)':>9} {'per step (ms)':>14} {'per step per UAV (ms)':>22}")
+    print(
+        f"{'scenario':<12} {'UAVs':>4} {'run (s)':>9} {'per step (ms)':>14}"
+        f" {'per step per UAV (ms)':>22}"
+    )
     baseline = None
     for name in ("paper-2uav", "paper-10uav", "paper-20uav"):
         scenario = load_scenario(name)

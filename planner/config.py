@@ -136,7 +136,10 @@ class PlannerConfig:
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"parameter {name!r} must be > 0, got {getattr(self, name)!r}")
-        probabilities = "p_detect p_false tpm_decay_tau confirm_threshold pursue_threshold q0 env_perception_lambda"
+        probabilities = (
+            "p_detect p_false tpm_decay_tau confirm_threshold pursue_threshold q0"
+            " env_perception_lambda"
+        )
         for name in probabilities.split():
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(
@@ -179,7 +182,8 @@ class PlannerConfig:
         unknown = sorted(set(values) - set(known))
         if unknown:
             raise ConfigError(
-                f"unknown parameter {unknown[0]!r}; known parameters are listed in docs/parameters.md"
+                f"unknown parameter {unknown[0]!r}; known parameters are listed in"
+                " docs/parameters.md"
             )
         clean: dict[str, Any] = {}
         for name, value in values.items():

@@ -55,7 +55,10 @@ class SafetyModel:
         start = grid.centre_km(cells)
         # only moves starting within one diagonal step of a threat circle can touch it
         if len(self.threat_r):
-            gap = np.hypot(*(start[..., None, :] - self.threat_xy).transpose(3, 0, 1, 2)) - self.threat_r
+            gap = (
+                np.hypot(*(start[..., None, :] - self.threat_xy).transpose(3, 0, 1, 2))
+                - self.threat_r
+            )
             near = gap.min(axis=-1) <= np.sqrt(2) * grid.cell_km + 1e-9
         else:
             near = np.zeros(grid.shape, dtype=bool)
@@ -63,7 +66,9 @@ class SafetyModel:
         for h in range(8):
             nxt = cells + HEADING_STEPS[h]
             clear = np.ones(grid.shape, dtype=bool)
-            clear[near] = segment_clearance(start[near], grid.centre_km(nxt[near]), self.threat_xy, self.threat_r) > 0
+            clear[near] = segment_clearance(
+                start[near], grid.centre_km(nxt[near]), self.threat_xy, self.threat_r
+            ) > 0
             safe[h] = grid.inside(nxt) & clear
         #: edge_safe[h, x, y]: the move from (x, y) along heading h is inside and clear of threats.
         self.edge_safe = safe

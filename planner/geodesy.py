@@ -46,7 +46,9 @@ def geodetic_to_local_km(
     y = np.zeros(lat.shape)
     moved = (lat != origin.lat_deg) | (lon != origin.lon_deg)
     if moved.any():
-        distance_m, azimuth_deg = vincenty.vdist(origin.lat_deg, origin.lon_deg, lat[moved], lon[moved])
+        distance_m, azimuth_deg = vincenty.vdist(
+            origin.lat_deg, origin.lon_deg, lat[moved], lon[moved]
+        )
         az = np.radians(np.asarray(azimuth_deg, dtype=float))
         x[moved] = np.asarray(distance_m) * np.sin(az) / 1000.0
         y[moved] = np.asarray(distance_m) * np.cos(az) / 1000.0

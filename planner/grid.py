@@ -1,4 +1,5 @@
-"""Mission grid, the eight headings and the candidate cells of a fixed-wing UAV (section 2.1, Fig. 1).
+"""Mission grid, the eight headings and the candidate cells of a fixed-wing UAV
+(section 2.1, Fig. 1).
 
 The area is ``nx x ny`` square cells of side ``cell_km``; cell ``(ix, iy)`` spans
 ``[ix, ix+1) x [iy, iy+1)`` cells and its centre is at ``((ix + 0.5) L, (iy + 0.5) L)`` km, x east,
@@ -82,7 +83,8 @@ class Grid:
         return (np.arange(self.ny) + 0.5) * self.cell_km
 
     def disc_offsets(self, radius_km: float) -> np.ndarray:
-        """Integer offsets (K, 2) of the cells whose centres lie within ``radius_km`` of a centre."""
+        """Integer offsets (K, 2) of the cells whose centres lie within ``radius_km`` of a
+        centre."""
         r = int(np.floor(radius_km / self.cell_km + 1e-9))
         dx, dy = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij")
         keep = np.hypot(dx, dy) * self.cell_km <= radius_km + 1e-9

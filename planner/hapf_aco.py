@@ -268,7 +268,8 @@ class HapfAcoPlanner:
         self, reports: Sequence[SensorReport | None], listen: np.ndarray, hears: np.ndarray
     ) -> None:
         """Section 3.2.1: choose the cell each UAV goes for. Candidates are the cells it just heard
-        a detection in and the cells around its current track (the belief peak moves with the target).
+        a detection in and the cells around its current track (the belief peak moves with the
+        target).
         A cell whose existence probability reaches ``pursue_threshold`` is worth a closer look
         (the attraction of eq 24 toward a rising p); one that reaches ``confirm_threshold`` is a
         confirmed target, and confirmed targets come first, the higher value first. Batched over
@@ -438,8 +439,8 @@ class HapfAcoPlanner:
         last = cornered.astype(np.int64) + 2 * ~opts.feasible[rows, ranked]  # forbidden moves last
         ranked = np.take_along_axis(ranked, np.argsort(last, axis=1, kind="stable"), axis=1)
         return claim_cells(
-            ranked, opts.cells, opts.feasible, positions, flying, cfg.cell_km, cfg.min_separation_km,
-            cfg.separation_sense_km,
+            ranked, opts.cells, opts.feasible, positions, flying, cfg.cell_km,
+            cfg.min_separation_km, cfg.separation_sense_km,
         )  # fmt: skip
 
     def _engage_requests(self, engaging: np.ndarray) -> np.ndarray:
@@ -473,7 +474,8 @@ class HapfAcoPlanner:
         q1 = self.rng.random(n)
         u = self.rng.random(n)
 
-        # heuristic information: unsearched share and target probability in the candidate's footprint
+        # heuristic information: unsearched share and target probability in the candidate's
+        # footprint
         fp = cand[:, :, None, :] + self.footprint[None, None, :, :]  # (N, C, K, 2)
         fp_inside = grid.inside(fp)
         fx = np.clip(fp[..., 0], 0, grid.nx - 1)

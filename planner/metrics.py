@@ -59,7 +59,8 @@ class MissionRecorder:
         self.steps = 0
 
     def record_step(self, positions_km: np.ndarray, airborne: np.ndarray | None = None,
-                    planned_km: np.ndarray | None = None, done: np.ndarray | None = None) -> None:  # fmt: skip
+                    planned_km: np.ndarray | None = None,
+                    done: np.ndarray | None = None) -> None:  # fmt: skip
         """Positions (N, 2) of the UAVs at one decision step. ``airborne`` marks the UAVs that
         count (lost or landed ones do not); ``planned_km`` is where the planner sent them next."""
         cfg = self.cfg

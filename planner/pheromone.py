@@ -15,7 +15,8 @@ from planner.grid import Grid
 
 
 def local_decrement_kernel(grid: Grid, cfg: PlannerConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Eq 33 on the grid: offsets (K, 2) within R and their decrement delta tau_l0 (R^4 - d^4)/R^4."""
+    """Eq 33 on the grid: offsets (K, 2) within R and their decrement
+    delta tau_l0 (R^4 - d^4)/R^4."""
     offsets = grid.disc_offsets(cfg.detection_radius_km)
     d = np.hypot(offsets[:, 0], offsets[:, 1]) * grid.cell_km
     r4 = cfg.detection_radius_km**4

@@ -1,7 +1,8 @@
 """Artificial potential field (section 3.2, eqs 23-27): TPM attraction, threat repulsion and
 generalized-Morse repulsion between UAVs, evaluated at any set of points for every UAV at once.
 
-Symbols: k_att -> ``cfg.k_att``; k_rep -> ``cfg.k_rep``; d_0 -> threat radius + ``cfg.threat_margin_km``;
+Symbols: k_att -> ``cfg.k_att``; k_rep -> ``cfg.k_rep``; d_0 -> threat radius +
+``cfg.threat_margin_km``;
 d^t_max -> threat radius + R (a threat is felt once detected, section 3.2.2); b, c ->
 ``cfg.morse_b``, ``cfg.morse_c_km``; ||x||_min -> ``cfg.morse_r0_km``; [d_min, d^v_max] ->
 ``cfg.min_separation_km``, ``cfg.uav_repulsion_range_km``.

@@ -122,7 +122,8 @@ def random_starts(scenario: Scenario, rng: np.random.Generator) -> tuple[UavStar
             starts.append(UavStart(x, y, heading))
     if len(starts) < scenario.uav_count:
         raise ScenarioError(
-            f"scenario {scenario.name!r}: cannot place {scenario.uav_count} UAVs clear of the threats;"
+            f"scenario {scenario.name!r}: cannot place {scenario.uav_count} UAVs clear of the"
+            " threats;"
             " give fewer UAVs or explicit [[uavs.start]] entries"
         )
     return tuple(starts)
@@ -143,7 +144,8 @@ def _number(table: dict, key: str, source: str, path: str, default: Any = None) 
     value = table[key]
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ScenarioError(
-            f"{_where(source, path + '.' + key)} must be a number, got {type(value).__name__} {value!r}"
+            f"{_where(source, path + '.' + key)} must be a number,"
+            f" got {type(value).__name__} {value!r}"
         )
     if math.isnan(value) or math.isinf(value):
         raise ScenarioError(f"{_where(source, path + '.' + key)} must be finite, got {value!r}")
@@ -154,7 +156,8 @@ def _table(doc: dict, key: str, source: str, default: Any) -> Any:
     value = doc.get(key, default)
     if not isinstance(value, type(default)):
         raise ScenarioError(
-            f"scenario {source}: {key} must be a {type(default).__name__}, got {type(value).__name__}"
+            f"scenario {source}: {key} must be a {type(default).__name__},"
+            f" got {type(value).__name__}"
         )
     return value
 
@@ -163,12 +166,14 @@ def _check_unknown(table: dict, allowed: set[str], source: str, path: str) -> No
     for key in table:
         if key not in allowed:
             raise ScenarioError(
-                f"{_where(source, path)} has unknown key {key!r}; allowed: {', '.join(sorted(allowed))}"
+                f"{_where(source, path)} has unknown key {key!r};"
+                f" allowed: {', '.join(sorted(allowed))}"
             )
 
 
 def parse_scenario(text: str, source: str = "<string>") -> Scenario:
-    """Parse and validate a scenario from TOML text. Raises ScenarioError with a one-line message."""
+    """Parse and validate a scenario from TOML text. Raises ScenarioError with a one-line
+    message."""
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -227,7 +232,9 @@ def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
     for i, t in enumerate(_table(doc, "threats", source, [])):
         path = f"threats[{i}]"
         if not isinstance(t, dict):
-            raise ScenarioError(f"{_where(source, path)} must be a table with x_km, y_km, radius_km")
+            raise ScenarioError(
+                f"{_where(source, path)} must be a table with x_km, y_km, radius_km"
+            )
         _check_unknown(t, {"x_km", "y_km", "radius_km", "label"}, source, path)
         threat = ThreatSpec(
             _number(t, "x_km", source, path),
@@ -235,7 +242,9 @@ def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
             _number(t, "radius_km", source, path),
         )
         if threat.radius_km <= 0:
-            raise ScenarioError(f"{_where(source, path)}.radius_km must be > 0, got {threat.radius_km}")
+            raise ScenarioError(
+                f"{_where(source, path)}.radius_km must be > 0, got {threat.radius_km}"
+            )
         inside(threat.x_km, threat.y_km, path)
         threats.append(threat)
 
@@ -285,7 +294,9 @@ def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
     starts: tuple[UavStart, ...] | None = None
     if starts_t is not None and not random_start:
         if not isinstance(starts_t, list) or not starts_t:
-            raise ScenarioError(f"scenario {source}: uavs.start must be a non-empty array of tables")
+            raise ScenarioError(
+                f"scenario {source}: uavs.start must be a non-empty array of tables"
+            )
         parsed = []
         for i, s in enumerate(starts_t):
             path = f"uavs.start[{i}]"
@@ -299,23 +310,33 @@ def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
             )
             inside(start.x_km, start.y_km, path)
             for j, threat in enumerate(threats):
-                if math.hypot(start.x_km - threat.x_km, start.y_km - threat.y_km) <= threat.radius_km:
+                if (
+                    math.hypot(start.x_km - threat.x_km, start.y_km - threat.y_km)
+                    <= threat.radius_km
+                ):
                     raise ScenarioError(
-                        f"{_where(source, path)} starts inside threats[{j}]; move the start or the threat"
+                        f"{_where(source, path)} starts inside threats[{j}];"
+                        " move the start or the threat"
                     )
             parsed.append(start)
         starts = tuple(parsed)
     count = uavs.get("count", len(starts) if starts else None)
     if isinstance(count, bool) or not isinstance(count, int) or not 0 < count <= MAX_UAVS:
-        raise ScenarioError(f"scenario {source}: uavs.count must be a positive integer up to {MAX_UAVS}, got {count!r}")
+        raise ScenarioError(
+            f"scenario {source}: uavs.count must be a positive integer up to {MAX_UAVS},"
+            f" got {count!r}"
+        )
     if starts is not None and count != len(starts):
         raise ScenarioError(
-            f"scenario {source}: uavs.count = {count} but {len(starts)} uavs.start entries; make them agree"
+            f"scenario {source}: uavs.count = {count} but {len(starts)} uavs.start entries;"
+            " make them agree"
         )
     if starts is not None:
         cells = {(int(s.x_km // config.cell_km), int(s.y_km // config.cell_km)) for s in starts}
         if len(cells) < len(starts):
-            raise ScenarioError(f"scenario {source}: two UAVs start in the same cell; separate them")
+            raise ScenarioError(
+                f"scenario {source}: two UAVs start in the same cell; separate them"
+            )
 
     threats_known = doc.get("threats_known", False)
     if not isinstance(threats_known, bool):
@@ -339,7 +360,8 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     path = Path(name_or_path)
     if not path.exists():
         raise ScenarioError(
-            f"scenario {text_name!r} is neither a built-in ({', '.join(BUILTIN_SCENARIOS)}) nor a file"
+            f"scenario {text_name!r} is neither a built-in ({', '.join(BUILTIN_SCENARIOS)})"
+            " nor a file"
         )
     try:
         text = path.read_text(encoding="utf-8")

@@ -369,7 +369,8 @@ class TargetProbabilityMaps:
     def _negligible_stored(self, layer: int) -> np.ndarray:
         """Per UAV, the stored value below which a cell of ``layer`` holds fewer than
         ``NEGLIGIBLE`` expected targets."""
-        return np.divide(self.NEGLIGIBLE, self.scale[layer], out=np.full(self.scale.shape[1], np.inf),
+        return np.divide(self.NEGLIGIBLE, self.scale[layer],
+                         out=np.full(self.scale.shape[1], np.inf),
                          where=self.scale[layer] > 0).astype(np.float32)  # fmt: skip
 
     def _support_box(self, layer: int) -> tuple[int, int, int, int]:

@@ -28,7 +28,9 @@ def adjacency(distances_km: np.ndarray, radius_km: np.ndarray, active: np.ndarra
     return a & active[:, None] & active[None, :]
 
 
-def adapt_radius(radius_km: np.ndarray, neighbour_counts: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
+def adapt_radius(
+    radius_km: np.ndarray, neighbour_counts: np.ndarray, cfg: PlannerConfig
+) -> np.ndarray:
     """Eq 2: r_dot = k R_sen (1 - |N_i| / n_topo), one step of one decision period."""
     rate = cfg.topology_rate * cfg.sensing_radius_km * (1.0 - neighbour_counts / cfg.n_topo)
     return np.clip(radius_km + rate, cfg.coop_radius_min_km, cfg.sensing_radius_km)

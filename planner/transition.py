@@ -17,25 +17,33 @@ from planner.config import PlannerConfig
 
 
 def angle_to(moves: np.ndarray, direction: np.ndarray) -> np.ndarray:
-    """theta_j of eq 35: angle (rad) between each candidate move (N, C, 2) and a direction (N, 2)."""
+    """theta_j of eq 35: angle (rad) between each candidate move (N, C, 2) and a direction
+    (N, 2)."""
     move_angle = np.arctan2(moves[..., 1], moves[..., 0])
     target_angle = np.arctan2(direction[:, 1], direction[:, 0])[:, None]
     diff = np.abs(np.mod(move_angle - target_angle + np.pi, 2 * np.pi) - np.pi)
     return diff
 
 
-def deterministic_scores(moves: np.ndarray, direction: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+def deterministic_scores(
+    moves: np.ndarray, direction: np.ndarray, allowed: np.ndarray
+) -> np.ndarray:
     """Eq 35 with omega_1 = 1: the smallest angle to the potential-field force wins."""
     return np.where(allowed, -angle_to(moves, direction), -np.inf)
 
 
-def use_deterministic(force_norm: np.ndarray, force_max: np.ndarray, q: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
-    """The switch of eqs 35/37: deterministic when q < lambda F / F_max (and the field is not flat)."""
+def use_deterministic(
+    force_norm: np.ndarray, force_max: np.ndarray, q: np.ndarray, cfg: PlannerConfig
+) -> np.ndarray:
+    """The switch of eqs 35/37: deterministic when q < lambda F / F_max (and the field is not
+    flat)."""
     ratio = np.divide(force_norm, force_max, out=np.zeros_like(force_norm), where=force_max > 0)
     return (force_max > cfg.force_floor) & (q < cfg.env_perception_lambda * ratio)
 
 
-def transition_weights(tau: np.ndarray, eta: np.ndarray, allowed: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
+def transition_weights(
+    tau: np.ndarray, eta: np.ndarray, allowed: np.ndarray, cfg: PlannerConfig
+) -> np.ndarray:
     """Eq 36's numerator tau^alpha eta^beta (0 where the move is not allowed)."""
     weights = np.where(allowed, tau**cfg.alpha * eta**cfg.beta, 0.0)
     if not np.all(np.isfinite(weights)):
@@ -43,12 +51,16 @@ def transition_weights(tau: np.ndarray, eta: np.ndarray, allowed: np.ndarray, cf
     return weights
 
 
-def heuristic_choice(weights: np.ndarray, q1: np.ndarray, u: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
+def heuristic_choice(
+    weights: np.ndarray, q1: np.ndarray, u: np.ndarray, cfg: PlannerConfig
+) -> np.ndarray:
     """Eq 37 with omega_1 = 1: argmax of tau^alpha eta^beta when q_1 <= q_0, else a draw S from
     the probabilities of eq 36 (``u`` uniform in [0, 1) per UAV)."""
     best = np.argmax(weights, axis=1)
     total = weights.sum(axis=1, keepdims=True)
-    probs = np.divide(weights, total, out=np.full_like(weights, 1.0 / weights.shape[1]), where=total > 0)
+    probs = np.divide(
+        weights, total, out=np.full_like(weights, 1.0 / weights.shape[1]), where=total > 0
+    )
     cumulative = np.cumsum(probs, axis=1)
     drawn = (cumulative < u[:, None] * cumulative[:, -1:]).sum(axis=1)
     drawn = np.where(weights[np.arange(len(weights)), np.minimum(drawn, weights.shape[1] - 1)] > 0,

@@ -62,7 +62,9 @@ class World:
         self.headings = np.array([t.heading_rad for t in specs], dtype=float)
         self.alive = np.ones(len(specs), dtype=bool)
         self.engaged_step = np.full(len(specs), -1, dtype=np.int64)
-        self.threat_xy = np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(-1, 2)
+        self.threat_xy = np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(
+            -1, 2
+        )
         self.threat_radius = np.array([t.radius_km for t in scenario.threats], float)
         self.positions = self._initial_positions()
         self.time_s = 0.0
@@ -121,7 +123,9 @@ class World:
         p_b1 = np.full(cells.shape[:2], cfg.p_false)
         live = np.flatnonzero(self.alive)
         if live.size:
-            rel = grid.cell_of(self.positions[live])[None, :, :] - uav_cells[:, None, :]  # (N, T, 2)
+            rel = (
+                grid.cell_of(self.positions[live])[None, :, :] - uav_cells[:, None, :]
+            )  # (N, T, 2)
             near = (np.abs(rel) <= reach).all(axis=2)
             uav, target = np.nonzero(near)
             k = slot[rel[uav, target, 0] + reach, rel[uav, target, 1] + reach]
@@ -132,7 +136,9 @@ class World:
             np.maximum.at(p_b1, (uav, k), np.maximum(detection_probability(d, cfg), cfg.p_false))
         detected = self.rng.random(p_b1.shape) < p_b1
         inside = grid.inside(cells)
-        return [SensorReport(cells[i][inside[i]], detected[i][inside[i]]) for i in range(len(cells))]
+        return [
+            SensorReport(cells[i][inside[i]], detected[i][inside[i]]) for i in range(len(cells))
+        ]
 
     # ------------------------------------------------------------------ engagement
 

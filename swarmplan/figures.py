@@ -17,7 +17,15 @@ def plot_paths(result: dict, path: Path) -> Path:
     width, height = result["area_km"]
     fig, ax = plt.subplots(figsize=(7, 7))
     for threat in result["threats"]:
-        ax.add_patch(Circle((threat["x_km"], threat["y_km"]), threat["radius_km"], fill=False, color="black", lw=1.5))
+        ax.add_patch(
+            Circle(
+                (threat["x_km"], threat["y_km"]),
+                threat["radius_km"],
+                fill=False,
+                color="black",
+                lw=1.5,
+            )
+        )
     colours = plt.get_cmap("tab20")
     for i, uav in enumerate(result["uavs"]):
         track = uav["track_km"]
@@ -27,13 +35,20 @@ def plot_paths(result: dict, path: Path) -> Path:
         ax.plot(xs, ys, lw=0.9, color=colours(i % 20), label=f"UAV {uav['id']}")
         ax.plot(*uav["start_km"], "o", color="tab:blue", ms=5)
     targets = {t["id"]: t for t in result["targets"]}
-    ax.plot([t["x_km"] for t in targets.values()], [t["y_km"] for t in targets.values()], "^", color="black",
-            ms=5, label="target (prior position)")  # fmt: skip
+    ax.plot([t["x_km"] for t in targets.values()], [t["y_km"] for t in targets.values()], "^",
+            color="black", ms=5, label="target (prior position)")  # fmt: skip
     for e in result["engagements"]:
         uav = result["uavs"][e["uav"]]
         x, y = uav["track_km"][min(e["step"], len(uav["track_km"]) - 1)]
         ax.plot(x, y, "h", color="red", ms=10)
-        ax.annotate(str(e["target_id"]), (x, y), textcoords="offset points", xytext=(5, 5), fontsize=8, color="red")
+        ax.annotate(
+            str(e["target_id"]),
+            (x, y),
+            textcoords="offset points",
+            xytext=(5, 5),
+            fontsize=8,
+            color="red",
+        )
     ax.set_xlim(0, width)
     ax.set_ylim(0, height)
     ax.set_aspect("equal")
@@ -57,7 +72,9 @@ def plot_curves(result: dict, path: Path) -> Path:
     top.plot([100 * c for c in result["coverage_curve"]], color="tab:blue")
     top.set_ylabel("coverage J_E (%)")
     top.grid(alpha=0.3)
-    bottom.step(range(len(result["engaged_curve"])), result["engaged_curve"], where="post", color="tab:red")
+    bottom.step(
+        range(len(result["engaged_curve"])), result["engaged_curve"], where="post", color="tab:red"
+    )
     bottom.set_ylabel("targets engaged")
     bottom.set_xlabel("decision step")
     bottom.grid(alpha=0.3)
@@ -71,4 +88,7 @@ def plot_curves(result: dict, path: Path) -> Path:
 def write_figures(result: dict, out_dir: Path) -> list[Path]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    return [plot_paths(result, out_dir / "paths.png"), plot_curves(result, out_dir / "coverage.png")]
+    return [
+        plot_paths(result, out_dir / "paths.png"),
+        plot_curves(result, out_dir / "coverage.png"),
+    ]

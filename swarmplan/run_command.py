@@ -37,11 +37,21 @@ def seed_int(text: str) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("scenario", help=f"a built-in scenario ({', '.join(BUILTIN_SCENARIOS)}) or a TOML file")
-    parser.add_argument("--seed", type=seed_int, default=1, help="random seed of the run (default 1)")
-    parser.add_argument("--steps", type=positive_int, default=None, help="decision steps (default: the scenario's)")
-    parser.add_argument("--algorithm", default="hapf-aco", choices=sorted(PLANNERS), help="planner to fly")
-    parser.add_argument("--out", type=Path, default=None, help="output folder (default runs/<scenario>-seed<S>)")
+    parser.add_argument(
+        "scenario", help=f"a built-in scenario ({', '.join(BUILTIN_SCENARIOS)}) or a TOML file"
+    )
+    parser.add_argument(
+        "--seed", type=seed_int, default=1, help="random seed of the run (default 1)"
+    )
+    parser.add_argument(
+        "--steps", type=positive_int, default=None, help="decision steps (default: the scenario's)"
+    )
+    parser.add_argument(
+        "--algorithm", default="hapf-aco", choices=sorted(PLANNERS), help="planner to fly"
+    )
+    parser.add_argument(
+        "--out", type=Path, default=None, help="output folder (default runs/<scenario>-seed<S>)"
+    )
     parser.add_argument("--json", action="store_true", help="print only the result JSON on stdout")
 
 
@@ -54,7 +64,9 @@ def write_outputs(result: dict, out_dir: Path) -> list[Path]:
         path = out_dir / "result.json"
         path.write_text(json.dumps(result, indent=1))
     except OSError as exc:
-        raise UserError(f"cannot write to {out_dir} ({exc.strerror}); choose another --out folder") from None
+        raise UserError(
+            f"cannot write to {out_dir} ({exc.strerror}); choose another --out folder"
+        ) from None
     written = [path, *write_figures(result, out_dir)]
     try:
         from mavlink_bridge.waypoint_export import export_all
@@ -67,12 +79,15 @@ def summary(result: dict) -> str:
     v = result["violations"]
     sep = result["min_separation_km"]
     return "\n".join([
-        f"scenario {result['scenario']}  algorithm {result['algorithm']}  seed {result['seed']}  steps {result['steps']}",
-        f"coverage        {100 * result['coverage']:.1f} %  (slope over the first 50 steps {100 * result['coverage_slope_50']:.3f} %/step)",
+        f"scenario {result['scenario']}  algorithm {result['algorithm']}  seed {result['seed']}"
+        f"  steps {result['steps']}",
+        f"coverage        {100 * result['coverage']:.1f} %"
+        f"  (slope over the first 50 steps {100 * result['coverage_slope_50']:.3f} %/step)",
         f"engaged         {result['engaged_count']} targets, value {result['engaged_value']:g}",
         f"min separation  {'n/a' if sep is None else f'{sep:.2f} km'}",
         f"returned home   {result['returned_count']} of {result['uav_count']}",
-        f"violations      threat {v['threat']}, separation {v['separation']}, turn {v['turn']}, range {v['range']}",
+        f"violations      threat {v['threat']}, separation {v['separation']}, turn {v['turn']},"
+        f" range {v['range']}",
         f"wall time       {result['wall_time_s']:.2f} s",
     ])  # fmt: skip
 
@@ -83,7 +98,9 @@ def main(args: argparse.Namespace) -> int:
     out_dir = args.out or Path("runs") / f"{scenario.name}-seed{args.seed}"
     with tqdm(total=steps, desc=f"{scenario.name} seed {args.seed}", unit="step", disable=args.json,
               file=sys.stderr, leave=False) as bar:  # fmt: skip
-        result = run_offline(scenario, args.seed, steps, args.algorithm, progress=lambda k: bar.update(1))
+        result = run_offline(
+            scenario, args.seed, steps, args.algorithm, progress=lambda k: bar.update(1)
+        )
     written = write_outputs(result, out_dir)
     if args.json:
         print(json.dumps(result))

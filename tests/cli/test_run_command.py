@@ -4,7 +4,9 @@ import sys
 
 
 def swarmplan(*args, timeout=120):
-    return subprocess.run([sys.executable, "-m", "swarmplan", *args], capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "swarmplan", *args], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_run_writes_result_and_figures(tmp_path):
@@ -21,8 +23,9 @@ def test_json_flag_prints_only_the_result(tmp_path):
     done = swarmplan("run", "paper-2uav", "--steps", "5", "--json", "--out", str(tmp_path))
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
-    for key in ("scenario", "algorithm", "seed", "steps", "coverage", "coverage_curve", "coverage_slope_50",
-                "engaged_count", "engaged_value", "min_separation_km", "returned_count", "violations", "wall_time_s"):  # fmt: skip
+    for key in ("scenario", "algorithm", "seed", "steps", "coverage", "coverage_curve",
+                "coverage_slope_50", "engaged_count", "engaged_value", "min_separation_km",
+                "returned_count", "violations", "wall_time_s"):  # fmt: skip
         assert key in result
     assert set(result["violations"]) == {"threat", "separation", "turn", "range"}
 
@@ -30,7 +33,8 @@ def test_json_flag_prints_only_the_result(tmp_path):
 def test_bad_input_gives_one_line_and_exit_2(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("name = 3\n[[targets]]\nkind='x'\n")
-    for args in (["run", "no-such-scenario"], ["run", str(bad)], ["run", "paper-2uav", "--steps", "0"],
+    for args in (["run", "no-such-scenario"], ["run", str(bad)],
+                 ["run", "paper-2uav", "--steps", "0"],
                  ["run", "paper-2uav", "--seed", "abc"]):  # fmt: skip
         done = swarmplan(*args)
         assert done.returncode == 2, args

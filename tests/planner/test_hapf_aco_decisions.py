@@ -86,7 +86,9 @@ def test_false_alarms_scattered_over_the_footprint_start_no_engagement():
         for cell in cells:
             footprint = cell + planner.footprint
             footprint = footprint[planner.grid.inside(footprint)]
-            reports.append(SensorReport(footprint, rng.random(len(footprint)) < scenario.config.p_false))
+            reports.append(
+                SensorReport(footprint, rng.random(len(footprint)) < scenario.config.p_false)
+            )
         decision = planner.step(cells, headings, reports)
         assert not decision.engage.any()
         cells, headings = decision.next_cells, decision.next_headings

@@ -25,7 +25,12 @@ def test_builtin_scenarios_match_the_paper():
     ten = load_scenario("paper-10uav")
     assert ten.uav_count == 10 and len(ten.threats) == 5 and ten.config.max_range_km == 330
     assert len(ten.targets) == 16 and sum(t.value for t in ten.targets) == 42
-    assert {t.kind for t in ten.targets} == {"unknown_position", "known_position", "known_speed", "known_velocity"}
+    assert {t.kind for t in ten.targets} == {
+        "unknown_position",
+        "known_position",
+        "known_speed",
+        "known_velocity",
+    }
     assert load_scenario("paper-20uav").uav_count == 20
     assert set(BUILTIN_SCENARIOS) == {"paper-2uav", "paper-10uav", "paper-20uav"}
 
@@ -36,7 +41,9 @@ def test_random_starts_are_reproducible_and_safe():
     assert a == b and a != s.starts_for_seed(5)
     for start in a:
         for t in s.threats:
-            assert ((start.x_km - t.x_km) ** 2 + (start.y_km - t.y_km) ** 2) ** 0.5 > t.radius_km + 3
+            assert (
+                (start.x_km - t.x_km) ** 2 + (start.y_km - t.y_km) ** 2
+            ) ** 0.5 > t.radius_km + 3
 
 
 def test_good_file_parses():
@@ -57,8 +64,14 @@ def test_good_file_parses():
         (("steps = 20", "steps = 20\n[parameters]\np_detect = 2.0"), "p_detect"),
         (("steps = 20", "steps = 20\n[parameters]\nwarp = 2.0"), "unknown parameter 'warp'"),
         (("steps = 20", "steps = 20 ]]"), "not valid TOML"),
-        (("value = 1", "value = 1\n[[threats]]\nx_km = 5\ny_km = 5\nradius_km = 2"), "starts inside threats"),
-        (("value = 1", "value = 1\n[[threats]]\nx_km = 50\ny_km = 50\nradius_km = -1"), "radius_km must be > 0"),
+        (
+            ("value = 1", "value = 1\n[[threats]]\nx_km = 5\ny_km = 5\nradius_km = 2"),
+            "starts inside threats",
+        ),
+        (
+            ("value = 1", "value = 1\n[[threats]]\nx_km = 50\ny_km = 50\nradius_km = -1"),
+            "radius_km must be > 0",
+        ),
         (("x_km = 50\ny_km = 50", "y_km = 50"), "x_km is missing"),
     ],
 )

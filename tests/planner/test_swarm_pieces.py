@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from planner.config import ConfigError, PlannerConfig
@@ -108,7 +108,9 @@ def test_viability_never_lets_a_uav_into_a_threat_or_out_of_the_area():
             ok = model.move_allowed(np.repeat(cell[None], 3, 0), heads[0])
             assert ok.any(), "a viable state always has an allowed move"
             k = rng.choice(np.flatnonzero(ok))
-            clearance = segment_clearance(GRID.centre_km(cell), GRID.centre_km(cand[0, k]), threats, radii)
+            clearance = segment_clearance(
+                GRID.centre_km(cell), GRID.centre_km(cand[0, k]), threats, radii
+            )
             assert clearance > 0 and GRID.inside(cand[0, k])
             cell, h = cand[0, k], int(heads[0, k])
 
@@ -130,7 +132,10 @@ def test_deterministic_switch_and_heuristic_choice():
     w = np.array([[0.0, 1.0, 3.0], [0.0, 1.0, 0.0]])
     greedy = heuristic_choice(w, np.array([0.0, 0.0]), np.array([0.5, 0.5]), CFG)
     assert greedy.tolist() == [2, 1]
-    draws = [heuristic_choice(w[:1], np.array([1.0]), np.array([u]), CFG)[0] for u in np.linspace(0, 0.999, 200)]
+    draws = [
+        heuristic_choice(w[:1], np.array([1.0]), np.array([u]), CFG)[0]
+        for u in np.linspace(0, 0.999, 200)
+    ]
     assert 0 not in draws  # a forbidden cell is never drawn
     assert abs(np.mean(np.array(draws) == 2) - 0.75) < 0.02  # eq 36 probabilities
 

@@ -90,12 +90,16 @@ def test_maps_sum_to_target_counts_after_looks_and_forecasts():
     for _ in range(30):
         centres = rng.integers(5, 95, size=(3, 2))
         looks = [c + offsets for c in centres]
-        tpm.apply_looks(np.arange(3), looks, [rng.random(len(offsets)) < 0.1 for _ in looks], centres)
+        tpm.apply_looks(
+            np.arange(3), looks, [rng.random(len(offsets)) < 0.1 for _ in looks], centres
+        )
         tpm.renormalise()
         tpm.forecast()
     for uav in range(3):
         sums = [tpm.layer_map(l, uav).sum() for l in range(len(tpm.specs))]
-        assert sums == pytest.approx([1, 1, 1, 2], rel=1e-4)  # (ring, shift, wiener, uniform) counts
+        assert sums == pytest.approx(
+            [1, 1, 1, 2], rel=1e-4
+        )  # (ring, shift, wiener, uniform) counts
         e = tpm.existence_map(uav)
         assert np.all((e >= 0) & (e <= 1))
 
@@ -147,7 +151,10 @@ def test_known_velocity_layer_moves_without_blurring():
 
 
 def test_looks_at_one_cell_combine_exactly_as_sequential_eq18():
-    targets = (TargetSpec(1, "known_position", 50, 50, 1), TargetSpec(2, "unknown_position", 0, 0, 1))
+    targets = (
+        TargetSpec(1, "known_position", 50, 50, 1),
+        TargetSpec(2, "unknown_position", 0, 0, 1),
+    )
     together = TargetProbabilityMaps(targets, CFG, n_uavs=1)
     apart = TargetProbabilityMaps(targets, CFG, n_uavs=1)
     offsets = GRID.disc_offsets(CFG.detection_radius_km)
@@ -160,7 +167,9 @@ def test_looks_at_one_cell_combine_exactly_as_sequential_eq18():
         apart.apply_looks(np.zeros(1, int), [look], [bit], origin[None])
     assert np.allclose(together.maps, apart.maps, rtol=1e-5, atol=1e-12)
     assert np.allclose(together.totals, apart.totals, rtol=1e-9)
-    assert together.totals == pytest.approx(together.maps.sum(axis=(2, 3), dtype=np.float64), rel=1e-6)
+    assert together.totals == pytest.approx(
+        together.maps.sum(axis=(2, 3), dtype=np.float64), rel=1e-6
+    )
 
 
 def test_eq18_at_the_sensor_limits():
@@ -176,7 +185,9 @@ def test_boxed_known_speed_forecast_matches_the_full_grid_convolution():
     tpm = TargetProbabilityMaps(targets, CFG, n_uavs=2)
     reference = tpm.maps[0].astype(np.float64).copy()
     box_start = tpm.ring_box[0]
-    assert (box_start[1] - box_start[0]) * (box_start[3] - box_start[2]) < 0.7 * GRID.size  # real saving
+    assert (box_start[1] - box_start[0]) * (
+        box_start[3] - box_start[2]
+    ) < 0.7 * GRID.size  # real saving
     for _ in range(40):
         tpm.forecast()
         reference = convolve_reflect(reference, tpm.ring_kernels[0])

@@ -7,12 +7,17 @@ from sim_gateway.offline_runner import run_offline
 from sim_gateway.world import World
 
 
-@pytest.mark.parametrize(("name", "seeds", "steps"), [("paper-2uav", [1, 2], 250), ("paper-10uav", [1, 2, 3], 250)])
+@pytest.mark.parametrize(
+    ("name", "seeds", "steps"), [("paper-2uav", [1, 2], 250), ("paper-10uav", [1, 2, 3], 250)]
+)
 def test_paper_scenarios_fly_without_any_violation(name, seeds, steps):
     scenario = load_scenario(name)
     for seed in seeds:
         result = run_offline(scenario, seed, steps)
-        assert result["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}, (name, seed)
+        assert result["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}, (
+            name,
+            seed,
+        )
         assert len(result["coverage_curve"]) == steps + 1
         assert np.all(np.diff(result["coverage_curve"]) >= 0)
         assert result["min_separation_km"] >= scenario.config.min_separation_km
