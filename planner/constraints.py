@@ -14,7 +14,7 @@
 
 from __future__ import annotations
 
-from functools import cached_property, lru_cache
+from functools import cached_property
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -73,6 +73,8 @@ class SafetyModel:
         #: edge_safe[h, x, y]: the move from (x, y) along heading h is inside and clear of threats.
         self.edge_safe = safe
         self.viable = self._viability_kernel()
+        self._home_rows: dict[int, int] = {}  # home cell -> row of _fields
+        self._fields = np.zeros((0, grid.nx, grid.ny))
 
     def _shifted(self, viable_h: np.ndarray, h: int) -> np.ndarray:
         """value[x, y] = viable_h[(x, y) + step(h)] (False outside the area)."""
@@ -126,10 +128,11 @@ class SafetyModel:
         grid = self.grid
         ix, iy = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny), indexing="ij")
         cells = np.stack([ix, iy], axis=-1)
+        can_go = np.stack([self.move_allowed(cells, np.full(grid.shape, h)) for h in range(8)])
         count = np.zeros((8, grid.nx, grid.ny), dtype=np.int64)
         for h in range(8):
             for t in self.turns:
-                count[h] += self.move_allowed(cells, np.full(grid.shape, (h + t) % 8))
+                count[h] += can_go[(h + t) % 8]
         return count
 
     @cached_property
@@ -149,14 +152,23 @@ class SafetyModel:
             shape=(grid.size, grid.size),
         )
 
-    @lru_cache(maxsize=64)  # noqa: B019 - one model per threat set, few homes
     def distance_home_km(self, home_flat: int) -> np.ndarray:
-        """Shortest threat-avoiding path length (km) from every cell to ``home_flat``, (nx, ny)."""
-        return self.distances_home_km((home_flat,))[0]
+        """Shortest threat-avoiding path length (km) from every cell to ``home_flat``, (nx, ny);
+        computed once per home and model (Dijkstra from the home on the reversed graph)."""
+        row = self._field_rows([home_flat])[0]  # may grow self._fields: read it after
+        return self._fields[row]
 
-    @lru_cache(maxsize=16)  # noqa: B019 - one model per threat set, one tuple of homes per swarm
-    def distances_home_km(self, homes_flat: tuple[int, ...]) -> np.ndarray:
-        """``distance_home_km`` for several homes at once, (H, nx, ny)."""
-        return dijkstra(self._reversed_graph, indices=list(homes_flat)).reshape(
-            -1, *self.grid.shape
-        )
+    def distances_home_at(self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """``distance_home_km(homes_flat[i])[x[i], y[i]]`` for arrays of UAVs (homes (M,), cells
+        (M, ...)), in one gather."""
+        rows = self._field_rows(np.asarray(homes_flat).tolist())
+        return self._fields[np.asarray(rows).reshape((-1,) + (1,) * (np.ndim(x) - 1)), x, y]
+
+    def _field_rows(self, homes: list[int]) -> list[int]:
+        missing = [h for h in dict.fromkeys(homes) if h not in self._home_rows]
+        if missing:
+            fresh = dijkstra(self._reversed_graph, indices=missing).reshape(-1, *self.grid.shape)
+            self._fields = np.concatenate([self._fields, fresh])
+            for h in missing:
+                self._home_rows[h] = len(self._home_rows)
+        return [self._home_rows[h] for h in homes]

@@ -67,8 +67,8 @@ def feasible_moves(
         here = np.broadcast_to(cells[members][:, None, :], cand[members].shape)
         allowed[members] = model.move_allowed(here, cand_head[members])
         freedom[members] = model.freedom[cand_head[members], cx[members], cy[members]]
-        fields = model.distances_home_km(tuple(home_flat))  # (N, nx, ny), cached per model
-        home_km[members] = fields[members[:, None], cx[members], cy[members]]
+        homes = np.asarray(home_flat)[members]  # fields computed once per (model, home)
+        home_km[members] = model.distances_home_at(homes, cx[members], cy[members])
     home_km = np.where(grid.inside(cand), home_km, np.inf)
     if np.isfinite(cfg.max_range_km):
         slack = cfg.max_range_km - (

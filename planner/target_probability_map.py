@@ -459,7 +459,9 @@ class TargetProbabilityMaps:
         )
         view[:, uav, flat] = stored
         change = stored.astype(np.float64) - stored_before
-        np.add.at(self.totals.T, uav, change.T)
+        # keys are sorted, so each UAV's cells are one run: sum the runs
+        first = np.flatnonzero(np.r_[True, uav[1:] != uav[:-1]])
+        self.totals[:, uav[first]] += np.add.reduceat(change, first, axis=1)
 
     def decay_unobserved(self, observed: np.ndarray) -> None:
         """Eq 18, first case: cells no UAV looked at this step are multiplied by tau.
