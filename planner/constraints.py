@@ -37,7 +37,8 @@ def segment_clearance(
     denom = np.maximum(np.sum(ab * ab, axis=-1), 1e-12)
     t = np.clip(np.sum(ap * ab, axis=-1) / denom, 0.0, 1.0)
     closest = a + t[..., None] * ab
-    d = np.hypot(*(closest - centres).transpose(np.roll(np.arange(closest.ndim), 1)))
+    gap = closest - centres
+    d = np.hypot(gap[..., 0], gap[..., 1])
     return np.min(d - radii, axis=-1)
 
 
@@ -106,17 +107,13 @@ class SafetyModel:
     def move_allowed(self, cells: np.ndarray, headings: np.ndarray) -> np.ndarray:
         """C_t and the area: the move from ``cells`` along ``headings`` (next heading) is safe and
         lands in a viable state. Shapes (..., 2) and (...)."""
-        inside = self.grid.inside(cells)
-        x = np.clip(cells[..., 0], 0, self.grid.nx - 1)
-        y = np.clip(cells[..., 1], 0, self.grid.ny - 1)
+        grid = self.grid
         nxt = cells + HEADING_STEPS[headings]
-        nx_ = np.clip(nxt[..., 0], 0, self.grid.nx - 1)
-        ny_ = np.clip(nxt[..., 1], 0, self.grid.ny - 1)
         return (
-            inside
-            & self.edge_safe[headings, x, y]
-            & self.grid.inside(nxt)
-            & self.viable[headings, nx_, ny_]
+            grid.inside(cells)
+            & self.edge_safe.reshape(8, -1)[headings, grid.clipped_flat(cells)]
+            & grid.inside(nxt)
+            & self.viable.reshape(8, -1)[headings, grid.clipped_flat(nxt)]
         )
 
     @cached_property
@@ -126,9 +123,8 @@ class SafetyModel:
         each other (a corner of the area, a gap between threats) can be left no separated pair
         of moves, so the separation claim avoids entering them when others are close."""
         grid = self.grid
-        ix, iy = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny), indexing="ij")
-        cells = np.stack([ix, iy], axis=-1)
-        can_go = np.stack([self.move_allowed(cells, np.full(grid.shape, h)) for h in range(8)])
+        # move_allowed over the whole area: a safe move that lands in a viable state
+        can_go = [self.edge_safe[h] & self._shifted(self.viable[h], h) for h in range(8)]
         count = np.zeros((8, grid.nx, grid.ny), dtype=np.int64)
         for h in range(8):
             for t in self.turns:
@@ -140,13 +136,12 @@ class SafetyModel:
         """The safe moves as a sparse graph with reversed edges (distances *to* a cell)."""
         grid = self.grid
         rows, cols, weights = [], [], []
-        ix, iy = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny), indexing="ij")
-        cells = np.stack([ix, iy], axis=-1)
+        flat = np.arange(grid.size).reshape(grid.shape)
         for h in range(8):
-            ok = self.edge_safe[h]
-            rows.append(grid.flat(cells[ok] + HEADING_STEPS[h]))
-            cols.append(grid.flat(cells[ok]))
-            weights.append(np.full(int(ok.sum()), HEADING_LENGTHS[h] * grid.cell_km))
+            start = flat[self.edge_safe[h]]  # safe moves end inside: one flat step further
+            cols.append(start)
+            rows.append(start + grid.flat(HEADING_STEPS[h]))
+            weights.append(np.full(len(start), HEADING_LENGTHS[h] * grid.cell_km))
         return csr_matrix(
             (np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
             shape=(grid.size, grid.size),

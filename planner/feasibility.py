@@ -58,11 +58,9 @@ def feasible_moves(
     allowed = np.zeros(cand_head.shape, dtype=bool)
     home_km = np.zeros(cand_head.shape)
     freedom = np.zeros(cand_head.shape, dtype=np.int64)
-    cx = np.clip(cand[..., 0], 0, grid.nx - 1)
-    cy = np.clip(cand[..., 1], 0, grid.ny - 1)
-    threat_sets, group = np.unique(known_threats, axis=0, return_inverse=True)
-    for g, known in enumerate(threat_sets):
-        members = np.flatnonzero(group.ravel() == g)
+    cx = np.minimum(np.maximum(cand[..., 0], 0), grid.nx - 1)  # clipped into the area
+    cy = np.minimum(np.maximum(cand[..., 1], 0), grid.ny - 1)
+    for known, members in _threat_groups(known_threats):
         model = safety_model(known)
         here = np.broadcast_to(cells[members][:, None, :], cand[members].shape)
         allowed[members] = model.move_allowed(here, cand_head[members])
@@ -81,3 +79,13 @@ def feasible_moves(
     # If range cannot be kept (only when the start is boxed in), keep safety only.
     feasible = np.where(feasible.any(axis=1, keepdims=True), feasible, allowed)
     return MoveOptions(cand, cand_head, moves, step_km, allowed, home_km, slack, feasible, freedom)
+
+
+def _threat_groups(known_threats: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The distinct rows of ``known_threats`` (N, T) bool, each with the UAVs (indices) that
+    have it, in order of first appearance (a dictionary on the rows' bytes: the sets change
+    rarely and N is small, so this beats sorting the rows)."""
+    groups: dict[bytes, list[int]] = {}
+    for i, row in enumerate(known_threats):
+        groups.setdefault(row.tobytes(), []).append(i)
+    return [(known_threats[m[0]], np.array(m, dtype=np.int64)) for m in groups.values()]

@@ -57,12 +57,15 @@ class Grid:
     def cell_of(self, xy_km: np.ndarray) -> np.ndarray:
         """Integer cell (..., 2) containing each point (..., 2) in km, clipped into the area."""
         cells = np.floor(np.asarray(xy_km, dtype=float) / self.cell_km).astype(np.int64)
-        cells[..., 0] = np.clip(cells[..., 0], 0, self.nx - 1)
-        cells[..., 1] = np.clip(cells[..., 1], 0, self.ny - 1)
+        np.maximum(cells, 0, out=cells)
+        np.minimum(cells, (self.nx - 1, self.ny - 1), out=cells)
         return cells
 
     def inside(self, cells: np.ndarray) -> np.ndarray:
         cells = np.asarray(cells)
+        if cells.dtype == np.int64:  # read as unsigned, a negative coordinate is too large
+            unsigned = cells.view(np.uint64)
+            return (unsigned[..., 0] < self.nx) & (unsigned[..., 1] < self.ny)
         return (
             (cells[..., 0] >= 0)
             & (cells[..., 0] < self.nx)
@@ -73,6 +76,14 @@ class Grid:
     def flat(self, cells: np.ndarray) -> np.ndarray:
         cells = np.asarray(cells)
         return cells[..., 0] * self.ny + cells[..., 1]
+
+    def clipped_flat(self, cells: np.ndarray) -> np.ndarray:
+        """Flat index of the area's cell nearest to each of ``cells`` (..., 2) (each coordinate
+        clipped into the area): a safe index for reads that ``inside`` then masks."""
+        cells = np.asarray(cells)
+        x = np.minimum(np.maximum(cells[..., 0], 0), self.nx - 1)
+        y = np.minimum(np.maximum(cells[..., 1], 0), self.ny - 1)
+        return x * self.ny + y
 
     @cached_property
     def centres_x_km(self) -> np.ndarray:

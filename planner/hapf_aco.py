@@ -118,6 +118,8 @@ class HapfAcoPlanner:
         self.track_window = self.grid.disc_offsets(2.0 * cfg.cell_km)
         # a candidate is one cell away and the force needs one more cell around the footprint
         self.window_reach = int(np.abs(self.footprint).max()) + 1
+        reach = np.arange(-self.window_reach, self.window_reach + 1)
+        self.window_offsets = np.stack(np.meshgrid(reach, reach, indexing="ij"), axis=-1)
         self.pursuit_reach = int(np.ceil(cfg.pursue_range_km / cfg.cell_km)) + 2
         self.pursuit_steps = steps_to_reach(cfg.max_turn_deg, self.pursuit_reach)
         self.engage_cells, self.engage_fractions = disc_overlap(cfg.engage_radius_km, cfg.cell_km)
@@ -126,12 +128,12 @@ class HapfAcoPlanner:
             self.footprint, cfg.eta_lookahead_steps, cfg.eta_lookahead_discount
         )
         self.k = 0
-        self._safety: dict[tuple[bool, ...], SafetyModel] = {}
+        self._safety: dict[bytes, SafetyModel] = {}  # by the known-threat row's bytes
 
     # ------------------------------------------------------------------ helpers
 
     def safety_model(self, known: np.ndarray) -> SafetyModel:
-        key = tuple(bool(b) for b in known)
+        key = np.asarray(known, dtype=bool).tobytes()
         if key not in self._safety:
             self._safety[key] = SafetyModel(
                 self.grid, self.threat_xy[known], self.threat_r[known], self.cfg.threat_margin_km,
@@ -252,10 +254,14 @@ class HapfAcoPlanner:
         # coverage each UAV knows of, and the N_t counter of steps without a gain
         seen_by = np.repeat(receivers, [len(c) for c in look_cells])
         seen = np.concatenate(look_cells)
-        before = self.coverage_count
-        self.coverage[seen_by, seen[:, 0], seen[:, 1]] = True
-        self.coverage_count = self.coverage.reshape(self.n, -1).sum(axis=1)
-        gained = self.coverage_count > before
+        # only the cells new to their receiver change the counts: set and count those
+        covered = self.coverage.reshape(-1)
+        keys = seen_by * self.grid.size + self.grid.flat(seen)
+        fresh = distinct(keys[~covered[keys]])
+        covered[fresh] = True
+        new_cells = np.bincount(fresh // self.grid.size, minlength=self.n)
+        self.coverage_count = self.coverage_count + new_cells
+        gained = new_cells > 0
         self.stall_steps = np.where(gained, 0, self.stall_steps + 1)
         self.escape_goal[gained] = -1
         if self.cfg.tpm_decay_tau < 1.0:
@@ -287,9 +293,11 @@ class HapfAcoPlanner:
         receivers, sources = np.nonzero(listen & have[None, :] & ~self.done[:, None])
         if receivers.size:
             # only a detection (b = 1) raises a cell's probability: the cells worth checking
-            positive = [
-                reports[j].cells[np.asarray(reports[j].detected, dtype=bool)] for j in sources
-            ]
+            by_source = {
+                j: reports[j].cells[np.asarray(reports[j].detected, dtype=bool)]
+                for j in np.unique(sources).tolist()
+            }
+            positive = [by_source[j] for j in sources.tolist()]
             rows.append(np.repeat(receivers, [len(c) for c in positive]))
             cells.append(np.concatenate(positive))
         self.track[:] = -1
@@ -300,7 +308,7 @@ class HapfAcoPlanner:
         keep = self.grid.inside(cells_all) & (reach <= cfg.pursue_range_km)
         rows_all, cells_all = rows_all[keep], cells_all[keep]
         # one look per distinct (UAV, cell): heard footprints overlap
-        keys = np.unique(rows_all * self.grid.size + self.grid.flat(cells_all))
+        keys = distinct(rows_all * self.grid.size + self.grid.flat(cells_all))
         rows_all = keys // self.grid.size
         cells_all = np.column_stack(np.unravel_index(keys % self.grid.size, self.grid.shape))
         p = self.engage_probability(rows_all, cells_all)
@@ -315,7 +323,8 @@ class HapfAcoPlanner:
             confirmed, 0.0, p * value / (1.0 + value)
         )
         order = np.lexsort((-score, rows_all))
-        first = np.r_[True, rows_all[order][1:] != rows_all[order][:-1]]
+        sorted_rows = rows_all[order]
+        first = np.concatenate(([True], sorted_rows[1:] != sorted_rows[:-1]))
         chosen = order[first]
         self.track[rows_all[chosen]] = cells_all[chosen]
         self.track_confirmed[rows_all[chosen]] = confirmed[chosen]
@@ -350,8 +359,8 @@ class HapfAcoPlanner:
         owners, members = np.nonzero(known)
         steps = HEADING_STEPS[self.info_headings[owners, members]] * age[owners, members][:, None]
         predicted = self.info_cells[owners, members] + steps  # eq 31, dead reckoning
-        predicted[:, 0] = np.clip(predicted[:, 0], 0, self.grid.nx - 1)
-        predicted[:, 1] = np.clip(predicted[:, 1], 0, self.grid.ny - 1)
+        np.maximum(predicted, 0, out=predicted)  # clipped into the area
+        np.minimum(predicted, (self.grid.nx - 1, self.grid.ny - 1), out=predicted)
         self.pheromone.local_update(owners, predicted)
         if self.k > 0 and self.k % cfg.global_update_period_steps == 0:
             self.pheromone.global_update()
@@ -362,11 +371,7 @@ class HapfAcoPlanner:
         """Each UAV's existence probabilities on the square of half-side ``window_reach`` around
         its cell, (N, 2r+1, 2r+1) (0 outside the area): one TPM read serves the footprint's
         forces and every candidate's footprint mass."""
-        r = self.window_reach
-        offsets = np.stack(
-            np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij"), axis=-1
-        )
-        around = self.cells[:, None, None, :] + offsets[None]
+        around = self.cells[:, None, None, :] + self.window_offsets[None]
         return self.tpm.existence_at(np.arange(self.n)[:, None, None], around)
 
     def _forces(
@@ -396,8 +401,8 @@ class HapfAcoPlanner:
         r = self.pursuit_reach
         offset = self.track[:, None, :] - cand  # (N, C, 2)
         near = (np.abs(offset) <= r).all(axis=2)
-        ox = np.clip(offset[..., 0] + r, 0, 2 * r)
-        oy = np.clip(offset[..., 1] + r, 0, 2 * r)
+        ox = np.minimum(np.maximum(offset[..., 0] + r, 0), 2 * r)  # clipped into the table
+        oy = np.minimum(np.maximum(offset[..., 1] + r, 0), 2 * r)
         steps = np.where(near, self.pursuit_steps[cand_head, ox, oy], 10**6).astype(float)
         angle = -deterministic_scores(
             moves, (self.track - self.cells).astype(float), np.ones_like(feasible)
@@ -477,10 +482,9 @@ class HapfAcoPlanner:
         # heuristic information: unsearched share and target probability in the candidate's
         # footprint
         fp = cand[:, :, None, :] + self.footprint[None, None, :, :]  # (N, C, K, 2)
-        fp_inside = grid.inside(fp)
-        fx = np.clip(fp[..., 0], 0, grid.nx - 1)
-        fy = np.clip(fp[..., 1], 0, grid.ny - 1)
-        unsearched = ~self.coverage[np.arange(n)[:, None, None], fx, fy] & fp_inside
+        covered = self.coverage.reshape(-1)  # (N * cells): UAV i's cell c at i * size + c
+        own = (np.arange(n) * grid.size)[:, None, None]
+        unsearched = ~covered[own + grid.clipped_flat(fp)] & grid.inside(fp)
         new_share = unsearched.sum(axis=2) / len(self.footprint)
         r = self.window_reach
         offset = (
@@ -491,11 +495,7 @@ class HapfAcoPlanner:
         )  # 0 outside
         mass_share = mass / np.maximum(mass.max(axis=1, keepdims=True), 1e-12)
         ahead = cand[:, :, None, :] + self.corridor[cand_head]  # (N, C, K', 2)
-        ahead_unsearched = ~self.coverage[
-            np.arange(n)[:, None, None],
-            np.clip(ahead[..., 0], 0, grid.nx - 1),
-            np.clip(ahead[..., 1], 0, grid.ny - 1),
-        ] & grid.inside(ahead)
+        ahead_unsearched = ~covered[own + grid.clipped_flat(ahead)] & grid.inside(ahead)
         corridor_w = self.corridor_weights[cand_head]
         ahead_share = (ahead_unsearched * corridor_w).sum(axis=2) / np.maximum(
             corridor_w.sum(axis=2), 1e-12
@@ -545,8 +545,8 @@ class HapfAcoPlanner:
         )
         # rank: the rule's choice first, then the others by score
         order = np.argsort(-np.where(np.isfinite(scores), scores, -1e300), axis=1, kind="stable")
-        ranked = np.concatenate([chosen_first[:, None], order], axis=1)
-        ranked = np.array([list(dict.fromkeys(r)) for r in ranked])
+        others = order[order != chosen_first[:, None]].reshape(n, -1)  # order is a permutation
+        ranked = np.concatenate([chosen_first[:, None], others], axis=1)
         pick = self._claim(ranked, opts, positions, flying)
         rows = np.arange(n)
         next_cells = np.where(flying[:, None], cand[rows, pick], self.cells)
@@ -555,6 +555,15 @@ class HapfAcoPlanner:
 
         engage = self._engage_requests(engaging)
         return StepDecision(next_cells, next_headings, engage, self.done.copy(), modes)
+
+
+def distinct(values: np.ndarray) -> np.ndarray:
+    """``np.unique`` of a 1-D array (sorted distinct values), without its overhead on the small
+    arrays of one step."""
+    ordered = np.sort(values)
+    if ordered.size == 0:
+        return ordered
+    return ordered[np.concatenate(([True], ordered[1:] != ordered[:-1]))]
 
 
 def distances_to_threats(positions_km: np.ndarray, threat_xy: np.ndarray) -> np.ndarray:

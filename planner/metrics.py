@@ -70,17 +70,17 @@ class MissionRecorder:
         )
         if done is not None:
             self._done |= np.asarray(done, dtype=bool)
-        for i in range(self.n):
-            self.tracks[i].append([round(float(pos[i, 0]), 4), round(float(pos[i, 1]), 4)])
-            if planned_km is not None:
-                self.planned[i].append(
-                    [round(float(planned_km[i][0]), 4), round(float(planned_km[i][1]), 4)]
-                )
+        for track, (x, y) in zip(self.tracks, pos.tolist(), strict=True):
+            track.append([round(x, 4), round(y, 4)])
+        if planned_km is not None:
+            planned = np.asarray(planned_km, dtype=float).reshape(self.n, 2).tolist()
+            for plan, (x, y) in zip(self.planned, planned, strict=True):
+                plan.append([round(x, 4), round(y, 4)])
         # coverage J_E (eq 4)
         cells = self.grid.cell_of(pos[airborne])[:, None, :] + self.footprint[None]
         cells = cells[self.grid.inside(cells)]
         self.covered[cells[:, 0], cells[:, 1]] = True
-        self.coverage_curve.append(float(self.covered.mean()))
+        self.coverage_curve.append(np.count_nonzero(self.covered) / self.covered.size)
         self.engaged_curve.append(len(self.engagements))
         # legs: distance, turns, threat crossings
         has_last = ~np.isnan(self._last[:, 0]) & airborne
@@ -115,8 +115,9 @@ class MissionRecorder:
             nearest = d.min(axis=1)
             self.min_separation_curve.append(float(nearest.min()))
             self.mean_min_separation_curve.append(float(nearest.mean()))
-            close = np.triu(d < cfg.min_separation_km - 1e-9, 1)
-            self.violations["separation"] += int(close.sum())
+            # d is symmetric (and inf on the diagonal): each close pair is counted twice
+            close = np.count_nonzero(d < cfg.min_separation_km - 1e-9)
+            self.violations["separation"] += int(close) // 2
         else:
             self.min_separation_curve.append(math.inf)
             self.mean_min_separation_curve.append(math.inf)

@@ -37,13 +37,13 @@ class PheromoneMaps:
             return
         cells = predicted_cells[:, None, :] + self.offsets[None, :, :]  # (M, K, 2)
         inside = self.grid.inside(cells)
-        owner = np.broadcast_to(owners[:, None], inside.shape)[inside]
-        flat = self.grid.flat(cells[inside])
+        # one flat index into all the maps: owner's map, then cell
+        index = (np.asarray(owners)[:, None] * self.grid.size + self.grid.flat(cells))[inside]
         amount = np.broadcast_to(self.decrement[None, :], inside.shape)[inside]
-        view = self.tau.reshape(len(self.tau), -1)
-        np.subtract.at(view, (owner, flat), amount)
+        view = self.tau.reshape(-1)
+        np.subtract.at(view, index, amount)  # in order, so repeated cells add up as before
         # only lowered cells can leave [tau_min, tau_max]: clamp those (eq 29)
-        view[owner, flat] = np.maximum(view[owner, flat], self.cfg.tau_min)
+        view[index] = np.maximum(view[index], self.cfg.tau_min)
 
     def global_update(self) -> None:
         """Eq 34: tau += F delta tau_g0 on every cell of every map, then eq 29's clamp."""
@@ -53,13 +53,5 @@ class PheromoneMaps:
     def at(self, uavs: np.ndarray, cells: np.ndarray) -> np.ndarray:
         """Pheromone of UAV ``uavs`` (broadcast against cells.shape[:-1]) at ``cells``; outside the
         area reads tau_min."""
-        inside = self.grid.inside(cells)
-        clipped = np.stack(
-            [
-                np.clip(cells[..., 0], 0, self.grid.nx - 1),
-                np.clip(cells[..., 1], 0, self.grid.ny - 1),
-            ],
-            axis=-1,
-        )
-        values = self.tau.reshape(len(self.tau), -1)[uavs, self.grid.flat(clipped)]
-        return np.where(inside, values, self.cfg.tau_min)
+        values = self.tau.reshape(len(self.tau), -1)[uavs, self.grid.clipped_flat(cells)]
+        return np.where(self.grid.inside(cells), values, self.cfg.tau_min)

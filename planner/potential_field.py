@@ -36,10 +36,32 @@ def threat_repulsion(
 
     The paper's ``1/||x||^2 - 1/(d_max - d_0)^2`` turns attractive near d_max; we measure the
     distance from the safe boundary d_0 (docs/parameters.md): ``k_rep (1/(||x|| - d_0)^2 -
-    1/(d_max - d_0)^2)`` for d_0 < ||x|| <= d_max, pointing away from the threat."""
+    1/(d_max - d_0)^2)`` for d_0 < ||x|| <= d_max, pointing away from the threat.
+
+    Only the UAVs whose points can be within d_max of a threat they know are evaluated; the
+    others feel no force (exact zeros)."""
+    force = np.zeros(points_km.shape)
     if threat_xy.size == 0:
-        return np.zeros(points_km.shape)
-    x = points_km[:, :, None, :] - threat_xy[None, None, :, :]  # (N, K, T, 2)
+        return force
+    d_max = threat_r + cfg.detection_radius_km
+    anchor = points_km[:, :1, :]  # (N, 1, 2): every point lies within ``spread`` of it
+    spread = np.hypot(*(points_km - anchor).transpose(2, 0, 1)).max(initial=0.0)
+    reach = np.hypot(*(anchor - threat_xy[None, :, :]).transpose(2, 0, 1))  # (N, T)
+    felt = (known & (reach <= d_max[None, :] + spread + 1e-6)).any(axis=1)
+    if felt.any():
+        force[felt] = _threat_force(points_km[felt], threat_xy, threat_r, known[felt], cfg)
+    return force
+
+
+def _threat_force(
+    points_km: np.ndarray,
+    threat_xy: np.ndarray,
+    threat_r: np.ndarray,
+    known: np.ndarray,
+    cfg: PlannerConfig,
+) -> np.ndarray:
+    """Eq 25 (as ``threat_repulsion`` reads it) at points (M, K, 2) from every threat."""
+    x = points_km[:, :, None, :] - threat_xy[None, None, :, :]  # (M, K, T, 2)
     dist = np.maximum(np.hypot(x[..., 0], x[..., 1]), 1e-9)
     d0 = threat_r + cfg.threat_margin_km
     d_max = threat_r + cfg.detection_radius_km

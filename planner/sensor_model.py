@@ -45,7 +45,7 @@ def likelihood_ratio(
 def posterior(prior: np.ndarray, ratio: np.ndarray) -> np.ndarray:
     """Eq 18 as an odds update: p' = p r / (1 - p + p r). Several looks at one cell combine by
     multiplying their ratios, exactly as applying eq 18 once per look."""
-    p = np.clip(prior, 0.0, 1.0)
+    p = np.minimum(np.maximum(prior, 0.0), 1.0)  # clip to [0, 1]
     with np.errstate(invalid="ignore", divide="ignore"):
         weighted = p * ratio
         out = weighted / (1.0 - p + weighted)

@@ -184,9 +184,8 @@ class SquareStencil:
         work += p[:, 1:-1, 2:]
         work *= edge
         out += work
-        np.multiply(region, centre, out=work)
-        out += work
-        region[...] = out
+        np.multiply(p[:, 1:-1, 1:-1], centre, out=work)
+        np.add(out, work, out=region)  # the sum lands in the maps: no copy back
 
 
 def tighten_box(
@@ -225,28 +224,35 @@ def convolve_reflect(maps: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return ndimage.convolve(maps, full, mode="reflect")
 
 
-def shift_with_reflection(maps: np.ndarray, shift: int, axis: int) -> np.ndarray:
+def shift_with_reflection(
+    maps: np.ndarray, shift: int, axis: int, out: np.ndarray | None = None
+) -> np.ndarray:
     """Move every map ``shift`` whole cells along ``axis``; mass pushed over the edge is folded
-    back (targets reflect at the area's edge). Mass is conserved."""
+    back (targets reflect at the area's edge). Mass is conserved. The result goes to ``out``
+    (which must not overlap ``maps``) when given, else to a new array."""
     if shift == 0:
-        return maps
+        if out is None:
+            return maps
+        out[...] = maps
+        return out
     n = maps.shape[axis]
     s = min(abs(shift), n)
-    out = np.zeros_like(maps)
-    src = [slice(None)] * maps.ndim
-    dst = [slice(None)] * maps.ndim
+    out = np.empty_like(maps) if out is None else out
+
+    def along(part: slice) -> tuple[slice, ...]:
+        index = [slice(None)] * maps.ndim
+        index[axis] = part
+        return tuple(index)
+
     if shift > 0:
-        src[axis], dst[axis] = slice(0, n - s), slice(s, n)
-        out[tuple(dst)] += maps[tuple(src)]
-        src[axis], dst[axis] = (
-            slice(n - s, n),
-            slice(n - 1, n - s - 1 if n - s - 1 >= 0 else None, -1),
-        )
+        out[along(slice(s, n))] = maps[along(slice(0, n - s))]
+        out[along(slice(0, s))] = 0.0
+        fold_to = slice(n - 1, n - s - 1 if n - s - 1 >= 0 else None, -1)
+        out[along(fold_to)] += maps[along(slice(n - s, n))]
     else:
-        src[axis], dst[axis] = slice(s, n), slice(0, n - s)
-        out[tuple(dst)] += maps[tuple(src)]
-        src[axis], dst[axis] = slice(0, s), slice(s - 1, None, -1)
-    out[tuple(dst)] += maps[tuple(src)]
+        out[along(slice(0, n - s))] = maps[along(slice(s, n))]
+        out[along(slice(n - s, n))] = 0.0
+        out[along(slice(s - 1, None, -1))] += maps[along(slice(0, s))]
     return out
 
 
@@ -352,6 +358,8 @@ class TargetProbabilityMaps:
         self.ring_symmetric: dict[int, bool] = {}
         self.ring_box: dict[int, tuple[int, int, int, int]] = {}
         self.stencil = SquareStencil(self.maps.shape[1:], self.maps.dtype)
+        self.work = np.empty(self.maps.shape[1:], dtype=self.maps.dtype)  # one layer's maps
+        self.wiener_work = np.empty_like(self.work)
         self.shift_rate = np.zeros((len(self.specs), 2))  # cells per step
         self.shift_accum = np.zeros((len(self.specs), 2))
         for l, spec in enumerate(self.specs):
@@ -366,17 +374,16 @@ class TargetProbabilityMaps:
                     [np.cos(spec.heading_rad), np.sin(spec.heading_rad)]
                 )
 
-    def _negligible_stored(self, layer: int) -> np.ndarray:
-        """Per UAV, the stored value below which a cell of ``layer`` holds fewer than
+    def _negligible_stored(self) -> np.ndarray:
+        """Per layer and UAV (L, N), the stored value below which a cell holds fewer than
         ``NEGLIGIBLE`` expected targets."""
-        return np.divide(self.NEGLIGIBLE, self.scale[layer],
-                         out=np.full(self.scale.shape[1], np.inf),
-                         where=self.scale[layer] > 0).astype(np.float32)  # fmt: skip
+        return np.divide(self.NEGLIGIBLE, self.scale, out=np.full(self.scale.shape, np.inf),
+                         where=self.scale > 0).astype(np.float32)  # fmt: skip
 
     def _support_box(self, layer: int) -> tuple[int, int, int, int]:
         """Zero the negligible cells of a layer and return the box holding the rest."""
         maps = self.maps[layer]
-        maps[maps < self._negligible_stored(layer)[:, None, None]] = 0.0
+        maps[maps < self._negligible_stored()[layer][:, None, None]] = 0.0
         xs = np.flatnonzero(maps.any(axis=(0, 2)))
         ys = np.flatnonzero(maps.any(axis=(0, 1)))
         if xs.size == 0:
@@ -386,13 +393,31 @@ class TargetProbabilityMaps:
     def forecast(self) -> None:
         """Propagate every UAV's map over one decision period (eq 19 with the kernels of eqs
         20-22); the ``reflect`` boundary keeps the mass of targets bouncing off the edge."""
+        wiener = [l for l, spec in enumerate(self.specs) if spec.kind == "known_position"]
+        self._wiener_forecast(wiener)
+        self._move_layers()
+        self.steps += 1
+        if self.steps % self.RESUM_PERIOD == 0:
+            self.totals = self.maps.sum(axis=(2, 3), dtype=np.float64)
+            self.renormalise()
+
+    def _wiener_forecast(self, layers: list[int]) -> None:
+        """Eq 20 on ``layers``: separable, along x into a work buffer, then along y in place."""
+        for l in layers:
+            layer = self.maps[l]
+            ndimage.convolve1d(
+                layer, self.wiener_1d, axis=1, mode="reflect", output=self.wiener_work
+            )
+            ndimage.convolve1d(
+                self.wiener_work, self.wiener_1d, axis=2, mode="reflect", output=layer
+            )
+
+    def _move_layers(self) -> None:
+        """Eqs 21-22 on the known-speed and known-velocity layers."""
+        negligible = None
         for l, spec in enumerate(self.specs):
             layer = self.maps[l]
-            if spec.kind == "known_position":
-                for axis in (1, 2):
-                    layer = ndimage.convolve1d(layer, self.wiener_1d, axis=axis, mode="reflect")
-                self.maps[l] = layer
-            elif spec.kind == "known_speed":
+            if spec.kind == "known_speed":
                 if self.ring_symmetric[l]:
                     self.stencil.apply(layer, self.ring_kernels[l], self.ring_box[l])
                     x0, x1, y0, y1 = self.ring_box[l]
@@ -402,7 +427,9 @@ class TargetProbabilityMaps:
                         max(y0 - 1, 0),
                         min(y1 + 1, self.grid.ny),
                     )
-                    self.ring_box[l] = tighten_box(layer, grown, self._negligible_stored(l))
+                    if negligible is None:  # the scales do not change during the forecast
+                        negligible = self._negligible_stored()
+                    self.ring_box[l] = tighten_box(layer, grown, negligible[l])
                 else:
                     self.maps[l] = convolve_reflect(layer, self.ring_kernels[l])
             elif spec.kind == "known_velocity":
@@ -412,13 +439,11 @@ class TargetProbabilityMaps:
                 whole = np.rint(self.shift_accum[l]).astype(int)
                 if whole.any():
                     self.shift_accum[l] -= whole
-                    layer = shift_with_reflection(layer, int(whole[0]), axis=1)
-                    self.maps[l] = shift_with_reflection(layer, int(whole[1]), axis=2)
-            # unknown_position targets are stationary: nothing moves.
-        self.steps += 1
-        if self.steps % self.RESUM_PERIOD == 0:
-            self.totals = self.maps.sum(axis=(2, 3), dtype=np.float64)
-            self.renormalise()
+                    for axis, cells in ((1, int(whole[0])), (2, int(whole[1]))):
+                        if cells:
+                            shift_with_reflection(layer, cells, axis, out=self.work)
+                            layer[...] = self.work
+            # unknown_position targets are stationary; known_position: _wiener_forecast.
 
     # -------------------------------------------------------------- probe update (eqs 17-18)
 
@@ -449,18 +474,20 @@ class TargetProbabilityMaps:
         keys, where = np.unique(uav * grid.size + grid.flat(cells), return_inverse=True)
         with np.errstate(divide="ignore"):
             log_ratio = np.bincount(where.ravel(), weights=np.log(ratio), minlength=len(keys))
-        uav, flat = keys // grid.size, keys % grid.size
-        view = self.maps.reshape(len(self.specs), -1, grid.size)
+        uav = keys // grid.size
+        view = self.maps.reshape(len(self.specs), -1)  # (L, N * cells): keys index it directly
         scale = self.scale[:, uav]  # (L, P)
-        stored_before = view[:, uav, flat]
+        stored_before = view[:, keys]
         updated = posterior(stored_before * scale, np.exp(log_ratio)[None, :])
-        stored = np.divide(updated, scale, out=np.zeros_like(updated), where=scale > 0).astype(
-            np.float32
-        )
-        view[:, uav, flat] = stored
+        if (self.scale > 0).all():  # the usual case: no layer is empty, no zero scale to skip
+            stored = (updated / scale).astype(np.float32)
+        else:
+            stored = np.divide(updated, scale, out=np.zeros_like(updated), where=scale > 0)
+            stored = stored.astype(np.float32)
+        view[:, keys] = stored
         change = stored.astype(np.float64) - stored_before
         # keys are sorted, so each UAV's cells are one run: sum the runs
-        first = np.flatnonzero(np.r_[True, uav[1:] != uav[:-1]])
+        first = np.flatnonzero(np.concatenate(([True], uav[1:] != uav[:-1])))
         self.totals[:, uav[first]] += np.add.reduceat(change, first, axis=1)
 
     def decay_unobserved(self, observed: np.ndarray) -> None:
@@ -483,16 +510,14 @@ class TargetProbabilityMaps:
         ``uavs`` broadcasts against ``cells.shape[:-1]`` (e.g. (N, 1) with (N, K, 2)). Cells
         outside the area read 0."""
         grid = self.grid
-        inside = grid.inside(cells)
-        clipped = np.stack(
-            [np.clip(cells[..., 0], 0, grid.nx - 1), np.clip(cells[..., 1], 0, grid.ny - 1)],
-            axis=-1,
-        )
-        flat = grid.flat(clipped)
-        view = self.maps.reshape(len(self.specs), -1, grid.size)
-        layers = np.clip(view[:, uavs, flat] * self.scale[:, uavs], 0.0, 1.0)
+        uavs = np.asarray(uavs)
+        # one flat index into (L, N * cells): UAV and cell together
+        index = uavs * grid.size + grid.clipped_flat(cells)
+        layers = self.maps.reshape(len(self.specs), -1)[:, index] * self.scale[:, uavs]
+        np.maximum(layers, 0.0, out=layers)  # clip to [0, 1]
+        np.minimum(layers, 1.0, out=layers)
         existence = 1.0 - np.prod(1.0 - layers, axis=0)
-        return np.where(inside, existence, 0.0)
+        return np.where(grid.inside(cells), existence, 0.0)
 
     def values_at(self, uavs: np.ndarray, cells: np.ndarray) -> np.ndarray:
         """Expected value of a target in each cell (the layers' masses weighting their mean values)

@@ -95,16 +95,25 @@ def claim_cells(
     claimed = np.full((n, 2), np.nan)
     claimed[~movers] = positions_km[~movers]
     order = np.lexsort((np.arange(n), allowed.sum(axis=1)))
-    for i in order[movers[order]]:
-        near = np.hypot(*(positions_km - positions_km[i]).T) <= sense_km
-        near[i] = False
-        others = claimed[near & ~np.isnan(claimed[:, 0])]
-        for c in ranked[i]:
-            if not allowed[i, c] and c != ranked[i, 0]:
+    # gaps[i, j]: distance from UAV i to UAV j; who senses whom, and every candidate's centre
+    gaps = np.hypot(*(positions_km[None, :, :] - positions_km[:, None, :]).transpose(2, 0, 1))
+    senses = gaps <= sense_km
+    np.fill_diagonal(senses, False)
+    spots = (candidates + 0.5) * cell_km  # (N, C, 2)
+    limit = min_separation_km - 1e-9
+    for i in order[movers[order]].tolist():
+        others = claimed[senses[i] & ~np.isnan(claimed[:, 0])]
+        if len(others):  # which of the UAV's candidates keep d_min from every claimed cell
+            d = np.hypot(*(others[:, None, :] - spots[i][None, :, :]).transpose(2, 0, 1))
+            separated = (d.min(axis=0) >= limit).tolist()
+        else:
+            separated = [True] * spots.shape[1]
+        allowed_i, first = allowed[i].tolist(), int(ranked[i, 0])
+        for c in ranked[i].tolist():
+            if not allowed_i[c] and c != first:
                 continue
-            spot = (candidates[i, c] + 0.5) * cell_km
-            if len(others) == 0 or np.min(np.hypot(*(others - spot).T)) >= min_separation_km - 1e-9:
+            if separated[c]:
                 choice[i] = c
                 break
-        claimed[i] = (candidates[i, choice[i]] + 0.5) * cell_km
+        claimed[i] = spots[i, choice[i]]
     return choice

@@ -67,6 +67,13 @@ class World:
         )
         self.threat_radius = np.array([t.radius_km for t in scenario.threats], float)
         self.positions = self._initial_positions()
+        # the sensor's footprint: offsets (K, 2), their reach, and offset -> index in offsets
+        self.footprint = self.grid.disc_offsets(cfg.detection_radius_km)
+        self.footprint_reach = reach = int(np.abs(self.footprint).max())
+        self.footprint_slot = np.full((2 * reach + 1, 2 * reach + 1), -1)
+        self.footprint_slot[self.footprint[:, 0] + reach, self.footprint[:, 1] + reach] = np.arange(
+            len(self.footprint)
+        )
         self.time_s = 0.0
 
     # ------------------------------------------------------------------ targets
@@ -114,10 +121,7 @@ class World:
         UAV-target), and with probability P_F otherwise."""
         cfg, grid = self.config, self.grid
         uav_xy_km = np.asarray(uav_xy_km, dtype=float).reshape(-1, 2)
-        offsets = grid.disc_offsets(cfg.detection_radius_km)
-        reach = int(np.abs(offsets).max())
-        slot = np.full((2 * reach + 1, 2 * reach + 1), -1)  # footprint offset -> index in offsets
-        slot[offsets[:, 0] + reach, offsets[:, 1] + reach] = np.arange(len(offsets))
+        offsets, reach, slot = self.footprint, self.footprint_reach, self.footprint_slot
         uav_cells = grid.cell_of(uav_xy_km)
         cells = uav_cells[:, None, :] + offsets[None]  # (N, K, 2)
         p_b1 = np.full(cells.shape[:2], cfg.p_false)
@@ -136,8 +140,12 @@ class World:
             np.maximum.at(p_b1, (uav, k), np.maximum(detection_probability(d, cfg), cfg.p_false))
         detected = self.rng.random(p_b1.shape) < p_b1
         inside = grid.inside(cells)
+        whole = inside.all(axis=1).tolist()  # footprint fully inside: no selection to copy
         return [
-            SensorReport(cells[i][inside[i]], detected[i][inside[i]]) for i in range(len(cells))
+            SensorReport(cells[i], detected[i])
+            if whole[i]
+            else SensorReport(cells[i][inside[i]], detected[i][inside[i]])
+            for i in range(len(cells))
         ]
 
     # ------------------------------------------------------------------ engagement
