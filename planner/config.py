@@ -49,9 +49,8 @@ class PlannerConfig:
 
     # --- target priors and motion (eqs 10-14, 19-22) ---
     delta_0_km: float = 5.0  # delta_0, std of the prior position error
-    delta_e_km_per_sqrt_s: float = (
-        0.2  # delta_e, Wiener diffusion (paper's "2", read in 100 m/sqrt(s))
-    )
+    # delta_e, Wiener diffusion: the paper's "2" read as 200 m per sqrt(decision step of 10 s)
+    delta_e_km_per_sqrt_s: float = 0.2 / math.sqrt(10.0)
     t0_s: float = 50.0  # t_0, delay between tasking and arrival
 
     # --- dynamic topology (eqs 1-3) ---

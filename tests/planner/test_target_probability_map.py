@@ -166,7 +166,7 @@ def test_looks_at_one_cell_combine_exactly_as_sequential_eq18():
     for look, bit, origin in zip(looks, bits, origins, strict=True):
         apart.apply_looks(np.zeros(1, int), [look], [bit], origin[None])
     assert np.allclose(together.maps, apart.maps, rtol=1e-5, atol=1e-12)
-    assert np.allclose(together.totals, apart.totals, rtol=1e-9)
+    assert np.allclose(together.totals, apart.totals, rtol=1e-6)  # maps are stored in float32
     assert together.totals == pytest.approx(
         together.maps.sum(axis=(2, 3), dtype=np.float64), rel=1e-6
     )
