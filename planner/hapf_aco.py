@@ -7,13 +7,16 @@ cooperative radius reach it. ``HapfAcoPlanner.step`` takes what the UAVs report 
 
 1. topology (eqs 1-3) and what each UAV hears;
 2. probe update of the TPMs with own and neighbours' looks (eqs 17-18), renormalised (eq 16);
-3. confirmation of targets and the engagement choice (section 3.2.1);
+3. the engagement choice (section 3.2.1): the cell each UAV goes for, by the probability that
+   a target lies within the engage radius (circled for more looks from ``pursue_threshold``,
+   flown to and engaged from ``confirm_threshold``; higher value first; one UAV per target);
 4. pheromone: local decrement around predicted swarm positions, periodic global increment
    (eqs 28-34);
 5. potential field at the UAV and over its sensor footprint (eqs 23-27);
 6. transition: engage, return (C_r), escape after N_t steps without coverage gain, or the
-   deterministic / heuristic rules (eqs 35-37), all over the candidate cells allowed by C_m and
-   C_t; then C_c by claiming cells in priority order;
+   deterministic / heuristic rules (eqs 35-37, eta with a look-ahead corridor), all over the
+   candidate cells allowed by C_m, C_t and C_r (``planner.feasibility``); then C_c by claiming
+   cells in priority order, with one step of foresight;
 7. forecast of the TPMs to the next step (eqs 19-22).
 
 Nothing here does I/O; randomness comes from one seeded generator.
