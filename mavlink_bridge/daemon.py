@@ -414,11 +414,7 @@ class MissionDaemon:
             self.link.pump(0.003)
             self._update_links(step)
             now = time.monotonic()
-            fresh = {
-                i: self.vehicle(i).looks[self.vehicle(i).latest_look]
-                for i in range(self.n)
-                if self.vehicle(i).latest_look > consumed[i] and not self.vehicle(i).lost
-            }
+            fresh = self._new_looks(consumed)
             if any_looks:
                 waiting = [i for i in range(self.n) if i not in fresh and not self.vehicle(i).lost]
                 if fresh and first_fresh is None:
@@ -436,6 +432,19 @@ class MissionDaemon:
         if self._last_step_wall:
             self._look_gaps.append(time.monotonic() - self._last_step_wall)
         self._last_step_wall = time.monotonic()
+        return self._consume(fresh, consumed)
+
+    def _new_looks(self, consumed: list[int]) -> dict[int, Look]:
+        """The newest look of every vehicle still heard that sent one since ``consumed``."""
+        vehicles = [self.vehicle(i) for i in range(self.n)]
+        return {
+            i: v.looks[v.latest_look]
+            for i, v in enumerate(vehicles)
+            if v.latest_look > consumed[i] and not v.lost
+        }
+
+    @staticmethod
+    def _consume(fresh: dict[int, Look], consumed: list[int]) -> dict[int, Look]:
         for i, look in fresh.items():
             consumed[i] = look.index
         return fresh
@@ -484,14 +493,7 @@ class MissionDaemon:
         assert self.clock is not None
         vehicles = [self.vehicle(i) for i in range(self.n)]
         self.clock.advance(vehicles, on_pump=lambda: self._update_links(step))
-        fresh = {
-            i: v.looks[v.latest_look]
-            for i, v in enumerate(vehicles)
-            if v.latest_look > consumed[i] and not v.lost
-        }
-        for i, look in fresh.items():
-            consumed[i] = look.index
-        return fresh
+        return self._consume(self._new_looks(consumed), consumed)
 
     def request_homes(self) -> None:
         """Ask every vehicle whose home is not known yet for HOME_POSITION (REQUEST_MESSAGE):
@@ -602,14 +604,15 @@ class MissionDaemon:
                 look = looks.get(i)
                 if look is not None:
                     positions[i] = self.local_km(look.lat_deg, look.lon_deg)
-                    reports[i] = look_report(
-                        look, self.grid, scenario.origin, cfg.detection_radius_km
-                    )
-                    observed[reports[i].cells[:, 0], reports[i].cells[:, 1]] = True
                 elif v.has_position:
                     self.looks_missed += step > 0
                     positions[i] = self.local_km(v.lat_deg, v.lon_deg)
                 cell = self.grid.cell_of(positions[i])
+                if look is not None:  # the look's cell is the one just converted
+                    reports[i] = look_report(
+                        look, self.grid, scenario.origin, cfg.detection_radius_km, cell=cell
+                    )
+                    observed[reports[i].cells[:, 0], reports[i].cells[:, 1]] = True
                 if step == 0:  # where the take-off left it, flying its course
                     course = self._course_heading(v)
                     headings[i] = headings[i] if course is None else course
@@ -636,14 +639,12 @@ class MissionDaemon:
                 positions, cells, headings, checked, last_target, flown_km, home_km, active
             )
             checked.next_cells, checked.next_headings = flight.next_cells, flight.next_headings
-            for i in range(
-                n
-            ):  # distance flown so far, between measured cells (as the planner counts)
-                if active[i] and step > 0:
-                    flown_km[i] += float(
-                        np.hypot(*(self.grid.centre_km(cells[i]) - previous_centres[i]))
-                    )
-            previous_centres = self.grid.centre_km(cells)
+            # distance flown so far, between measured cells (as the planner counts)
+            centres = self.grid.centre_km(cells)
+            if step > 0:
+                legs = np.hypot(*(centres - previous_centres).T)
+                flown_km[active] += legs[active]
+            previous_centres = centres
             recorder.record_step(
                 positions.copy(),
                 airborne=active.copy(),
@@ -685,15 +686,11 @@ class MissionDaemon:
                 aim = (round(float(aims[i, 0]), 3), round(float(aims[i, 1]), 3))
                 if aim == last_target[i] and step % 5:
                     continue  # already flying there (re-sent every 5 steps all the same)
-                moves.append(
-                    (
-                        i,
-                        reposition_command(
-                            self.vehicle(i), float(lat[i]), float(lon[i]), scenario.altitude_m
-                        ),
-                    )
+                cmd = reposition_command(
+                    self.vehicle(i), float(lat[i]), float(lon[i]), scenario.altitude_m
                 )
-            for (i, _), cmd in zip(moves, self.send([c for _, c in moves]), strict=True):
+                moves.append((i, aim, cmd))
+            for (i, aim, _), cmd in zip(moves, self.send([c for *_, c in moves]), strict=True):
                 if cmd.ack is not None and not cmd.accepted:
                     refusals[i] += 1
                     self.refused_commands += 1
@@ -706,7 +703,7 @@ class MissionDaemon:
                 elif cmd.accepted:
                     refusals[i] = 0
                 if cmd.accepted:
-                    last_target[i] = (round(float(aims[i, 0]), 3), round(float(aims[i, 1]), 3))
+                    last_target[i] = aim
             commanded_cells = checked.next_cells.copy()
             commanded_headings = checked.next_headings.copy()
             if self.options.on_step is not None:

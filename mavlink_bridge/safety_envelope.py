@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from planner.constraints import segment_clearance
 from planner.grid import HEADING_STEPS, Grid, turn_options
 from planner.scenario import Scenario
 
@@ -45,14 +46,6 @@ class EnvelopeDecision:
     next_cells: np.ndarray
     next_headings: np.ndarray
     overrides: list[Override] = field(default_factory=list)
-
-
-def segment_point_distance(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> float:
-    """Distance from point ``p`` to the segment ``a``-``b`` (all in km)."""
-    ab = b - a
-    denom = float(ab @ ab)
-    t = 0.0 if denom == 0 else float(np.clip((p - a) @ ab / denom, 0.0, 1.0))
-    return float(np.hypot(*(a + t * ab - p)))
 
 
 @dataclass(frozen=True)
@@ -88,12 +81,13 @@ class SafetyEnvelope:
 
     # ------------------------------------------------------------------ single rules
 
+    def segment_clear(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """The segment ``a``-``b`` (km) keeps ``threat_margin_km`` clear of every threat."""
+        clearance = segment_clearance(a, b, self.threat_xy_km, self.threat_radius_km)
+        return bool(clearance >= self.threat_margin_km)
+
     def leg_clear_of_threats(self, cell_from: np.ndarray, cell_to: np.ndarray) -> bool:
-        a, b = self.grid.centre_km(cell_from), self.grid.centre_km(cell_to)
-        for centre, radius in zip(self.threat_xy_km, self.threat_radius_km, strict=True):
-            if segment_point_distance(a, b, centre) < radius + self.threat_margin_km:
-                return False
-        return True
+        return self.segment_clear(self.grid.centre_km(cell_from), self.grid.centre_km(cell_to))
 
     def within_range(
         self, cell_from: np.ndarray, cell_to: np.ndarray, flown_km: float, home_km: np.ndarray
@@ -218,11 +212,7 @@ class SafetyEnvelope:
         for fraction in (lead, lead / 2, 0.0):
             aim = b + fraction * leg
             inside = 0 <= aim[0] <= width and 0 <= aim[1] <= height
-            clear = all(
-                segment_point_distance(b, aim, c) >= r + self.threat_margin_km
-                for c, r in zip(self.threat_xy_km, self.threat_radius_km, strict=True)
-            )
-            if inside and clear:
+            if inside and self.segment_clear(b, aim):
                 return aim
         return b
 
@@ -242,6 +232,9 @@ class SafetyEnvelope:
         for turn in turn_options(self.max_turn_deg):
             h = int((heading + turn) % 8)
             candidate = cell + HEADING_STEPS[h]
-            if bool(self.grid.inside(candidate)) and self.threat_clearance(candidate) > best[0]:
-                best = (self.threat_clearance(candidate), candidate, h)
+            if not bool(self.grid.inside(candidate)):
+                continue
+            clearance = self.threat_clearance(candidate)
+            if clearance > best[0]:
+                best = (clearance, candidate, h)
         return best[1], best[2]

@@ -24,9 +24,16 @@ def look_cell(look: Look, grid: Grid, origin: Origin) -> np.ndarray:
     return grid.cell_of(np.array([x[0], y[0]]))
 
 
-def look_report(look: Look, grid: Grid, origin: Origin, detection_radius_km: float) -> SensorReport:
-    """The SensorReport of one look: its whole footprint, detected where the look said so."""
-    centre = look_cell(look, grid, origin)
+def look_report(
+    look: Look,
+    grid: Grid,
+    origin: Origin,
+    detection_radius_km: float,
+    cell: np.ndarray | None = None,
+) -> SensorReport:
+    """The SensorReport of one look: its whole footprint, detected where the look said so.
+    ``cell``: the look's cell (``look_cell``) when the caller has already converted it."""
+    centre = look_cell(look, grid, origin) if cell is None else np.asarray(cell)
     offsets = grid.disc_offsets(detection_radius_km)
     cells = centre[None, :] + offsets
     keep = grid.inside(cells)

@@ -77,13 +77,26 @@ class Endpoint(ABC):
     stats: LinkStats = field(default_factory=LinkStats)
     #: with MAVLink signing on (mavlink_bridge/signing.py): frames it refuses are dropped
     signature_check: Any = None
+    sock: socket.socket | None = None  # set by open()
 
     def admits(self, msg: mavlink.MAVLink_message) -> bool:
         """False for a frame the signature check refuses (unsigned, forged or replayed)."""
         return self.signature_check is None or self.signature_check.accept_message(msg)
 
+    def kept(self, parser: mavlink.MAVLink, data: bytes) -> list[mavlink.MAVLink_message]:
+        """The frames of ``data`` (one datagram or stream chunk) that ``parser`` makes of it,
+        counted, without BAD_DATA, UNKNOWN_<id> and frames the signature check refuses."""
+        self.stats.datagrams += 1
+        frames = parser.parse_buffer(data) or ()
+        return [m for m in frames if _keep(m, self.stats) and self.admits(m)]
+
     @abstractmethod
-    def fileno(self) -> int: ...
+    def open(self) -> Endpoint:
+        """Open the socket (sets ``sock``); raises EndpointError with a one-line message."""
+
+    def fileno(self) -> int:
+        assert self.sock is not None
+        return self.sock.fileno()
 
     @abstractmethod
     def receive(self) -> list[tuple[mavlink.MAVLink_message, Address | None]]:
@@ -101,15 +114,15 @@ class Endpoint(ABC):
     def default_address(self) -> Address | None:
         return None
 
-    @abstractmethod
-    def close(self) -> None: ...
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
 
 
 @dataclass
 class UdpInEndpoint(Endpoint):
     """A UDP port the daemon listens on; any number of vehicles send to it."""
-
-    sock: socket.socket | None = None
 
     def open(self) -> UdpInEndpoint:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -129,9 +142,9 @@ class UdpInEndpoint(Endpoint):
         self.port = sock.getsockname()[1]  # the real port when 0 was asked for
         return self
 
-    def fileno(self) -> int:
-        assert self.sock is not None
-        return self.sock.fileno()
+    def parse_datagram(self, data: bytes) -> list[mavlink.MAVLink_message]:
+        """The frames kept of one datagram, parsed on its own (a fresh parser)."""
+        return self.kept(_fresh_parser(), data)
 
     def receive(self) -> list[tuple[mavlink.MAVLink_message, Address | None]]:
         out: list[tuple[mavlink.MAVLink_message, Address | None]] = []
@@ -143,10 +156,7 @@ class UdpInEndpoint(Endpoint):
                 break
             except ConnectionRefusedError:
                 continue  # an ICMP error from an earlier send to a vehicle that went away
-            self.stats.datagrams += 1
-            for msg in _fresh_parser().parse_buffer(data) or ():
-                if _keep(msg, self.stats) and self.admits(msg):
-                    out.append((msg, address))
+            out += [(msg, address) for msg in self.parse_datagram(data)]
         return out
 
     def send_to(self, frame: bytes, address: Address | None) -> None:
@@ -155,11 +165,6 @@ class UdpInEndpoint(Endpoint):
         # UDP: a lost datagram is what retries are for
         with contextlib.suppress(BlockingIOError, ConnectionRefusedError):
             self.sock.sendto(frame, address)
-
-    def close(self) -> None:
-        if self.sock is not None:
-            self.sock.close()
-            self.sock = None
 
 
 @dataclass
@@ -188,7 +193,6 @@ class UdpOutEndpoint(UdpInEndpoint):
 class TcpEndpoint(Endpoint):
     """A TCP server (ArduPilot SITL) the daemon connects to; one byte stream, one parser."""
 
-    sock: socket.socket | None = None
     parser: mavlink.MAVLink = field(default_factory=_fresh_parser)
     connect_timeout_s: float = 5.0
 
@@ -212,10 +216,6 @@ class TcpEndpoint(Endpoint):
         self.sock = sock
         return self
 
-    def fileno(self) -> int:
-        assert self.sock is not None
-        return self.sock.fileno()
-
     def receive(self) -> list[tuple[mavlink.MAVLink_message, Address | None]]:
         out: list[tuple[mavlink.MAVLink_message, Address | None]] = []
         assert self.sock is not None
@@ -228,10 +228,7 @@ class TcpEndpoint(Endpoint):
                 data = b""
             if not data:
                 raise EndpointError(f"{self.spec} closed the connection; the vehicle went away")
-            self.stats.datagrams += 1
-            for msg in self.parser.parse_buffer(data) or ():
-                if _keep(msg, self.stats) and self.admits(msg):
-                    out.append((msg, None))
+            out += [(msg, None) for msg in self.kept(self.parser, data)]
         return out
 
     def send_to(self, frame: bytes, address: Address | None) -> None:
@@ -243,11 +240,6 @@ class TcpEndpoint(Endpoint):
             pass
         except OSError as exc:
             raise EndpointError(f"{self.spec}: send failed ({exc.strerror or exc})") from None
-
-    def close(self) -> None:
-        if self.sock is not None:
-            self.sock.close()
-            self.sock = None
 
 
 def parse_endpoint(spec: str) -> Endpoint:
@@ -276,7 +268,7 @@ def parse_endpoint(spec: str) -> Endpoint:
 def open_endpoint(spec: str) -> Endpoint:
     """Parse and open an endpoint; raises EndpointError with a one-line message."""
     endpoint = parse_endpoint(spec)
-    return endpoint.open()  # type: ignore[attr-defined]
+    return endpoint.open()
 
 
 class _FrameWriter:

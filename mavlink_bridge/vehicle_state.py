@@ -144,7 +144,7 @@ class VehicleState:
                 self.stale_positions += 1
                 return
         self._stale_run = 0
-        if not (-90e7 <= msg.lat <= 90e7 and -180e7 <= msg.lon <= 180e7):
+        if not _on_earth(msg.lat, msg.lon):
             return  # not a position (a corrupt or hostile frame)
         self.has_position = True
         self.lat_deg = msg.lat * 1e-7
@@ -157,7 +157,7 @@ class VehicleState:
         self.position_s = self.last_heard_s
 
     def on_home_position(self, msg: mavlink.MAVLink_home_position_message) -> None:
-        if not (-90e7 <= msg.latitude <= 90e7 and -180e7 <= msg.longitude <= 180e7):
+        if not _on_earth(msg.latitude, msg.longitude):
             return  # not a position: a corrupt or hostile frame must not become a UAV's start
         self.home = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
 
@@ -195,7 +195,7 @@ class VehicleState:
         if not first and not url.startswith("look+:"):
             return  # an ordinary photo, not a sensor look
         index = msg.image_index
-        if not (-90e7 <= msg.lat <= 90e7 and -180e7 <= msg.lon <= 180e7):
+        if not _on_earth(msg.lat, msg.lon):
             return  # not a position: a corrupt or hostile frame
         if self.latest_look >= 0 and index > self.latest_look + MAX_LOOK_JUMP:
             return  # a look number far ahead of any plausible one would stall every later look
@@ -218,6 +218,11 @@ class VehicleState:
 
     def on_mission_ack(self, msg: mavlink.MAVLink_mission_ack_message) -> None:
         self.mission_ack = (msg.type, msg.mission_type)
+
+
+def _on_earth(lat_e7: int, lon_e7: int) -> bool:
+    """A latitude / longitude pair (degrees * 1e7) that can be a place."""
+    return -90e7 <= lat_e7 <= 90e7 and -180e7 <= lon_e7 <= 180e7
 
 
 def parse_look_offsets(text: str) -> list[tuple[int, int]]:

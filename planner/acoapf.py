@@ -69,7 +69,6 @@ class AcoApfPlanner(HapfAcoPlanner):
         self.tpm = StaticTargetProbabilityMaps(scenario.targets, self.cfg, self.n)
         self.flown_km = np.zeros(self.n)
         self.out_of_fuel = np.zeros(self.n, dtype=bool)
-        self._last_cells = self.cells.copy()
 
     def step(
         self,
@@ -82,8 +81,8 @@ class AcoApfPlanner(HapfAcoPlanner):
         """HAPF-ACO's step (section 3.5) with the two omissions above; UAVs out of fuel are
         passed to it as inactive, so they hold and the others keep clear of them (C_c)."""
         cells = np.asarray(cells, dtype=np.int64).reshape(self.n, 2)
-        self.flown_km += np.hypot(*((cells - self._last_cells) * self.cfg.cell_km).T)
-        self._last_cells = cells.copy()
+        # self.cells: where the UAVs were at the last step (the base step updates it)
+        self.flown_km += np.hypot(*((cells - self.cells) * self.cfg.cell_km).T)
         self.out_of_fuel |= fuel_exhausted(self.flown_km, self.fuel_range_km, self.cfg.cell_km)
         reachable = (
             np.ones(self.n, dtype=bool) if active is None else np.asarray(active, dtype=bool)

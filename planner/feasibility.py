@@ -29,7 +29,6 @@ class MoveOptions:
     headings: np.ndarray  # (N, C) int, heading after the move
     moves: np.ndarray  # (N, C, 2) float, move vectors in cells
     step_km: np.ndarray  # (N, C) leg length
-    allowed: np.ndarray  # (N, C) bool: C_m and C_t (and the area)
     home_km: np.ndarray  # (N, C) D_left(k+1): shortest safe path home from the candidate
     slack_km: np.ndarray  # (N, C) range slack after the move (inf when L_max is)
     feasible: np.ndarray  # (N, C) bool: allowed and in range (safety only if range cannot be kept)
@@ -60,7 +59,7 @@ def feasible_moves(
     freedom = np.zeros(cand_head.shape, dtype=np.int64)
     cx = np.minimum(np.maximum(cand[..., 0], 0), grid.nx - 1)  # clipped into the area
     cy = np.minimum(np.maximum(cand[..., 1], 0), grid.ny - 1)
-    for known, members in _threat_groups(known_threats):
+    for known, members in threat_groups(known_threats):
         model = safety_model(known)
         here = np.broadcast_to(cells[members][:, None, :], cand[members].shape)
         allowed[members] = model.move_allowed(here, cand_head[members])
@@ -78,10 +77,10 @@ def feasible_moves(
     feasible = allowed & (slack >= 0)
     # If range cannot be kept (only when the start is boxed in), keep safety only.
     feasible = np.where(feasible.any(axis=1, keepdims=True), feasible, allowed)
-    return MoveOptions(cand, cand_head, moves, step_km, allowed, home_km, slack, feasible, freedom)
+    return MoveOptions(cand, cand_head, moves, step_km, home_km, slack, feasible, freedom)
 
 
-def _threat_groups(known_threats: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+def threat_groups(known_threats: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """The distinct rows of ``known_threats`` (N, T) bool, each with the UAVs (indices) that
     have it, in order of first appearance (a dictionary on the rows' bytes: the sets change
     rarely and N is small, so this beats sorting the rows)."""

@@ -196,16 +196,17 @@ class HapfAcoPlanner:
         self._take_engagements(engagements, hears)
 
         # 2. probe update (eqs 17-18) with own and heard looks, then eq 16
-        self._apply_looks(reports, listen, positions)
+        have = np.array([r is not None and len(r.cells) > 0 for r in reports], dtype=bool)
+        self._apply_looks(reports, have, listen, positions)
 
         # 3. confirmation and the engagement choice
-        self._update_tracks(reports, listen, hears)
+        self._update_tracks(reports, have, listen, hears)
 
         # 4. pheromone (eqs 30-34)
         self._update_pheromone(flying)
 
         # 5-6. potential field and transition
-        decision = self._decide(flying, hears, positions)
+        decision = self._decide(flying, hears, positions, distances)
 
         # 7. forecast (eqs 19-22) to the next decision step
         self.tpm.forecast()
@@ -241,9 +242,13 @@ class HapfAcoPlanner:
         self.engaged_applied = self.known_engaged.copy()
 
     def _apply_looks(
-        self, reports: Sequence[SensorReport | None], listen: np.ndarray, positions: np.ndarray
+        self,
+        reports: Sequence[SensorReport | None],
+        have: np.ndarray,
+        listen: np.ndarray,
+        positions: np.ndarray,
     ) -> None:
-        have = np.array([r is not None and len(r.cells) > 0 for r in reports], dtype=bool)
+        """``have[j]``: UAV j reported a look with at least one cell."""
         pairs = listen & have[None, :]  # receiver i gets look j
         receivers, sources = np.nonzero(pairs)
         if receivers.size == 0:
@@ -274,7 +279,11 @@ class HapfAcoPlanner:
         self.tpm.renormalise()
 
     def _update_tracks(
-        self, reports: Sequence[SensorReport | None], listen: np.ndarray, hears: np.ndarray
+        self,
+        reports: Sequence[SensorReport | None],
+        have: np.ndarray,
+        listen: np.ndarray,
+        hears: np.ndarray,
     ) -> None:
         """Section 3.2.1: choose the cell each UAV goes for. Candidates are the cells it just heard
         a detection in and the cells around its current track (the belief peak moves with the
@@ -292,7 +301,6 @@ class HapfAcoPlanner:
             cells.append(
                 (self.track[tracking][:, None, :] + self.track_window[None]).reshape(-1, 2)
             )
-        have = np.array([r is not None and len(r.cells) > 0 for r in reports], dtype=bool)
         receivers, sources = np.nonzero(listen & have[None, :] & ~self.done[:, None])
         if receivers.size:
             # only a detection (b = 1) raises a cell's probability: the cells worth checking
@@ -433,14 +441,19 @@ class HapfAcoPlanner:
         self.done |= self.returning & near_home & flying
 
     def _claim(
-        self, ranked: np.ndarray, opts: MoveOptions, positions: np.ndarray, flying: np.ndarray
+        self,
+        ranked: np.ndarray,
+        opts: MoveOptions,
+        positions: np.ndarray,
+        distances: np.ndarray,
+        flying: np.ndarray,
     ) -> np.ndarray:
         """C_c: the chosen candidate of every UAV (``claim_cells``), with one step of foresight:
         when another UAV is within two closing steps, a move into a state with a single way on
         (``MoveOptions.freedom`` 1, e.g. between a threat and the area's edge) comes after every
         other allowed move, so two UAVs are not left one cell with no separated pair of moves."""
         cfg, n = self.cfg, self.n
-        gaps = pairwise_distances(positions) + np.diag(np.full(n, np.inf))
+        gaps = distances + np.diag(np.full(n, np.inf))
         crowded = (gaps <= cfg.separation_sense_km + 2 * np.sqrt(2) * cfg.cell_km).any(axis=1)
         rows = np.arange(n)[:, None]
         cornered = (opts.freedom[rows, ranked] <= 1) & crowded[:, None]
@@ -450,6 +463,13 @@ class HapfAcoPlanner:
             ranked, opts.cells, opts.feasible, positions, flying, cfg.cell_km,
             cfg.min_separation_km, cfg.separation_sense_km,
         )  # fmt: skip
+
+    def _unsearched(self, cells: np.ndarray) -> np.ndarray:
+        """(N, ...) bool: ``cells[i, ...]`` is inside the area and not yet covered as UAV i
+        knows it."""
+        covered = self.coverage.reshape(-1)  # (N * cells): UAV i's cell c at i * size + c
+        own = (np.arange(self.n) * self.grid.size).reshape((-1,) + (1,) * (cells.ndim - 2))
+        return ~covered[own + self.grid.clipped_flat(cells)] & self.grid.inside(cells)
 
     def _engage_requests(self, engaging: np.ndarray) -> np.ndarray:
         """Engage once a target lies within the engage radius with probability at least
@@ -462,8 +482,11 @@ class HapfAcoPlanner:
             )
         return engage
 
-    def _decide(self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray) -> StepDecision:
-        cfg, grid, n = self.cfg, self.grid, self.n
+    def _decide(
+        self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray, distances: np.ndarray
+    ) -> StepDecision:
+        """Steps 5-6 for every UAV; ``distances`` are ``pairwise_distances(positions)``."""
+        cfg, n = self.cfg, self.n
         opts = self._move_options()
         cand, cand_head, moves, feasible = opts.cells, opts.headings, opts.moves, opts.feasible
         self._update_return(opts, flying)
@@ -471,11 +494,9 @@ class HapfAcoPlanner:
         # potential field at the UAV and over its footprint (eqs 23-27)
         points = self.cells[:, None, :] + self.footprint[None, :, :]
         window = self._existence_window()
-        force = self._forces(
-            window, positions, hears | (pairwise_distances(positions) <= cfg.separation_sense_km)
-        )
+        force = self._forces(window, positions, hears | (distances <= cfg.separation_sense_km))
         norms = np.hypot(force[..., 0], force[..., 1])
-        inside_fp = grid.inside(points)
+        inside_fp = self.grid.inside(points)
         force_max = np.where(inside_fp, norms, 0.0).max(axis=1)
         force_here = force[:, self.centre_index]
         q = self.rng.random(n)
@@ -485,10 +506,7 @@ class HapfAcoPlanner:
         # heuristic information: unsearched share and target probability in the candidate's
         # footprint
         fp = cand[:, :, None, :] + self.footprint[None, None, :, :]  # (N, C, K, 2)
-        covered = self.coverage.reshape(-1)  # (N * cells): UAV i's cell c at i * size + c
-        own = (np.arange(n) * grid.size)[:, None, None]
-        unsearched = ~covered[own + grid.clipped_flat(fp)] & grid.inside(fp)
-        new_share = unsearched.sum(axis=2) / len(self.footprint)
+        new_share = self._unsearched(fp).sum(axis=2) / len(self.footprint)
         r = self.window_reach
         offset = (
             (cand - self.cells[:, None, :])[:, :, None, :] + self.footprint[None, None, :, :] + r
@@ -498,7 +516,7 @@ class HapfAcoPlanner:
         )  # 0 outside
         mass_share = mass / np.maximum(mass.max(axis=1, keepdims=True), 1e-12)
         ahead = cand[:, :, None, :] + self.corridor[cand_head]  # (N, C, K', 2)
-        ahead_unsearched = ~covered[own + grid.clipped_flat(ahead)] & grid.inside(ahead)
+        ahead_unsearched = self._unsearched(ahead)
         corridor_w = self.corridor_weights[cand_head]
         ahead_share = (ahead_unsearched * corridor_w).sum(axis=2) / np.maximum(
             corridor_w.sum(axis=2), 1e-12
@@ -550,7 +568,7 @@ class HapfAcoPlanner:
         order = np.argsort(-np.where(np.isfinite(scores), scores, -1e300), axis=1, kind="stable")
         others = order[order != chosen_first[:, None]].reshape(n, -1)  # order is a permutation
         ranked = np.concatenate([chosen_first[:, None], others], axis=1)
-        pick = self._claim(ranked, opts, positions, flying)
+        pick = self._claim(ranked, opts, positions, distances, flying)
         rows = np.arange(n)
         next_cells = np.where(flying[:, None], cand[rows, pick], self.cells)
         next_headings = np.where(flying, cand_head[rows, pick], self.headings)

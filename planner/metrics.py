@@ -24,6 +24,7 @@ from scipy import stats
 from planner.constraints import segment_clearance
 from planner.grid import Grid
 from planner.scenario import Scenario, UavStart
+from planner.topology import pairwise_distances
 
 
 class MissionRecorder:
@@ -110,7 +111,7 @@ class MissionRecorder:
         flying = airborne & ~self._done
         if flying.sum() >= 2:
             p = pos[flying]
-            d = np.hypot(*(p[:, None, :] - p[None, :, :]).transpose(2, 0, 1))
+            d = pairwise_distances(p)
             np.fill_diagonal(d, np.inf)
             nearest = d.min(axis=1)
             self.min_separation_curve.append(float(nearest.min()))

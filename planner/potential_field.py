@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from planner.config import PlannerConfig
+from planner.topology import pairwise_distances
 
 
 def attraction(existence: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
@@ -83,7 +84,7 @@ def morse_repulsion(
     ``neighbours`` (N, N) bool. Only the (i, j) pairs that can be in range are evaluated."""
     force = np.zeros(points_km.shape)
     spread = np.hypot(*(points_km - others_km[:, None, :]).transpose(2, 0, 1)).max(initial=0.0)
-    gap = np.hypot(*(others_km[:, None, :] - others_km[None, :, :]).transpose(2, 0, 1))
+    gap = pairwise_distances(others_km)
     owner, other = np.nonzero(neighbours & (gap <= cfg.uav_repulsion_range_km + spread))
     if owner.size == 0:
         return force

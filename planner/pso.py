@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planner.feasibility import MoveOptions
+from planner.feasibility import MoveOptions, threat_groups
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, turn_options
 from planner.hapf_aco import MODES, HapfAcoPlanner, StepDecision
 from planner.scenario import Scenario, UavStart
@@ -102,7 +102,7 @@ class PsoPlanner(HapfAcoPlanner):
         ex, ey = np.meshgrid(np.arange(-h, h + 1), np.arange(-h, h + 1), indexing="ij")
         self.end_offsets = np.stack([ex.ravel(), ey.ravel()], axis=1)  # where a path can end
         b = s.block_cells
-        bx, by = -(-self.grid.nx // b), -(-self.grid.ny // b)
+        bx, by = self.block_shape = (-(-self.grid.nx // b), -(-self.grid.ny // b))
         cx, cy = np.meshgrid(
             (np.arange(bx) + 0.5) * b - 0.5, (np.arange(by) + 0.5) * b - 0.5, indexing="ij"
         )
@@ -122,7 +122,9 @@ class PsoPlanner(HapfAcoPlanner):
 
     # ------------------------------------------------------------------ decision
 
-    def _decide(self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray) -> StepDecision:
+    def _decide(
+        self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray, distances: np.ndarray
+    ) -> StepDecision:
         n = self.n
         opts = self._move_options()
         self._update_return(opts, flying)  # C_r: the return rule of HAPF-ACO, unchanged
@@ -143,7 +145,7 @@ class PsoPlanner(HapfAcoPlanner):
             modes[returning] = MODES.index("return")
 
         ranked = np.argsort(-np.where(np.isfinite(scores), scores, -1e300), axis=1, kind="stable")
-        pick = self._claim(ranked, opts, positions, flying)
+        pick = self._claim(ranked, opts, positions, distances, flying)
         rows = np.arange(n)
         next_cells = np.where(flying[:, None], opts.cells[rows, pick], self.cells)
         next_headings = np.where(flying, opts.headings[rows, pick], self.headings)
@@ -243,14 +245,10 @@ class PsoPlanner(HapfAcoPlanner):
         heads = np.broadcast_to(np.arange(8)[:, None], (8, e))
         allowed = np.zeros((m, 8, e), dtype=bool)
         home = np.full((m, e), np.inf)
-        groups: dict[tuple[bool, ...], list[int]] = {}
-        for a, i in enumerate(idx):
-            groups.setdefault(tuple(bool(b) for b in self.known_threats[i]), []).append(a)
         inside = grid.inside(cells)
-        flat = grid.flat(np.stack([_clamp(cells[..., 0], 0, grid.nx - 1),
-                                   _clamp(cells[..., 1], 0, grid.ny - 1)], axis=-1))  # fmt: skip
-        for key, rows in groups.items():
-            model = self.safety_model(np.array(key, dtype=bool))
+        flat = grid.clipped_flat(cells)
+        for known, rows in threat_groups(self.known_threats[idx]):
+            model = self.safety_model(known)
             at = np.broadcast_to(cells[rows][:, None], (len(rows), 8, e, 2))
             allowed[rows] = model.move_allowed(at, np.broadcast_to(heads, (len(rows), 8, e)))
             if np.isfinite(self.cfg.max_range_km):
@@ -329,9 +327,8 @@ class PsoPlanner(HapfAcoPlanner):
         inside = grid.inside(cells)
         p = self.tpm.existence_at(idx[:, None], cells)
         share = p / np.maximum(p.max(axis=1, keepdims=True), 1e-12)
-        cx = _clamp(cells[..., 0], 0, grid.nx - 1)
-        cy = _clamp(cells[..., 1], 0, grid.ny - 1)
-        unsearched = ~self.coverage[idx[:, None], cx, cy] & inside
+        covered = self.coverage.reshape(self.n, -1)[idx[:, None], grid.clipped_flat(cells)]
+        unsearched = ~covered & inside
         # cooperation: cells inside the footprints of the paths neighbours announced last step
         pairs_a, pairs_j = np.nonzero(hears[idx] & self.plan_valid[None, :])
         if pairs_a.size and s.horizon_steps > 1:
@@ -355,7 +352,7 @@ class PsoPlanner(HapfAcoPlanner):
         stale = idx[self.k - self.block_step[idx] >= s.block_refresh_steps]
         if stale.size:
             b = s.block_cells
-            bx, by = -(-grid.nx // b), -(-grid.ny // b)
+            bx, by = self.block_shape
             pad = ((0, bx * b - grid.nx), (0, by * b - grid.ny))
             for i in stale:
                 unsearched = np.pad(~self.coverage[i], pad).reshape(bx, b, by, b).mean(axis=(1, 3))
@@ -364,7 +361,5 @@ class PsoPlanner(HapfAcoPlanner):
                 self.block_value[i] = (unsearched + mass).ravel()
             self.block_step[stale] = self.k
         ends = self.cells[idx][:, None, :] + self.end_offsets[None]  # (m, E, 2)
-        ex = _clamp(ends[..., 0], 0, grid.nx - 1)
-        ey = _clamp(ends[..., 1], 0, grid.ny - 1)
-        weights = self.block_weights[grid.flat(np.stack([ex, ey], axis=-1))]  # (m, E, B)
+        weights = self.block_weights[grid.clipped_flat(ends)]  # (m, E, B)
         return np.einsum("meb,mb->me", weights, self.block_value[idx])

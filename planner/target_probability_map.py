@@ -160,8 +160,7 @@ class SquareStencil:
         the caller promises every cell outside ``[x0, x1) x [y0, y1)`` is zero: only the box
         grown by one cell (all the kernel can reach) is computed."""
         n, nx, ny = maps.shape
-        x0, x1, y0, y1 = (0, nx, 0, ny) if box is None else box
-        x0, x1, y0, y1 = max(x0 - 1, 0), min(x1 + 1, nx), max(y0 - 1, 0), min(y1 + 1, ny)
+        x0, x1, y0, y1 = grow_box((0, nx, 0, ny) if box is None else box, nx, ny)
         a, b = x1 - x0, y1 - y0
         centre, edge, corner = float(kernel[1, 1]), float(kernel[0, 1]), float(kernel[0, 0])
         p = self.padded[:, : a + 2, : b + 2]
@@ -186,6 +185,13 @@ class SquareStencil:
         out += work
         np.multiply(p[:, 1:-1, 1:-1], centre, out=work)
         np.add(out, work, out=region)  # the sum lands in the maps: no copy back
+
+
+def grow_box(box: tuple[int, int, int, int], nx: int, ny: int) -> tuple[int, int, int, int]:
+    """``box`` (x0, x1, y0, y1) grown by one cell on every side (all a 3x3 kernel can reach),
+    kept inside the ``nx x ny`` area."""
+    x0, x1, y0, y1 = box
+    return max(x0 - 1, 0), min(x1 + 1, nx), max(y0 - 1, 0), min(y1 + 1, ny)
 
 
 def tighten_box(
@@ -361,6 +367,7 @@ class TargetProbabilityMaps:
         self.work = np.empty(self.maps.shape[1:], dtype=self.maps.dtype)  # one layer's maps
         self.wiener_work = np.empty_like(self.work)
         self.shift_rate = np.zeros((len(self.specs), 2))  # cells per step
+        self.wiener_layers = [l for l, s in enumerate(self.specs) if s.kind == "known_position"]
         self.shift_accum = np.zeros((len(self.specs), 2))
         for l, spec in enumerate(self.specs):
             step_cells = spec.speed_mps / 1000.0 * dt / cfg.cell_km
@@ -393,8 +400,7 @@ class TargetProbabilityMaps:
     def forecast(self) -> None:
         """Propagate every UAV's map over one decision period (eq 19 with the kernels of eqs
         20-22); the ``reflect`` boundary keeps the mass of targets bouncing off the edge."""
-        wiener = [l for l, spec in enumerate(self.specs) if spec.kind == "known_position"]
-        self._wiener_forecast(wiener)
+        self._wiener_forecast(self.wiener_layers)
         self._move_layers()
         self.steps += 1
         if self.steps % self.RESUM_PERIOD == 0:
@@ -420,13 +426,7 @@ class TargetProbabilityMaps:
             if spec.kind == "known_speed":
                 if self.ring_symmetric[l]:
                     self.stencil.apply(layer, self.ring_kernels[l], self.ring_box[l])
-                    x0, x1, y0, y1 = self.ring_box[l]
-                    grown = (
-                        max(x0 - 1, 0),
-                        min(x1 + 1, self.grid.nx),
-                        max(y0 - 1, 0),
-                        min(y1 + 1, self.grid.ny),
-                    )
+                    grown = grow_box(self.ring_box[l], self.grid.nx, self.grid.ny)
                     if negligible is None:  # the scales do not change during the forecast
                         negligible = self._negligible_stored()
                     self.ring_box[l] = tighten_box(layer, grown, negligible[l])

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from planner.config import PlannerConfig
+from planner.topology import pairwise_distances
 
 
 def angle_to(moves: np.ndarray, direction: np.ndarray) -> np.ndarray:
@@ -95,9 +96,8 @@ def claim_cells(
     claimed = np.full((n, 2), np.nan)
     claimed[~movers] = positions_km[~movers]
     order = np.lexsort((np.arange(n), allowed.sum(axis=1)))
-    # gaps[i, j]: distance from UAV i to UAV j; who senses whom, and every candidate's centre
-    gaps = np.hypot(*(positions_km[None, :, :] - positions_km[:, None, :]).transpose(2, 0, 1))
-    senses = gaps <= sense_km
+    # who senses whom, and every candidate's centre
+    senses = pairwise_distances(positions_km) <= sense_km
     np.fill_diagonal(senses, False)
     spots = (candidates + 0.5) * cell_km  # (N, C, 2)
     limit = min_separation_km - 1e-9

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+from mavlink_bridge.vehicle_state import parse_look_offsets
 from planner.engagement import EngagementOutcome
 
 FILE_URL_CHARS = 205
@@ -36,16 +37,12 @@ def look_urls(offsets: Iterable[tuple[int, int]]) -> list[str]:
 
 
 def parse_look_url(url: str) -> list[tuple[int, int]]:
-    """Offsets in one ``file_url`` text (the inverse of :func:`look_urls`, for tests and tools)."""
+    """Offsets in one ``file_url`` text (the inverse of :func:`look_urls`, for tests and tools),
+    read by the daemon's own parser (``mavlink_bridge.vehicle_state.parse_look_offsets``)."""
     for prefix in (LOOK_CONTINUATION_PREFIX, LOOK_PREFIX):
         if url.startswith(prefix):
-            body = url[len(prefix) :]
-            break
-    else:
-        raise ValueError(f"not a look url: {url!r}")
-    if not body:
-        return []
-    return [(int(a), int(b)) for a, b in (e.split(",") for e in body.split(";"))]
+            return parse_look_offsets(url[len(prefix) :])
+    raise ValueError(f"not a look url: {url!r}")
 
 
 class EngagementLog:

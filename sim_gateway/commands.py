@@ -15,11 +15,11 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_gateway import flight_modes as modes
 from sim_gateway.geofence import point_excluded
+from sim_gateway.mission_store import RELATIVE_FRAMES
 from sim_gateway.telemetry import BUILDERS, MESSAGE_IDS, NAMES_BY_ID, build_autopilot_version
 from sim_gateway.vehicle import GuidedTarget, Vehicle
 
 FORCE_DISARM_MAGIC = 21196
-RELATIVE_FRAMES = (mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
 AMSL_FRAMES = (mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_INT)
 
 
@@ -130,14 +130,9 @@ def command_mission_start(v: Vehicle, c: CommandArgs) -> Result:
 
 def command_do_set_mission_current(v: Vehicle, c: CommandArgs) -> Result:
     seq = int(c.p1) if math.isfinite(c.p1) else -1
-    if not 0 <= seq < len(v.missions.mission()):
+    if not v.set_current_item(seq):
         v.host.stats.rejected_commands += 1
         return mavlink.MAV_RESULT_DENIED
-    if v.mode == modes.AUTO:
-        v.start_mission_item(max(seq, 1))
-    else:
-        v.missions.current_seq = seq
-        v.send_mission_current()
     return mavlink.MAV_RESULT_ACCEPTED
 
 
@@ -155,9 +150,7 @@ def command_request_message(v: Vehicle, c: CommandArgs) -> Result:
         return mavlink.MAV_RESULT_DENIED
     msg_id = int(c.p1)
     if msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
-        v.ack(c.command, mavlink.MAV_RESULT_ACCEPTED, c.peer)
-        v.send(build_autopilot_version(v))
-        return -1
+        return command_request_autopilot_capabilities(v, c)
     name = NAMES_BY_ID.get(msg_id)
     if name is None:
         return mavlink.MAV_RESULT_UNSUPPORTED
@@ -247,15 +240,13 @@ def command_image_start_capture(v: Vehicle, c: CommandArgs) -> Result:
     if outcome is None:
         outcome = v.host.engage(v.index)
         v.engagements.record(sequence, outcome)
-    v.send_from_camera(
-        mavlink.MAVLink_command_ack_message(
-            c.command,
-            mavlink.MAV_RESULT_ACCEPTED,
-            progress=sequence % 256,  # result_param1: which request this answers
-            result_param2=outcome.target_id,
-            target_system=c.peer[0],
-            target_component=c.peer[1],
-        )
+    v.ack(
+        c.command,
+        mavlink.MAV_RESULT_ACCEPTED,
+        c.peer,
+        progress=sequence % 256,  # result_param1: which request this answers
+        result_param2=outcome.target_id,
+        from_camera=True,
     )
     if not replay:
         text = (

@@ -32,6 +32,11 @@ MAV_COMP_ID_AUTOPILOT1 = mavlink.MAV_COMP_ID_AUTOPILOT1  # 1
 MAV_COMP_ID_CAMERA = mavlink.MAV_COMP_ID_CAMERA  # 100
 
 
+def peer_of(message: mavlink.MAVLink_message) -> tuple[int, int]:
+    """(sysid, compid) of a message's sender: whom an answer is addressed to."""
+    return message.get_srcSystem(), message.get_srcComponent()
+
+
 @dataclass
 class LinkStats:
     """Counters of everything received, shared by all vehicles of a simulator."""
@@ -46,7 +51,7 @@ class LinkStats:
     ignored_messages: int = 0  # good frames no vehicle had a use for
     stale_commands: int = 0  # commands overtaken by a newer one from the same sender (reordered)
     sent: int = 0
-    by_type: dict[str, int] = field(default_factory=dict)
+    by_type: dict[str, int] = field(default_factory=dict)  # good frames by message type
 
 
 class DatagramParser:

@@ -15,7 +15,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_gateway import flight_modes as modes
 from sim_gateway.commands import CAMERA_COMMANDS, COMMANDS, CommandArgs, run_command
-from sim_gateway.mavlink_endpoint import MAV_COMP_ID_AUTOPILOT1, MAV_COMP_ID_CAMERA
+from sim_gateway.mavlink_endpoint import MAV_COMP_ID_AUTOPILOT1, MAV_COMP_ID_CAMERA, peer_of
 from sim_gateway.mission_protocol import (
     handle_mission_ack,
     handle_mission_clear_all,
@@ -27,6 +27,7 @@ from sim_gateway.mission_protocol import (
     handle_mission_request_list,
     handle_mission_set_current,
 )
+from sim_gateway.mission_store import RELATIVE_FRAMES
 from sim_gateway.parameter_protocol import (
     handle_param_request_list,
     handle_param_request_read,
@@ -39,13 +40,9 @@ FTP_OPCODE_NAK = 129
 FTP_ERROR_UNKNOWN_COMMAND = 7  # MAV_FTP_ERR_UNKNOWNCOMMAND: FTP is off on this vehicle
 
 
-def _peer(msg: mavlink.MAVLink_message) -> tuple[int, int]:
-    return msg.get_srcSystem(), msg.get_srcComponent()
-
-
 def handle_heartbeat(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
     """Any heartbeat from a system that is not a simulated vehicle is a ground station."""
-    v.on_gcs_heartbeat(v.host.wall_s(), _peer(msg))
+    v.on_gcs_heartbeat(v.host.wall_s())
 
 
 #: A command whose sequence number is at most this far behind the sender's newest one, within
@@ -62,7 +59,7 @@ def overtaken(v: Vehicle, msg: mavlink.MAVLink_message) -> bool:
     arrives after a newer one from the same sender has a slightly smaller number. Applying it
     would send the vehicle back to a stale target or mode; it is dropped without an ACK (the
     sender has stopped waiting for it). Duplicates of one frame are filtered earlier."""
-    peer, seq, now = _peer(msg), msg.get_seq(), v.host.wall_s()
+    peer, seq, now = peer_of(msg), msg.get_seq(), v.host.wall_s()
     last = v.last_command.get(peer)
     if last is not None and now - last[1] < REORDER_WINDOW_S:
         behind = (last[0] - seq) % 256
@@ -87,25 +84,18 @@ def _dispatch_command(v: Vehicle, msg: mavlink.MAVLink_message, args: CommandArg
     if result == mavlink.MAV_RESULT_UNSUPPORTED:
         v.host.stats.rejected_commands += 1
     if result >= 0:
-        if table is CAMERA_COMMANDS:
-            v.send_from_camera(
-                mavlink.MAVLink_command_ack_message(
-                    args.command, result, target_system=args.peer[0], target_component=args.peer[1]
-                )
-            )
-        else:
-            v.ack(args.command, result, args.peer)
+        v.ack(args.command, result, args.peer, from_camera=table is CAMERA_COMMANDS)
 
 
 def handle_command_long(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
     params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
-    _dispatch_command(v, msg, CommandArgs(msg.command, params, _peer(msg), as_int=False))
+    _dispatch_command(v, msg, CommandArgs(msg.command, params, peer_of(msg), as_int=False))
 
 
 def handle_command_int(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
     params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.x / 1e7, msg.y / 1e7, msg.z)
     args = CommandArgs(
-        msg.command, params, _peer(msg), as_int=True, frame=msg.frame, x=msg.x, y=msg.y
+        msg.command, params, peer_of(msg), as_int=True, frame=msg.frame, x=msg.x, y=msg.y
     )
     _dispatch_command(v, msg, args)
 
@@ -122,7 +112,7 @@ def handle_set_mode(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
     v.ack(
         mavlink.MAVLINK_MSG_ID_SET_MODE,
         mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_FAILED,
-        _peer(msg),
+        peer_of(msg),
     )
 
 
@@ -140,11 +130,7 @@ def handle_set_position_target_global_int(v: Vehicle, msg: mavlink.MAVLink_messa
     ignore_alt = msg.type_mask & mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE
     if v.mode != modes.GUIDED or ignore_alt or not math.isfinite(msg.alt):
         return
-    relative = msg.coordinate_frame in (
-        mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
-        mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-    )
-    alt = msg.alt if relative else msg.alt - v.host.home_amsl_m()
+    alt = msg.alt if msg.coordinate_frame in RELATIVE_FRAMES else msg.alt - v.host.home_amsl_m()
     v.fleet.target_alt_m[v.index] = alt
     if v.guided is not None:
         v.guided.alt_m = alt
@@ -161,7 +147,7 @@ def handle_file_transfer_protocol(v: Vehicle, msg: mavlink.MAVLink_message) -> N
     reply[4] = 1  # size of data
     reply[5] = payload[3]  # req_opcode
     reply[12] = FTP_ERROR_UNKNOWN_COMMAND
-    peer = _peer(msg)
+    peer = peer_of(msg)
     v.send(mavlink.MAVLink_file_transfer_protocol_message(0, peer[0], peer[1], list(reply)))
 
 

@@ -17,6 +17,7 @@ import math
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_gateway import flight_modes as modes
+from sim_gateway.mavlink_endpoint import peer_of
 from sim_gateway.mission_store import (
     FENCE,
     MAX_ITEMS,
@@ -30,10 +31,6 @@ from sim_gateway.vehicle import Vehicle
 
 UPLOAD_RETRY_WALL_S = 0.5
 UPLOAD_MAX_RETRIES = 8
-
-
-def _peer(msg: mavlink.MAVLink_message) -> tuple[int, int]:
-    return msg.get_srcSystem(), msg.get_srcComponent()
 
 
 def _mission_ack(v: Vehicle, peer: tuple[int, int], result: int, mission_type: int) -> None:
@@ -68,19 +65,19 @@ def request_next_item(v: Vehicle, transfer: UploadTransfer) -> None:
 def handle_mission_count(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
     mission_type = _mission_type(v, msg)
     if mission_type is None:
-        _mission_ack(v, _peer(msg), mavlink.MAV_MISSION_INVALID, getattr(msg, "mission_type", 0))
+        _mission_ack(v, peer_of(msg), mavlink.MAV_MISSION_INVALID, getattr(msg, "mission_type", 0))
         return
     if v.booting:
-        _mission_ack(v, _peer(msg), mavlink.MAV_MISSION_NO_SPACE, mission_type)
+        _mission_ack(v, peer_of(msg), mavlink.MAV_MISSION_NO_SPACE, mission_type)
         return
     if msg.count > MAX_ITEMS:
-        _mission_ack(v, _peer(msg), mavlink.MAV_MISSION_NO_SPACE, mission_type)
+        _mission_ack(v, peer_of(msg), mavlink.MAV_MISSION_NO_SPACE, mission_type)
         return
     if msg.count == 0:
         store_items(v, mission_type, [])
-        _mission_ack(v, _peer(msg), mavlink.MAV_MISSION_ACCEPTED, mission_type)
+        _mission_ack(v, peer_of(msg), mavlink.MAV_MISSION_ACCEPTED, mission_type)
         return
-    v.missions.upload = UploadTransfer(mission_type, msg.count, _peer(msg))
+    v.missions.upload = UploadTransfer(mission_type, msg.count, peer_of(msg))
     request_next_item(v, v.missions.upload)
 
 
@@ -112,7 +109,7 @@ def _item_from_message(
 def _receive_item(v: Vehicle, msg: mavlink.MAVLink_message, as_int: bool) -> None:
     transfer = v.missions.upload
     mission_type = getattr(msg, "mission_type", 0)
-    if transfer is None or transfer.mission_type != mission_type or _peer(msg) != transfer.peer:
+    if transfer is None or transfer.mission_type != mission_type or peer_of(msg) != transfer.peer:
         v.host.stats.ignored_messages += 1
         return
     if msg.seq != transfer.next_seq:
@@ -158,7 +155,7 @@ def store_items(v: Vehicle, mission_type: int, items: list[MissionItem]) -> None
 def handle_mission_ack(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
     """A NAK of our legacy MISSION_REQUEST means the uploader wants MISSION_REQUEST_INT."""
     transfer = v.missions.upload
-    if transfer is None or _peer(msg) != transfer.peer:
+    if transfer is None or peer_of(msg) != transfer.peer:
         return  # the ACK that ends a download, or a stray one
     if msg.type == mavlink.MAV_MISSION_UNSUPPORTED and not transfer.use_request_int:
         transfer.use_request_int = True
@@ -192,7 +189,7 @@ def handle_mission_request_list(v: Vehicle, msg: mavlink.MAVLink_message) -> Non
     count = v.missions.count(mission_type)
     if mission_type == MISSION:
         count = max(count, 1)  # item 0, home, is always there
-    peer = _peer(msg)
+    peer = peer_of(msg)
     v.send(mavlink.MAVLink_mission_count_message(peer[0], peer[1], count, mission_type))
 
 
@@ -222,7 +219,7 @@ def _send_item(v: Vehicle, msg: mavlink.MAVLink_message, as_int: bool) -> None:
     mission_type = _mission_type(v, msg)
     if mission_type is None:
         return
-    peer = _peer(msg)
+    peer = peer_of(msg)
     item = _stored_item(v, mission_type, msg.seq)
     if item is None:
         v.host.stats.rejected_commands += 1
@@ -262,18 +259,11 @@ def handle_mission_clear_all(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
         store_items(v, mission_type, [])
     else:
         v.host.stats.rejected_commands += 1
-        _mission_ack(v, _peer(msg), mavlink.MAV_MISSION_INVALID, mission_type)
+        _mission_ack(v, peer_of(msg), mavlink.MAV_MISSION_INVALID, mission_type)
         return
-    _mission_ack(v, _peer(msg), mavlink.MAV_MISSION_ACCEPTED, mission_type)
+    _mission_ack(v, peer_of(msg), mavlink.MAV_MISSION_ACCEPTED, mission_type)
 
 
 def handle_mission_set_current(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
-    items = v.missions.mission()
-    if not 0 <= msg.seq < len(items):
+    if not v.set_current_item(msg.seq):
         v.host.stats.rejected_commands += 1
-        return
-    if v.mode == modes.AUTO:
-        v.start_mission_item(max(msg.seq, 1))
-    else:
-        v.missions.current_seq = msg.seq
-        v.send_mission_current()

@@ -60,6 +60,8 @@ GLOBAL_FRAMES = frozenset(
     }
 )
 FRAMES = GLOBAL_FRAMES | {mavlink.MAV_FRAME_MISSION}
+#: Frames whose altitude is above home (the others of GLOBAL_FRAMES are above mean sea level).
+RELATIVE_FRAMES = (mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
 
 
 @dataclass(frozen=True)
@@ -89,10 +91,7 @@ class MissionItem:
         return self.y / 1e7
 
     def is_relative_alt(self) -> bool:
-        return self.frame in (
-            mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
-            mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-        )
+        return self.frame in RELATIVE_FRAMES
 
 
 def validate_item(item: MissionItem) -> int:
@@ -152,9 +151,6 @@ class MissionStore:
         self.items[mission_type] = list(items)
         if mission_type == MISSION:
             self.current_seq = 1 if len(items) > 1 else 0
-
-    def clear(self, mission_type: int) -> None:
-        self.replace(mission_type, [])
 
     def mission(self) -> list[MissionItem]:
         return self.items[MISSION]

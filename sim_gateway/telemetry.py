@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from sim_gateway import flight_modes as modes
+
 if TYPE_CHECKING:
     from sim_gateway.vehicle import Vehicle
 
@@ -98,6 +100,11 @@ class FleetSnapshot:
 # ---------------------------------------------------------------------- builders
 
 
+def _ground_speed_mps(v: Vehicle) -> float:
+    """This vehicle's row of ``FleetKinematics.ground_speed_mps()``, without the fleet array."""
+    return float(v.fleet.airspeed_mps[v.index]) if v.airborne else 0.0
+
+
 def build_heartbeat(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
     return mavlink.MAVLink_heartbeat_message(
         mavlink.MAV_TYPE_FIXED_WING,
@@ -152,7 +159,7 @@ def build_sys_status(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
 
 def build_global_position_int(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
     i, f = v.index, v.fleet
-    speed = float(f.ground_speed_mps()[i])
+    speed = _ground_speed_mps(v)
     course = float(f.course_rad[i])
     rel = float(f.alt_m[i])
     return mavlink.MAVLink_global_position_int_message(
@@ -181,7 +188,7 @@ def build_attitude(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
 
 def build_vfr_hud(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
     i, f = v.index, v.fleet
-    speed = float(f.ground_speed_mps()[i])
+    speed = _ground_speed_mps(v)
     heading = round(math.degrees(float(f.course_rad[i]))) % 360
     return mavlink.MAVLink_vfr_hud_message(
         speed,
@@ -209,7 +216,7 @@ def build_gps_raw_int(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
         alt_mm,
         80,
         120,
-        round(float(f.ground_speed_mps()[i]) * 100),
+        round(_ground_speed_mps(v) * 100),
         round(math.degrees(float(f.course_rad[i])) * 100) % 36000,
         14 if fix == mavlink.GPS_FIX_TYPE_3D_FIX else 0,
     )
@@ -244,7 +251,8 @@ def build_home_position(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message
     )
 
 
-def build_mission_current(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+def mission_current(v: Vehicle) -> mavlink.MAVLink_message:
+    """MISSION_CURRENT, streamed and sent whenever the current item changes."""
     total = max(len(v.missions.mission()) - 1, 0)
     return mavlink.MAVLink_mission_current_message(
         v.missions.current_seq,
@@ -252,10 +260,14 @@ def build_mission_current(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_messa
         mission_state=mavlink.MISSION_STATE_NO_MISSION
         if total == 0
         else mavlink.MISSION_STATE_ACTIVE
-        if v.mode == 10
+        if v.mode == modes.AUTO
         else mavlink.MISSION_STATE_NOT_STARTED,
-        mission_mode=int(v.mode == 10),
+        mission_mode=int(v.mode == modes.AUTO),
     )
+
+
+def build_mission_current(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
+    return mission_current(v)
 
 
 def build_system_time(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:

@@ -30,7 +30,7 @@ from sim_gateway.mavlink_endpoint import (
 )
 from sim_gateway.mission_store import FENCE, MissionItem, MissionStore
 from sim_gateway.parameters import ParameterSet, default_specs
-from sim_gateway.telemetry import FleetSnapshot, StreamSchedule
+from sim_gateway.telemetry import FleetSnapshot, StreamSchedule, mission_current
 
 BOOT_STATE_S = 1.0  # MAV_STATE_BOOT this long, then CALIBRATING until the boot phase ends
 
@@ -99,7 +99,6 @@ class Vehicle:
         self.item_wait_until_s: float | None = None  # AUTO loiter-time / turns deadline
         self.item_arrived = False
         self.jumps_left: dict[int, int] = {}
-        self.last_gcs: tuple[int, int] = (255, 190)  # (sysid, compid) of the last GCS heard
         #: per sender (sysid, compid): MAVLink sequence number and wall time of its newest
         #: command, so a command overtaken on the way (reordered) is not applied after it
         self.last_command: dict[tuple[int, int], tuple[int, float]] = {}
@@ -160,17 +159,28 @@ class Vehicle:
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
         self.send(mavlink.MAVLink_statustext_message(severity, text[:50].encode()))
 
-    def ack(self, command: int, result: int, peer: tuple[int, int], result_param2: int = 0) -> None:
-        self.send(
-            mavlink.MAVLink_command_ack_message(
-                command,
-                result,
-                progress=0,
-                result_param2=result_param2,
-                target_system=peer[0],
-                target_component=peer[1],
-            )
+    def ack(
+        self,
+        command: int,
+        result: int,
+        peer: tuple[int, int],
+        progress: int = 0,
+        result_param2: int = 0,
+        from_camera: bool = False,
+    ) -> None:
+        """COMMAND_ACK to ``peer``, from the autopilot or (``from_camera``) the camera."""
+        message = mavlink.MAVLink_command_ack_message(
+            command,
+            result,
+            progress=progress,
+            result_param2=result_param2,
+            target_system=peer[0],
+            target_component=peer[1],
         )
+        if from_camera:
+            self.send_from_camera(message)
+        else:
+            self.send(message)
 
     # ------------------------------------------------------------------ arming
 
@@ -421,22 +431,19 @@ class Vehicle:
         self.set_mode(modes.RTL)
 
     def send_mission_current(self) -> None:
-        total = max(len(self.missions.mission()) - 1, 0)
-        state = (
-            mavlink.MISSION_STATE_NO_MISSION
-            if total == 0
-            else mavlink.MISSION_STATE_ACTIVE
-            if self.mode == modes.AUTO
-            else mavlink.MISSION_STATE_NOT_STARTED
-        )
-        self.send(
-            mavlink.MAVLink_mission_current_message(
-                self.missions.current_seq,
-                total=total,
-                mission_state=state,
-                mission_mode=int(self.mode == modes.AUTO),
-            )
-        )
+        self.send(mission_current(self))
+
+    def set_current_item(self, seq: int) -> bool:
+        """MISSION_SET_CURRENT / MAV_CMD_DO_SET_MISSION_CURRENT: False when there is no item
+        ``seq``. In AUTO the vehicle flies to it at once (item 0, home, counts as item 1)."""
+        if not 0 <= seq < len(self.missions.mission()):
+            return False
+        if self.mode == modes.AUTO:
+            self.start_mission_item(max(seq, 1))
+        else:
+            self.missions.current_seq = seq
+            self.send_mission_current()
+        return True
 
     # ------------------------------------------------------------------ fence, range, link
 
@@ -465,8 +472,7 @@ class Vehicle:
         if self.mode != modes.RTL:
             self.set_mode(modes.RTL, "Battery failsafe")
 
-    def on_gcs_heartbeat(self, now_wall_s: float, peer: tuple[int, int]) -> None:
-        self.last_gcs = peer
+    def on_gcs_heartbeat(self, now_wall_s: float) -> None:
         if self.failsafe.heard(now_wall_s) == FailsafeEvent.CLEARED:
             self.statustext("GCS Failsafe Cleared")
             if self.failsafe.mode_before is not None and self.mode == modes.CIRCLE:

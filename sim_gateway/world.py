@@ -62,10 +62,6 @@ class World:
         self.headings = np.array([t.heading_rad for t in specs], dtype=float)
         self.alive = np.ones(len(specs), dtype=bool)
         self.engaged_step = np.full(len(specs), -1, dtype=np.int64)
-        self.threat_xy = np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(
-            -1, 2
-        )
-        self.threat_radius = np.array([t.radius_km for t in scenario.threats], float)
         self.positions = self._initial_positions()
         # the sensor's footprint: offsets (K, 2), their reach, and offset -> index in offsets
         self.footprint = self.grid.disc_offsets(cfg.detection_radius_km)
@@ -164,13 +160,3 @@ class World:
         self.alive[index] = False
         self.engaged_step[index] = step
         return EngagementOutcome(True, int(self.target_ids[index]), float(self.values[index]))
-
-    # ------------------------------------------------------------------ threats
-
-    def threat_distance_margin(self, xy_km: np.ndarray) -> np.ndarray:
-        """Distance of each point (N, 2) to the nearest threat edge (negative inside), km."""
-        xy = np.asarray(xy_km, dtype=float).reshape(-1, 2)
-        if len(self.threat_radius) == 0:
-            return np.full(len(xy), np.inf)
-        d = np.linalg.norm(xy[:, None, :] - self.threat_xy[None, :, :], axis=2)
-        return np.min(d - self.threat_radius[None, :], axis=1)

@@ -37,9 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, module_name in SUBCOMMANDS:
         try:
             module = importlib.import_module(module_name)
-        except ImportError as exc:  # a command whose package is not complete on this checkout
-            if isinstance(exc, ModuleNotFoundError) and exc.name == module_name:
-                continue  # a command not built yet
+        except ImportError as exc:  # a dependency of the command missing from this install
             print(f"swarmplan: command {name!r} unavailable ({exc})", file=sys.stderr)
             continue
         command = sub.add_parser(name, help=module.HELP, description=module.HELP)

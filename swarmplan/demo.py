@@ -18,6 +18,7 @@ from tqdm import tqdm
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
 from planner.errors import UserError
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
+from swarmplan.run_command import positive_int, seed_int, summary, write_outputs
 
 HELP = "fly a scenario end to end: the MAVLink simulator and the planner daemon on loopback UDP"
 
@@ -36,10 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"built-in ({', '.join(BUILTIN_SCENARIOS)}) or a TOML file (default paper-10uav)",
     )
     parser.add_argument(
-        "--seed", type=int, default=1, help="seed of the world and the planner (default 1)"
+        "--seed", type=seed_int, default=1, help="seed of the world and the planner (default 1)"
     )
     parser.add_argument(
-        "--steps", type=int, default=None, help="decision steps (default: the scenario's)"
+        "--steps", type=positive_int, default=None, help="decision steps (default: the scenario's)"
     )
     parser.add_argument(
         "--speedup",
@@ -108,8 +109,6 @@ def last_line(path: Path) -> str:
 def main(args: argparse.Namespace) -> int:
     if args.speedup is not None and not (0 < args.speedup < float("inf")):
         raise UserError(f"--speedup must be a positive number, got {args.speedup}")
-    if args.steps is not None and args.steps <= 0:
-        raise UserError(f"--steps must be a positive integer, got {args.steps}")
     scenario = load_scenario(args.scenario)
     steps = args.steps or scenario.steps
     out: Path = args.out or Path("runs") / f"{scenario.name}-seed{args.seed}-demo"
@@ -166,20 +165,18 @@ def main(args: argparse.Namespace) -> int:
     started = time.monotonic()
     try:
         report = daemon.fly()
-    except UserError as exc:
+    except UserError:
         if sim.poll() is not None:
             raise UserError(
                 f"the simulator exited (status {sim.returncode}): "
                 f"{last_line(sim_log) or 'no output'}"
             ) from None
-        raise exc
+        raise
     finally:
         bar.close()
         stop_simulator(sim)
     result = report.result
     result["wall_time_s"] = time.monotonic() - started
-    from swarmplan.run_command import summary, write_outputs
-
     written = write_outputs(result, out)
     if quiet:
         print(json.dumps(result))

@@ -169,8 +169,6 @@ def run_experiment(opts: dict) -> dict:
     tasks = plan_tasks(
         opts["experiment"], opts["runs"], opts["seed_base"], opts["steps"], opts["algorithms"]
     )
-    first_seed = opts["seed_base"]
-    path_runs: list[dict] = []
 
     def keep(task: RunTask, result: dict) -> None:
         folder = out / "runs" / task.scenario.name / task.algorithm
@@ -183,8 +181,6 @@ def run_experiment(opts: dict) -> dict:
             raise UserError(
                 f"cannot write to {folder} ({exc.strerror}); choose another --out"
             ) from None
-        if task.seed == first_seed:
-            path_runs.append(result)
 
     load_before = os.getloadavg()
     started = time.perf_counter()
@@ -192,9 +188,8 @@ def run_experiment(opts: dict) -> dict:
     wall = time.perf_counter() - started
     load_after = os.getloadavg()
     results = [_slim(by_key[t.key]) for t in tasks]
-    path_runs.sort(
-        key=lambda r: [t.key for t in tasks].index((r["scenario"], r["algorithm"], r["seed"]))
-    )
+    # the paths are drawn for the first seed of each (scenario, algorithm), in canonical order
+    path_runs = [by_key[t.key] for t in tasks if t.seed == opts["seed_base"]]
 
     files = {
         "runs.csv": runs_csv(results),

@@ -18,13 +18,14 @@ seed. The path figures reuse ``swarmplan.figures.plot_paths`` on the first seed 
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from swarmplan.experiment_stats import groups
-from swarmplan.figures import plot_paths, plt
+from swarmplan.figures import plot_paths, plt, save
 
 FIGURE_NUMBERS = {
     "efficiency": {
@@ -58,25 +59,22 @@ def _curves(runs: Sequence[dict], key: str, scale: float = 1.0) -> np.ndarray:
     )
 
 
-def _scenarios(results: Sequence[dict]) -> list[str]:
-    return list(dict.fromkeys(scenario for scenario, _ in groups(results)))
-
-
-def _label(scenario: str, runs: Sequence[dict]) -> str:
-    return f"{scenario} ({runs[0]['uav_count']} UAVs)"
+def _by_scenario(results: Sequence[dict]) -> dict[str, list[tuple[str, list[dict]]]]:
+    """(algorithm, runs) of each scenario, in canonical order."""
+    out: dict[str, list[tuple[str, list[dict]]]] = {}
+    for (scenario, algorithm), runs in groups(results).items():
+        out.setdefault(scenario, []).append((algorithm, runs))
+    return out
 
 
 def plot_mean_curves(
     results: Sequence[dict], key: str, ylabel: str, title: str, path: Path, scale: float = 1.0
 ) -> Path:
     """Mean (and +-1 std band) over the seeds of a per-step curve, one panel per scenario."""
-    scenarios = _scenarios(results)
-    grouped = groups(results)
+    scenarios = _by_scenario(results)
     fig, axes = plt.subplots(1, len(scenarios), figsize=(6 * len(scenarios), 4.2), squeeze=False)
-    for ax, scenario in zip(axes[0], scenarios, strict=True):
-        for (sc, algorithm), runs in grouped.items():
-            if sc != scenario:
-                continue
+    for ax, (scenario, per_algorithm) in zip(axes[0], scenarios.items(), strict=True):
+        for algorithm, runs in per_algorithm:
             curves = _curves(runs, key, scale)
             mean, std = np.nanmean(curves, axis=0), np.nanstd(curves, axis=0)
             steps = np.arange(len(mean))
@@ -84,26 +82,20 @@ def plot_mean_curves(
             ax.fill_between(
                 steps, mean - std, mean + std, color=_colour(algorithm), alpha=0.15, lw=0
             )
-        ax.set_title(
-            _label(scenario, [r for (sc, _), rs in grouped.items() if sc == scenario for r in rs])
-        )
+        ax.set_title(f"{scenario} ({per_algorithm[0][1][0]['uav_count']} UAVs)")
         ax.set_xlabel("decision step")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=110)
 
 
 def plot_boxes(
     results: Sequence[dict], metrics: Sequence[tuple[str, str, float]], title: str, path: Path
 ) -> Path:
     """Box plots (every seed as a point) of per-run metrics: one panel per (metric, scenario)."""
-    scenarios = _scenarios(results)
-    grouped = groups(results)
+    scenarios = _by_scenario(results)
     fig, axes = plt.subplots(
         len(metrics),
         len(scenarios),
@@ -111,13 +103,12 @@ def plot_boxes(
         squeeze=False,
     )
     for row, (key, ylabel, scale) in enumerate(metrics):
-        for col, scenario in enumerate(scenarios):
+        for col, (scenario, per_algorithm) in enumerate(scenarios.items()):
             ax = axes[row, col]
-            names, data = [], []
-            for (sc, algorithm), runs in grouped.items():
-                if sc == scenario:
-                    names.append(algorithm)
-                    data.append([r[key] * scale for r in runs if r[key] is not None])
+            names = [algorithm for algorithm, _ in per_algorithm]
+            data = [
+                [r[key] * scale for r in runs if r[key] is not None] for _, runs in per_algorithm
+            ]
             ax.boxplot(data, tick_labels=names, showmeans=True)
             for k, values in enumerate(data):
                 jitter = (
@@ -130,10 +121,7 @@ def plot_boxes(
             ax.set_title(scenario)
             ax.grid(alpha=0.3, axis="y")
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=110)
 
 
 def plot_separation(results: Sequence[dict], title: str, path: Path) -> Path:
@@ -149,28 +137,18 @@ def plot_separation(results: Sequence[dict], title: str, path: Path) -> Path:
         low = _curves(runs, "min_separation_curve")
         mean_nn = _curves(runs, "mean_min_separation_curve")
         steps = np.arange(low.shape[1])
-        with np.errstate(all="ignore"), _Quiet():
-            ax.plot(
-                steps,
-                np.nanmean(mean_nn, axis=0),
-                color="tab:blue",
-                lw=1,
-                label="average nearest distance",
+        # steps where fewer than two UAVs fly are all-NaN slices: silence numpy's warnings
+        with (
+            np.errstate(all="ignore"),
+            warnings.catch_warnings(action="ignore", category=RuntimeWarning),
+        ):
+            lines = (
+                (np.nanmean(mean_nn, axis=0), "tab:blue", "average nearest distance"),
+                (np.nanmean(low, axis=0), "tab:orange", "minimum distance (mean)"),
+                (np.nanmin(low, axis=0), "tab:red", "minimum distance (lowest)"),
             )
-            ax.plot(
-                steps,
-                np.nanmean(low, axis=0),
-                color="tab:orange",
-                lw=1,
-                label="minimum distance (mean)",
-            )
-            ax.plot(
-                steps,
-                np.nanmin(low, axis=0),
-                color="tab:red",
-                lw=1,
-                label="minimum distance (lowest)",
-            )
+        for curve, colour, label in lines:
+            ax.plot(steps, curve, color=colour, lw=1, label=label)
         d_min = runs[0]["min_separation_limit_km"]
         ax.axhline(d_min, color="black", ls="--", lw=1, label=f"d_min = {d_min:g} km")
         ax.set_yscale("log")
@@ -182,25 +160,7 @@ def plot_separation(results: Sequence[dict], title: str, path: Path) -> Path:
     for ax in axes.ravel()[len(keys) :]:
         ax.set_visible(False)
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-class _Quiet:
-    """Silence numpy's all-NaN slice warnings (steps where fewer than two UAVs fly)."""
-
-    def __enter__(self):
-        import warnings
-
-        self._ctx = warnings.catch_warnings()
-        self._ctx.__enter__()
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return self
-
-    def __exit__(self, *exc):
-        return self._ctx.__exit__(*exc)
+    return save(fig, path, dpi=110)
 
 
 def write_experiment_figures(

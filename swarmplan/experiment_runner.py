@@ -118,7 +118,7 @@ def execute(
 ) -> dict[tuple[str, str, int], dict]:
     """Run ``tasks`` (in-process when ``jobs`` is 1, else on ``jobs`` local processes, or on the
     Dask scheduler at ``dask_address``); returns the results by task key. ``on_result`` sees each
-    result as it arrives (e.g. to write it and drop its tracks)."""
+    result as it arrives (e.g. to write it to disk)."""
     order = sorted(tasks, key=lambda t: -_cost(t))  # stable: canonical order within a cost
     results: dict[tuple[str, str, int], dict] = {}
     client = _dask_client(dask_address) if dask_address is not None else None

@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -241,9 +242,10 @@ def _cpu_line(results: Sequence[dict]) -> list[str]:
     if len(cpu) != len(results) or not cpu:
         return []
     total = sum(cpu)
+    cores = os.cpu_count() or 1
     return [
-        f"- CPU time of the runs: {total:.1f} s in all (about {total / 2:.0f} s of wall time on "
-        "2 otherwise idle cores)"
+        f"- CPU time of the runs: {total:.1f} s in all (about {total / cores:.0f} s of wall time "
+        f"on this machine's {cores} cores, otherwise idle)"
     ]
 
 

@@ -12,6 +12,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
 
+def save(fig, path: Path, dpi: int = 120) -> Path:
+    """Lay out, write and close ``fig``; returns ``path``."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def plot_paths(result: dict, path: Path) -> Path:
     """UAV tracks, starts, engaged targets and threat circles over the mission area."""
     width, height = result["area_km"]
@@ -60,10 +68,7 @@ def plot_paths(result: dict, path: Path) -> Path:
     )
     if len(result["uavs"]) <= 10:
         ax.legend(loc="upper right", fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def plot_curves(result: dict, path: Path) -> Path:
@@ -79,10 +84,7 @@ def plot_curves(result: dict, path: Path) -> Path:
     bottom.set_xlabel("decision step")
     bottom.grid(alpha=0.3)
     fig.suptitle(f"{result['scenario']} / {result['algorithm']} / seed {result['seed']}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def write_figures(result: dict, out_dir: Path) -> list[Path]:

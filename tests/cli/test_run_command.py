@@ -40,3 +40,13 @@ def test_bad_input_gives_one_line_and_exit_2(tmp_path):
         assert done.returncode == 2, args
         assert "Traceback" not in done.stderr
         assert "error" in done.stderr.strip().splitlines()[-1]
+
+
+def test_demo_refuses_bad_seed_and_steps_before_starting_anything(tmp_path):
+    out = tmp_path / "demo"
+    for args in (["--seed", "-1"], ["--steps", "0"], ["--seed", "abc"]):
+        done = swarmplan("demo", "paper-2uav", *args, "--out", str(out), timeout=30)
+        assert done.returncode == 2, args
+        assert "Traceback" not in done.stderr
+        assert "error" in done.stderr.strip().splitlines()[-1]
+        assert not out.exists(), args  # refused by argparse: no simulator, no output folder

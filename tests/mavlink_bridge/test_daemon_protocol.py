@@ -2,21 +2,16 @@
 
 from __future__ import annotations
 
-import os
 import socket
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
+from bridge_fake_swarm import run_swarmplan
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
 from mavlink_bridge.discovery import DiscoveryError
 from mavlink_bridge.guided_commands import CommandRefusedError
 from mavlink_bridge.protocol import mavlink
 from mavlink_bridge.vehicle_link import EndpointError
-
-REPO = Path(__file__).resolve().parents[2]
 
 
 def options(port: int, **kw: object) -> DaemonOptions:
@@ -101,30 +96,11 @@ def test_command_refusal_names_result(paper10, udp_port, fake_swarm_factory):
 
 
 def test_cli_reports_missing_vehicles_in_one_line(udp_port, tmp_path):
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "swarmplan",
-            "daemon",
-            "--connect",
-            f"udpin:127.0.0.1:{udp_port}",
-            "--scenario",
-            "paper-10uav",
-            "--expect",
-            "3",
-            "--timeout",
-            "1",
-            "--out",
-            str(tmp_path),
-        ],
-        capture_output=True,
-        text=True,
+    proc = run_swarmplan(
+        ["daemon", "--connect", f"udpin:127.0.0.1:{udp_port}", "--scenario", "paper-10uav",
+         "--expect", "3", "--timeout", "1", "--out", str(tmp_path)],
         timeout=60,
-        env=env,
-        cwd=REPO,
-    )
+    )  # fmt: skip
     assert proc.returncode == 2
     last = proc.stderr.strip().splitlines()[-1]
     assert "system id 1, 2, 3 did not appear within 1 s" in last

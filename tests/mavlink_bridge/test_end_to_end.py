@@ -4,7 +4,6 @@ daemon, on a short 10-UAV mission; and a vehicle whose link is cut mid-mission b
 from __future__ import annotations
 
 import json
-import os
 import socket
 import subprocess
 import sys
@@ -12,16 +11,15 @@ import threading
 from pathlib import Path
 
 import pytest
+from bridge_fake_swarm import ENV, REPO, free_port_block, run_swarmplan
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
 from swarmplan.demo import stop_simulator
 
-REPO = Path(__file__).resolve().parents[2]
 SPEEDUP = 100
 
 
 def start_sim(port: int, seed: int, log: Path, extra: list[str] | None = None) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
     with open(log, "wb") as sink:
         return subprocess.Popen(
             [
@@ -42,38 +40,18 @@ def start_sim(port: int, seed: int, log: Path, extra: list[str] | None = None) -
             ],
             stdout=sink,
             stderr=subprocess.STDOUT,
-            env=env,
+            env=ENV,
             cwd=REPO,
         )
 
 
-
-
-def run_demo(out: Path, seed: int, steps: int, extra: list[str] | None = None) -> dict:
-    """``swarmplan demo --json`` (lockstep unless ``extra`` says otherwise); the result dict."""
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "swarmplan",
-            "demo",
-            "paper-10uav",
-            "--seed",
-            str(seed),
-            "--steps",
-            str(steps),
-            "--json",
-            "--out",
-            str(out),
-            *(extra or []),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=100,
-        env=env,
-        cwd=REPO,
-    )
+def run_demo(out: Path, seed: int, steps: int, timeout: float = 100) -> dict:
+    """``swarmplan demo --json`` (lockstep); the result dict."""
+    proc = run_swarmplan(
+        ["demo", "paper-10uav", "--seed", str(seed), "--steps", str(steps), "--json",
+         "--out", str(out)],
+        timeout,
+    )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-2000:]
     return json.loads(proc.stdout)
 
@@ -100,30 +78,7 @@ def test_demo_json_short_mission_has_no_violations(tmp_path):
     """The demo's default, lockstep time: the safety envelope's predictions hold exactly. (Paced
     at 100x on a loaded 2-core machine the daemon can fall behind the vehicles' clock: see
     docs/reliability.md.)"""
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "swarmplan",
-            "demo",
-            "paper-10uav",
-            "--seed",
-            "1",
-            "--steps",
-            "35",
-            "--json",
-            "--out",
-            str(tmp_path),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=110,
-        env=env,
-        cwd=REPO,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    result = json.loads(proc.stdout)
+    result = run_demo(tmp_path, seed=1, steps=35, timeout=110)
     assert result["source"] == "mavlink" and result["steps"] == 35
     assert result["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
     assert result["coverage"] > 0.1
@@ -171,29 +126,6 @@ class CuttableRelay(threading.Thread):
         self.done.set()
         self.join(2)
         self.sock.close()
-
-
-def free_port_block(count: int) -> int:
-    """A base port with ``count`` consecutive UDP ports free on 127.0.0.1 right now."""
-    for _ in range(50):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-            probe.bind(("127.0.0.1", 0))
-            base = probe.getsockname()[1]
-        if base + count > 65535:
-            continue
-        socks = []
-        try:
-            for k in range(count):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", base + k))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no block of free UDP ports")
 
 
 @pytest.mark.timeout(120)

@@ -12,15 +12,12 @@ import threading
 from pathlib import Path
 
 import pytest
-from test_end_to_end import free_port_block
+from bridge_fake_swarm import ENV, REPO, free_port_block, run_swarmplan
 
 from swarmplan.demo import stop_simulator
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[2]
-ENV = dict(os.environ, PYTHONPATH=str(REPO))
 
 
 def start_lockstep_sim(base: int, log: Path) -> subprocess.Popen:
@@ -35,11 +32,10 @@ def start_lockstep_sim(base: int, log: Path) -> subprocess.Popen:
 
 def run_daemon(connect: list[str], out: Path) -> dict:
     args = [a for spec in connect for a in ("--connect", spec)]
-    proc = subprocess.run(
-        [sys.executable, "-m", "swarmplan", "daemon", *args, "--scenario", "paper-2uav",
-         "--seed", "1", "--steps", "8", "--lockstep", "--timeout", "20", "--json",
-         "--out", str(out)],
-        capture_output=True, text=True, timeout=90, env=ENV, cwd=REPO,
+    proc = run_swarmplan(
+        ["daemon", *args, "--scenario", "paper-2uav", "--seed", "1", "--steps", "8",
+         "--lockstep", "--timeout", "20", "--json", "--out", str(out)],
+        timeout=90,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-2000:]
     return json.loads(proc.stdout)
@@ -136,10 +132,10 @@ def test_cli_port_in_use_is_one_line_exit_2(tmp_path):
     holder.bind(("127.0.0.1", 0))
     port = holder.getsockname()[1]
     try:
-        proc = subprocess.run(
-            [sys.executable, "-m", "swarmplan", "daemon", "--connect", f"udpin:127.0.0.1:{port}",
-             "--timeout", "1", "--out", str(tmp_path)],
-            capture_output=True, text=True, timeout=60, env=ENV, cwd=REPO,
+        proc = run_swarmplan(
+            ["daemon", "--connect", f"udpin:127.0.0.1:{port}", "--timeout", "1",
+             "--out", str(tmp_path)],
+            timeout=60,
         )  # fmt: skip
     finally:
         holder.close()

@@ -4,16 +4,14 @@ QGroundControl .plan of the right structure, GeoJSON and KML of tracks and threa
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
-import sys
 import time
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 import numpy as np
 import pytest
+from bridge_fake_swarm import run_swarmplan
 
 from mavlink_bridge.export_command import load_result
 from mavlink_bridge.waypoint_export import (
@@ -22,8 +20,6 @@ from mavlink_bridge.waypoint_export import (
 )
 from planner.errors import UserError
 from planner.metrics import MissionRecorder
-
-REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture
@@ -124,15 +120,7 @@ def test_export_command_errors_are_one_line(tmp_path):
 
 def test_export_command_cli(result, tmp_path):
     (tmp_path / "result.json").write_text(json.dumps(result))
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.run(
-        [sys.executable, "-m", "swarmplan", "export", str(tmp_path), "--format", "wpl"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env=env,
-        cwd=REPO,
-    )
+    proc = run_swarmplan(["export", str(tmp_path), "--format", "wpl"], timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert "uav01_planned.waypoints" in proc.stdout
     assert not (tmp_path / "mission.kml").exists()

@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from planner.config import PlannerConfig
 from planner.grid import Grid
@@ -126,6 +127,9 @@ def test_forecast_kernels_conserve_mass_and_spread():
     out = convolve_reflect(maps, ring)
     assert out.sum(axis=(1, 2)) == pytest.approx(maps.sum(axis=(1, 2)), rel=1e-6)
     assert out[1, 10, 10] == pytest.approx(ring[1, 1])
+    # the stencil is the convolution with reflected edges that scipy computes
+    reference = ndimage.convolve(maps.astype(np.float64), ring[None], mode="reflect")
+    assert np.allclose(out, reference, atol=1e-7)
 
 
 def test_shift_with_reflection_folds_mass_at_the_edge():

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as ml
 from reliability_harness import (
     KEY_HEX,
     REPO,
@@ -45,6 +46,21 @@ def _checkpoint_step(path: Path) -> int:
         return read_checkpoint(path).step
     except CheckpointError:
         return -1
+
+
+def _sent_commands(tlog: Path, offset: int) -> list[tuple[int, float]]:
+    """(command, param2) of every COMMAND_LONG / COMMAND_INT the daemon (system 255) logged in
+    ``tlog`` from byte ``offset`` on (each record: 8-byte timestamp, then one whole frame)."""
+    data, k, out = tlog.read_bytes(), offset, []
+    while k + 10 <= len(data):
+        frame_at = k + 8
+        marker, length, flags = data[frame_at], data[frame_at + 1], data[frame_at + 2]
+        size = 8 + length if marker == 0xFE else 12 + length + (13 if flags & 1 else 0)
+        for msg in ml.MAVLink(None).parse_buffer(data[frame_at : frame_at + size]) or ():
+            if msg.get_srcSystem() == 255 and msg.get_type() in ("COMMAND_LONG", "COMMAND_INT"):
+                out.append((msg.command, msg.param2))
+        k = frame_at + size
+    return out
 
 
 def _wait(predicate, timeout_s: float, procs: list[subprocess.Popen]) -> bool:
@@ -88,6 +104,8 @@ def test_killed_daemon_resumes_from_its_checkpoint_and_finishes(tmp_path: Path):
         killed_at = time.monotonic()
         first.wait(5)
         killed_step = _checkpoint_step(ckpt)
+        tlog = out / "mission.tlog"
+        tlog_at_kill = tlog.stat().st_size  # the restarted daemon appends from here
         with open(daemon_log, "a") as f:
             f.write("\n--- killed, restarting ---\n")
         second = subprocess.Popen(
@@ -117,6 +135,13 @@ def test_killed_daemon_resumes_from_its_checkpoint_and_finishes(tmp_path: Path):
     assert result["signing"]["bad_signatures"] == 0 and result["signing"]["signed_accepted"] > 0
     log = daemon_log.read_text()
     assert "armed" not in log.split("--- killed")[1]  # the restarted daemon did not re-arm
+    # (with --json the daemon prints no progress, so the log line above proves little): what the
+    # restarted daemon sent, from the .tlog it appended to: guided targets, but no arming and no
+    # TAKEOFF mode
+    resumed = _sent_commands(tlog, tlog_at_kill)
+    assert any(cmd == ml.MAV_CMD_DO_REPOSITION for cmd, _ in resumed), resumed[:20]
+    assert not any(cmd == ml.MAV_CMD_COMPONENT_ARM_DISARM for cmd, _ in resumed)
+    assert (ml.MAV_CMD_DO_SET_MODE, 13.0) not in resumed  # ArduPlane TAKEOFF
     summary = last_json(sim_log)
     assert summary is not None
     assert summary["fence_breaches"] == 0  # ground truth: nobody entered a threat zone

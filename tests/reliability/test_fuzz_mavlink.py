@@ -22,7 +22,7 @@ from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
 from mavlink_bridge.sensor_looks import look_report  # noqa: E402
 from mavlink_bridge.swarm_link import SwarmLink  # noqa: E402
-from mavlink_bridge.vehicle_link import UdpInEndpoint, _fresh_parser, _keep  # noqa: E402
+from mavlink_bridge.vehicle_link import UdpInEndpoint  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 from sim_gateway.message_handlers import HANDLERS  # noqa: E402
 from sim_gateway.simulator import SimOptions, Simulator  # noqa: E402
@@ -121,7 +121,7 @@ def test_fuzzing_the_daemon_intake(capsys):
     beat = ml.MAVLink_heartbeat_message(ml.MAV_TYPE_FIXED_WING, 3, 0, 0, 3, 3)
     for sysid in range(1, 11):
         mav = ml.MAVLink(None, sysid, 1)
-        for msg in _fresh_parser().parse_buffer(bytes(beat.pack(mav))):
+        for msg in endpoint.parse_datagram(bytes(beat.pack(mav))):
             link._dispatch(msg, endpoint, ("127.0.0.1", 40000 + sysid), time.monotonic())
     senders = [(s, c) for s in range(1, 11) for c in (1, 100)] + [(0, 0), (255, 190)]
     fuzzer = Fuzzer(12, classes_named(DAEMON_MESSAGES), senders)
@@ -129,11 +129,9 @@ def test_fuzzing_the_daemon_intake(capsys):
     started = time.perf_counter()
     try:
         for k in range(DAEMON_DIRECT):
-            data = fuzzer.datagram()
-            endpoint.stats.datagrams += 1
-            for msg in _fresh_parser().parse_buffer(data) or ():
-                if _keep(msg, endpoint.stats):
-                    link._dispatch(msg, endpoint, ("127.0.0.1", 40001), time.monotonic())
+            # the endpoint's own per-datagram intake (UdpInEndpoint.receive without the socket)
+            for msg in endpoint.parse_datagram(fuzzer.datagram()):
+                link._dispatch(msg, endpoint, ("127.0.0.1", 40001), time.monotonic())
             if k % 400 == 0:  # what the decision loop does with what it heard
                 starts = daemon.starts_from_telemetry()
                 assert len(starts) == 10

@@ -15,7 +15,10 @@ def test_rtl_command_and_range_used_up_return_to_launch(gcs):
         load_scenario("paper-2uav"),
         SimOptions(gcs_port=gcs.port, airborne=True, speedup=50.0, boot_s=0.0),
     )
-    sim.max_range_m = 8000.0  # 80 s of flight at 100 m/s, 1.6 s of wall time at 50x
+    # vehicle 1 has 8 km of range left (80 s of flight at 100 m/s, 1.6 s of wall time at 50x);
+    # vehicle 2 has all 100 km (20 s of wall time), so only the command can send it home
+    sim.max_range_m = 100_000.0
+    sim.fleet.distance_flown_m[0] = 92_000.0
     running = RunningSim(sim)
     try:
         gcs.ensure_peer()
@@ -28,5 +31,6 @@ def test_rtl_command_and_range_used_up_return_to_launch(gcs):
         ack = gcs.command_long(2, 20)
         assert ack is not None and ack.result == 0
         assert gcs.wait("HEARTBEAT", 2, 5, cond=lambda m: m.custom_mode == 11)
+        assert not sim.vehicles[1].range_exhausted  # RTL by command, not by battery failsafe
     finally:
         running.close()
