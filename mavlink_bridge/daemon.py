@@ -228,13 +228,17 @@ class MissionDaemon:
         return local_km_to_geodetic(xy[:, 0], xy[:, 1], self.scenario.origin)
 
     def send(self, commands: list[Command], attempts: int | None = None) -> list[Command]:
+        """Send and resend until acknowledged. In lockstep simulated time waits for us, so a
+        command is resent for as long as a vehicle may stay silent before it counts as lost
+        (``lost_after_s``), not just ``command_attempts`` times: on a lossy link a guided
+        target that never arrives would leave the plane flying the previous leg."""
         assert self.link is not None
-        return send_commands(
-            self.link,
-            commands,
-            self.options.command_retry_s,
-            attempts or self.options.command_attempts,
-        )
+        opts = self.options
+        if attempts is None:
+            attempts = opts.command_attempts
+            if opts.lockstep:
+                attempts = max(attempts, math.ceil(opts.lost_after_s / opts.command_retry_s))
+        return send_commands(self.link, commands, opts.command_retry_s, attempts)
 
     # ------------------------------------------------------------------ phases
 
@@ -602,16 +606,26 @@ class MissionDaemon:
                 if not active[i]:
                     continue
                 look = looks.get(i)
-                if look is not None:
-                    positions[i] = self.local_km(look.lat_deg, look.lon_deg)
+                look_km = None if look is None else self.local_km(look.lat_deg, look.lon_deg)
+                # where the vehicle is now: its look, unless the link delayed that look past
+                # position reports of a later step (then the look is an earlier decision
+                # instant's, and a leg measured from it would span two steps)
+                stale = (
+                    v.has_position
+                    and look is not None
+                    and look.time_boot_ms < (v.time_boot_ms - 500 * cfg.step_s)
+                )
+                if look_km is not None and not stale:
+                    positions[i] = look_km
                 elif v.has_position:
-                    self.looks_missed += step > 0
+                    self.looks_missed += step > 0 and look is None
                     positions[i] = self.local_km(v.lat_deg, v.lon_deg)
                 cell = self.grid.cell_of(positions[i])
-                if look is not None:  # the look's cell is the one just converted
+                if look is not None:  # where it looked, which is usually where it is
                     reports[i] = look_report(
-                        look, self.grid, scenario.origin, cfg.detection_radius_km, cell=cell
-                    )
+                        look, self.grid, scenario.origin, cfg.detection_radius_km,
+                        cell=self.grid.cell_of(look_km),
+                    )  # fmt: skip
                     observed[reports[i].cells[:, 0], reports[i].cells[:, 1]] = True
                 if step == 0:  # where the take-off left it, flying its course
                     course = self._course_heading(v)

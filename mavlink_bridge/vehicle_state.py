@@ -30,6 +30,7 @@ class Look:
     lon_deg: float
     offsets: list[tuple[int, int]]  # detected cells relative to the look cell
     received_s: float  # wall clock (monotonic) when the first part arrived
+    time_boot_ms: int = 0  # the vehicle's clock when it looked
 
 
 @dataclass
@@ -202,7 +203,9 @@ class VehicleState:
         offsets = parse_look_offsets(url[len("look:" if first else "look+:") :])
         look = self.looks.get(index)
         if look is None:
-            look = Look(index, msg.lat * 1e-7, msg.lon * 1e-7, [], self.last_heard_s)
+            look = Look(
+                index, msg.lat * 1e-7, msg.lon * 1e-7, [], self.last_heard_s, msg.time_boot_ms
+            )
             self.looks[index] = look
         look.offsets = list(dict.fromkeys([*look.offsets, *offsets]))
         if first and index > self.latest_look:
