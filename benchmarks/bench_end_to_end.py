@@ -2,13 +2,18 @@
 (`swarmplan demo`: simulator subprocess + daemon, lockstep by default) next to the offline run
 of the same seeds.
 
-    python benchmarks/bench_end_to_end.py [--seeds 1 2 3 4 5] [--speedup X] [--steps 250]
+    python benchmarks/bench_end_to_end.py [--seeds 1 .. 10] [--speedup X] [--steps 250]
+                                          [--no-leg-timing]
 
 Prints, per seed, wall time, coverage, engaged count/value, returned, minimum separation and the
 violations measured from telemetry (threat, separation, turn, range), plus the simulator's own
 count of fence (threat circle) breaches along the whole flown path; then whether every MAVLink
 run took under 60 s, had zero violations, and had coverage / engaged value within the spread
-(min..max) of the offline runs of the same seeds. ``--speedup X`` flies paced instead of lockstep.
+(min..max) of the offline runs of the same seeds; and, since one MAVLink run of a seed is not
+the offline run of that seed (telemetry noise and real turns change every later decision), the
+paired comparison over the seeds: mean difference and a Wilcoxon signed-rank p-value (no
+systematic difference when p is large). ``--speedup X`` flies paced instead of lockstep;
+``--no-leg-timing`` flies every leg at the scenario's speed (docs/daemon.md, "Leg timing").
 """
 
 from __future__ import annotations
@@ -20,6 +25,8 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+from scipy.stats import wilcoxon
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -65,9 +72,10 @@ def row(kind: str, seed: int, r: dict, breaches: str = "-") -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="paper-10uav")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5])
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(range(1, 11)))
     parser.add_argument("--speedup", type=float, default=None, help="paced, not lockstep")
     parser.add_argument("--steps", type=int, default=None)
+    parser.add_argument("--no-leg-timing", action="store_true")
     args = parser.parse_args()
     steps = ["--steps", str(args.steps)] if args.steps else []
     print(
@@ -76,6 +84,7 @@ def main() -> None:
         f"{'min sep':>7} {'threat':>6} {'sep':>4} {'turn':>4} {'range':>5} {'fence':>6}"
     )
     pace = [] if args.speedup is None else ["--speedup", f"{args.speedup:g}"]
+    pace += ["--no-leg-timing"] if args.no_leg_timing else []
     offline_runs, mavlink_runs = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
@@ -123,9 +132,12 @@ def verdict(offline: list[dict], mavlink: list[dict]) -> None:
         inside = sum(lo <= g <= hi for g in got)
         mean_off = sum(r[key] for r in offline) * scale / len(offline)
         mean_mav = sum(got) / len(got)
+        diff = [g - r[key] * scale for g, r in zip(got, offline, strict=True)]
+        p = wilcoxon(diff).pvalue if any(diff) else 1.0
         lines.append(
             f"{key:<14} offline {lo:.1f}..{hi:.1f}{unit} (mean {mean_off:.1f}), mavlink mean "
-            f"{mean_mav:.1f}{unit}; {inside}/{len(got)} mavlink runs inside the offline spread"
+            f"{mean_mav:.1f}{unit}; {inside}/{len(got)} mavlink runs inside the offline spread; "
+            f"paired difference {sum(diff) / len(diff):+.1f}{unit}, Wilcoxon p = {p:.2f}"
         )
     worst_wall = max(r["wall_time_s"] for r in mavlink)
     violations = sum(sum(r["violations"].values()) for r in mavlink)

@@ -1,6 +1,6 @@
 """Wall time of one 250-step offline run of each paper scenario, and per planning step per UAV.
 
-    python benchmarks/bench_planner.py [--repeat 3]
+python benchmarks/bench_planner.py [--repeat 3]
 """
 
 from __future__ import annotations

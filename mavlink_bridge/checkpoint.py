@@ -153,9 +153,7 @@ class CheckpointWriter:
         if missing:
             raise ValueError(f"checkpoint of step {step} lacks {', '.join(missing)}")
         state = {name: getattr(daemon, name) for name in DAEMON_STATE}
-        checkpoint = Checkpoint(
-            self.fingerprint, step, dict(loop), state, wall_time_s, time.time()
-        )
+        checkpoint = Checkpoint(self.fingerprint, step, dict(loop), state, wall_time_s, time.time())
         self.bytes = write_checkpoint(self.path, checkpoint)
         self.writes += 1
 
@@ -310,8 +308,7 @@ def resume_loop_state(daemon: Any, checkpoint: Checkpoint, fresh_planner: Any) -
     check_planner_layout(checkpoint.loop["planner"], fresh_planner, daemon.options.checkpoint_path)
     break_measured_legs(checkpoint.loop["recorder"])
     daemon.say(
-        f"resuming from the checkpoint of step {checkpoint.step} "
-        f"({daemon.options.checkpoint_path})"
+        f"resuming from the checkpoint of step {checkpoint.step} ({daemon.options.checkpoint_path})"
     )
     return restore_daemon_state(daemon, checkpoint)
 

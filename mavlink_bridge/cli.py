@@ -90,11 +90,43 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the vehicles are `swarmplan sim --lockstep`: grant simulated time one decision "
         "step at a time (as fast as possible, repeatable for a seed)",
     )
+    add_leg_timing_arguments(parser)
+    parser.add_argument(
+        "--airspeed-range",
+        type=airspeed_range,
+        metavar="MIN:MAX",
+        help="slowest and fastest airspeed (m/s) the daemon asks for when timing legs; inside "
+        "the airframe's AIRSPEED_MIN/AIRSPEED_MAX (default: the scenario's speed .. 1.5 x it)",
+    )
     parser.add_argument("--tlog", type=Path, help="telemetry log (default OUT/mission.tlog)")
     parser.add_argument(
         "--out", type=Path, default=Path("out/daemon"), help="output folder (default out/daemon)"
     )
     parser.add_argument("--json", action="store_true", help="print only the result JSON")
+
+
+def add_leg_timing_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--no-leg-timing",
+        dest="leg_timing",
+        action="store_false",
+        help="fly every leg at the scenario's speed instead of timing each leg to one decision "
+        "step with MAV_CMD_DO_CHANGE_SPEED (the paper's grid flies a diagonal cell, 1.41 km, "
+        "per step; at constant speed the planes fall behind it)",
+    )
+
+
+def airspeed_range(text: str) -> tuple[float, float]:
+    """``MIN:MAX`` in m/s, 0 < MIN <= MAX."""
+    try:
+        low, high = (float(part) for part in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected MIN:MAX in m/s, e.g. 100:150, got {text!r}"
+        ) from None
+    if not (0 < low <= high < float("inf")):
+        raise argparse.ArgumentTypeError(f"need 0 < MIN <= MAX, got {text!r}")
+    return low, high
 
 
 def validate(args: argparse.Namespace) -> None:
@@ -141,6 +173,8 @@ def main(args: argparse.Namespace) -> int:
         threat_margin_km=args.threat_margin_km,
         time_scale=args.time_scale,
         lockstep=args.lockstep,
+        leg_timing=args.leg_timing,
+        airspeed_range_mps=args.airspeed_range,
         checkpoint_path=args.checkpoint,
         resume=args.resume,
         signing_key=load_signing_key(args.signing_key_file),

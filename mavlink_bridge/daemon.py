@@ -23,7 +23,7 @@ import math
 import statistics
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -39,11 +39,12 @@ from mavlink_bridge.checkpoint import (
 )
 from mavlink_bridge.discovery import wait_for_vehicles, wait_until_ready
 from mavlink_bridge.flight_envelope import FlightChoice, FlightEnvelope
-from mavlink_bridge.flight_prediction import PlaneModel
+from mavlink_bridge.flight_prediction import PlaneModel, leg_speed_mps
 from mavlink_bridge.guided_commands import (
     Command,
     CommandRefusedError,
     arm_command,
+    change_speed_command,
     engagement_command,
     reposition_command,
     request_message_command,
@@ -99,6 +100,14 @@ class DaemonOptions:
     predicted_threat_margin_km: float = 0.25
     predicted_separation_margin_km: float = 0.3
     bank_limit_deg: float = 45.0  # ArduPlane ROLL_LIMIT_DEG: sets the predicted turn radius
+    #: fly each leg in one decision step, as the paper's grid does (a diagonal cell at sqrt(2) v):
+    #: an airspeed per leg (MAV_CMD_DO_CHANGE_SPEED) within ``airspeed_range_mps``; off, every
+    #: plane flies the scenario's speed and falls behind the grid on diagonal legs
+    leg_timing: bool = True
+    #: slowest and fastest airspeed asked for; default v .. 1.5 v (within the simulator's
+    #: AIRSPEED_MIN/MAX; set it to your airframe's envelope). Below v a plane turns more than
+    #: phi_max in one step (see flight_prediction.PlaneModel.min_speed_mps)
+    airspeed_range_mps: tuple[float, float] | None = None
     max_refusals: int = 5  # consecutive refused guided targets of one vehicle that end the run
     #: measured legs come from telemetry, not cell centres: a turn counts as a C_m violation only
     #: beyond phi_max plus this (the envelope itself never commands more than phi_max)
@@ -184,14 +193,27 @@ class MissionDaemon:
             "predicted_threat": 0,
             "predicted_separation": 0,
         }
+        slowest, fastest = options.airspeed_range_mps or (cfg.speed_mps, 1.5 * cfg.speed_mps)
+        if not 0 < slowest <= cfg.speed_mps <= fastest:
+            raise UserError(
+                f"airspeed range {slowest:g}..{fastest:g} m/s must hold the scenario's speed "
+                f"{cfg.speed_mps:g} m/s (--airspeed-range MIN:MAX with MIN <= speed <= MAX)"
+            )
+        self.plane = PlaneModel(
+            speed_mps=cfg.speed_mps,
+            bank_limit_deg=options.bank_limit_deg,
+            min_speed_mps=slowest,
+            max_speed_mps=fastest,
+        )
         self.flight_envelope = (
             FlightEnvelope(
                 self.envelope,
-                PlaneModel(speed_mps=cfg.speed_mps, bank_limit_deg=options.bank_limit_deg),
+                self.plane,
                 step_s=cfg.step_s,
                 horizon_s=options.prediction_horizon_s,
                 threat_margin_km=options.predicted_threat_margin_km,
                 separation_margin_km=options.predicted_separation_margin_km,
+                leg_timing=options.leg_timing,
             )
             if options.prediction_horizon_s > 0
             else None
@@ -343,6 +365,7 @@ class MissionDaemon:
         """RTL every vehicle still heard; returns one line per vehicle that did not accept."""
         if self.link is None:
             return []
+        self.end_leg_timing()  # home at cruise speed
         vehicles = [v for v in self.link.vehicles.values() if not v.lost]
         results = self.send([set_mode_command(v, PLANE_MODE_RTL) for v in vehicles])
         return [c.describe_failure() for c in results if not c.accepted]
@@ -467,6 +490,15 @@ class MissionDaemon:
         """Guided targets whose predicted flight is safe (flight_envelope.py); without the
         flight-path envelope, the aim points of the checked cells."""
         lead = self.options.lead_steps
+        speeds = np.full(self.n, self.plane.speed_mps)
+        courses = np.empty(self.n)
+        for i in range(self.n):
+            v = self.vehicle(i)
+            if math.hypot(v.vn_mps, v.ve_mps) > 1.0:
+                courses[i] = math.atan2(v.vn_mps, v.ve_mps)  # course over ground, from east
+                speeds[i] = math.hypot(v.vn_mps, v.ve_mps)
+            else:
+                courses[i] = int(headings[i]) * math.pi / 4
         if self.flight_envelope is None:
             aims = np.array(
                 [
@@ -474,22 +506,67 @@ class MissionDaemon:
                     for i in range(self.n)
                 ]
             )
-            return FlightChoice(aims, checked.next_cells, checked.next_headings)
-        courses = np.empty(self.n)
-        for i in range(self.n):
-            v = self.vehicle(i)
-            if math.hypot(v.vn_mps, v.ve_mps) > 1.0:
-                courses[i] = math.atan2(v.vn_mps, v.ve_mps)  # course over ground, from east
+            if self.options.leg_timing:
+                speeds = leg_speed_mps(
+                    self.plane,
+                    positions,
+                    self.grid.centre_km(cells),
+                    self.grid.centre_km(checked.next_cells),
+                    speeds,
+                    self.scenario.config.step_s,
+                )
             else:
-                courses[i] = int(headings[i]) * math.pi / 4
+                speeds[:] = self.plane.speed_mps
+            return FlightChoice(aims, checked.next_cells, checked.next_headings, speeds)
         previous = np.array([t if t is not None else (np.nan, np.nan) for t in last_target])
         choice = self.flight_envelope.choose(
-            positions, courses, cells, headings, checked.next_cells, checked.next_headings,
-            previous, flown_km, home_km, active, lead,
+            positions, courses, speeds, cells, headings, checked.next_cells,
+            checked.next_headings, previous, flown_km, home_km, active, lead,
         )  # fmt: skip
         for reason, count in choice.overrides.items():
             self.overrides[reason] += count
         return choice
+
+    def speed_commands(self, speeds_mps: np.ndarray, active: np.ndarray) -> list[Command]:
+        """DO_CHANGE_SPEED for every active vehicle whose leg airspeed (rounded to 1 m/s)
+        differs from the one it last accepted (leg timing only)."""
+        if not self.options.leg_timing:
+            return []
+        wanted = np.round(speeds_mps)
+        return [
+            change_speed_command(self.vehicle(i), float(wanted[i]))
+            for i in range(self.n)
+            if active[i] and wanted[i] != self.sent_speeds[i]
+        ]
+
+    def speeds_answered(self, commands: list[Command], step: int) -> None:
+        """Note accepted airspeeds. A vehicle that refuses one (outside its AIRSPEED_MIN/MAX)
+        ends leg timing for the run: every plane is asked back to the scenario's speed."""
+        refused = [c for c in commands if c.ack is not None and not c.accepted]
+        for cmd in commands:
+            if cmd.accepted:
+                self.sent_speeds[cmd.vehicle.system_id - 1] = cmd.params[1]
+        if not refused:
+            return
+        self.refused_commands += len(refused)
+        self.say(
+            f"warning: {refused[0].describe_failure()} (step {step}, {refused[0].params[1]:g} "
+            f"m/s); flying every leg at {self.plane.speed_mps:g} m/s from now on (set "
+            f"--airspeed-range to the airframe's AIRSPEED_MIN:AIRSPEED_MAX, or --no-leg-timing)"
+        )
+        self.end_leg_timing()
+
+    def end_leg_timing(self) -> None:
+        """Back to the scenario's speed for every vehicle still heard (best effort)."""
+        if not self.options.leg_timing or self.link is None:
+            return
+        self.options = replace(self.options, leg_timing=False)
+        if self.flight_envelope is not None:
+            self.flight_envelope = replace(self.flight_envelope, leg_timing=False)
+        cruise = self.plane.speed_mps
+        self.send(
+            [change_speed_command(v, cruise) for v in self.link.vehicles.values() if not v.lost]
+        )
 
     def _lockstep_step(self, step: int, consumed: list[int]) -> dict[int, Look]:
         """Lockstep: grant one decision period and wait until every vehicle still heard holds at
@@ -588,6 +665,8 @@ class MissionDaemon:
         engaged_value = 0.0
         positions = self.grid.centre_km(cells)
         previous_centres = positions.copy()
+        # airspeed last accepted by each vehicle (unknown at the start and after a restart)
+        self.sent_speeds = np.full(n, np.nan)
         self.looks_missed = 0
         first_step = 0
         if self.resume_from is not None:  # a restarted daemon: the state after its last step
@@ -690,7 +769,8 @@ class MissionDaemon:
                     recorder.record_engagement(step, i, target, value)
                 elif not target:
                     recorder.record_engagement_miss()
-            # guided targets
+            # guided targets, and the airspeed of each leg
+            speed_commands = self.speed_commands(flight.speeds_mps, active)
             aims = flight.aims_km
             lat, lon = local_km_to_geodetic(aims[:, 0], aims[:, 1], scenario.origin)
             moves = []
@@ -704,7 +784,9 @@ class MissionDaemon:
                     self.vehicle(i), float(lat[i]), float(lon[i]), scenario.altitude_m
                 )
                 moves.append((i, aim, cmd))
-            for (i, aim, _), cmd in zip(moves, self.send([c for *_, c in moves]), strict=True):
+            sent = self.send([c for *_, c in moves] + speed_commands)
+            self.speeds_answered(sent[len(moves) :], step)
+            for (i, aim, _), cmd in zip(moves, sent[: len(moves)], strict=True):
                 if cmd.ack is not None and not cmd.accepted:
                     refusals[i] += 1
                     self.refused_commands += 1

@@ -1,10 +1,10 @@
 """The flight-path layer of the safety envelope: judge the path each plane will really fly.
 
 The cell-level envelope (``safety_envelope.py``) checks the planner's next cells. A plane does
-not fly cell centres: it turns on a ~1 km radius, lags on 1.41 km diagonal legs and circles a
-point it reaches. So before a guided target is sent, the daemon predicts the flown path
-(``flight_prediction.py``) over ``horizon_s`` (three decision steps by default: long enough to
-reach a target two legs ahead) and accepts a target only if
+not fly cell centres: it turns on a ~1 km radius (more when it flies faster), lags after turns
+and circles a point it reaches. So before a guided target is sent, the daemon predicts the
+flown path (``flight_prediction.py``) over ``horizon_s`` (three decision steps by default:
+long enough to reach a target two legs ahead) and accepts a target only if
 
 * the predicted path, and the chord between its positions at the decision instants (what the
   result's threat count measures), keeps ``threat_margin_km`` clear of every threat circle;
@@ -12,6 +12,11 @@ reach a target two legs ahead) and accepts a target only if
   there, so every accepted target leaves a safe way on (the "keep going" candidate below);
 * at every predicted second it stays ``min_separation_km + separation_margin_km`` from the
   predicted path of every UAV already settled this step.
+
+Paths are predicted from each plane's measured speed, at the airspeed it will be sent for the
+leg (``leg_timing``: the leg to the candidate's cell in one decision step, see
+``flight_prediction.leg_speed_mps``; the keep-going and circle-here fallbacks at cruise speed),
+and the loiter circle is the one flown at that airspeed.
 
 Candidates, in order: the cell-level envelope's choice; the other cells reachable within
 phi_max that pass the cell-level rules, nearest the planner's cell first; the target the plane
@@ -26,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mavlink_bridge.flight_prediction import PlaneModel, predict_paths
+from mavlink_bridge.flight_prediction import PlaneModel, leg_speed_mps, predict_paths
 from mavlink_bridge.safety_envelope import SafetyEnvelope
 from planner.constraints import segment_clearance
 from planner.grid import HEADING_STEPS, heading_of_angle, turn_options
@@ -34,11 +39,12 @@ from planner.grid import HEADING_STEPS, heading_of_angle, turn_options
 
 @dataclass
 class FlightChoice:
-    """The guided target of every UAV and the cell/heading it stands for."""
+    """The guided target and airspeed of every UAV and the cell/heading it stands for."""
 
     aims_km: np.ndarray  # (N, 2)
     next_cells: np.ndarray  # (N, 2)
     next_headings: np.ndarray  # (N,)
+    speeds_mps: np.ndarray  # (N,) airspeed to fly the leg at
     overrides: dict[str, int] = field(default_factory=dict)
     min_clearance_km: float = np.inf  # predicted, over the accepted paths
     min_separation_km: float = np.inf
@@ -62,11 +68,13 @@ class FlightEnvelope:
     horizon_s: float = 30.0
     threat_margin_km: float = 0.25
     separation_margin_km: float = 0.3
+    leg_timing: bool = True  # airspeed per leg, so each leg takes one step (flight_prediction)
 
     def choose(
         self,
         positions_km: np.ndarray,
         courses_rad: np.ndarray,
+        speeds_mps: np.ndarray,
         cells: np.ndarray,
         headings: np.ndarray,
         proposed_cells: np.ndarray,
@@ -77,7 +85,8 @@ class FlightEnvelope:
         active: np.ndarray,
         lead: float,
     ) -> FlightChoice:
-        """Guided targets for every UAV (inactive ones keep the proposal; nothing is sent)."""
+        """Guided targets for every UAV flying at ``speeds_mps`` now (inactive ones keep the
+        proposal; nothing is sent)."""
         grid = self.cells.grid
         n = len(cells)
         candidates: list[list[_Candidate]] = []
@@ -98,16 +107,30 @@ class FlightEnvelope:
             )
         rows = [(i, k) for i in range(n) for k in range(len(candidates[i]))]
         aims = np.array([candidates[i][k].aim for i, k in rows]).reshape(-1, 2)
+        starts = np.array([positions_km[i] for i, _ in rows]).reshape(-1, 2)
+        speeds_now = np.array([speeds_mps[i] for i, _ in rows], dtype=float)
+        commanded = np.full(len(rows), self.model.speed_mps)
+        if self.leg_timing and rows:  # a cell's leg in one step; keep going / circle: cruise
+            leg_from = grid.centre_km(np.array([cells[i] for i, _ in rows]))
+            leg_to = grid.centre_km(np.array([candidates[i][k].cell for i, k in rows]))
+            derived = np.array([candidates[i][k].derived for i, k in rows])
+            timed = leg_speed_mps(self.model, starts, leg_from, leg_to, speeds_now, self.step_s)
+            commanded = np.where(derived, commanded, timed)
         paths = predict_paths(
             self.model,
-            np.array([positions_km[i] for i, _ in rows]).reshape(-1, 2),
+            starts,
             np.array([courses_rad[i] for i, _ in rows]),
             aims,
             self.horizon_s,
+            speed_mps=speeds_now,
+            commanded_mps=commanded,
         )
-        clearance = np.minimum(self._threat_clearance(paths), self._loiter_clearance(aims))
+        clearance = np.minimum(
+            self._threat_clearance(paths), self._loiter_clearance(aims, commanded)
+        )
         row_of = {key: r for r, key in enumerate(rows)}
         out_aims = grid.centre_km(proposed_cells)
+        out_speeds = np.full(n, self.model.speed_mps)
         out_cells = np.array(proposed_cells, dtype=np.int64, copy=True)
         out_headings = np.array(proposed_headings, dtype=np.int64, copy=True)
         overrides = {"predicted_threat": 0, "predicted_separation": 0}
@@ -143,6 +166,7 @@ class FlightEnvelope:
             path = paths[row_of[(i, k)]]
             settled.append(path)
             out_aims[i] = cand.aim
+            out_speeds[i] = commanded[row_of[(i, k)]]
             if cand.derived:
                 per_step = max(1, round(self.step_s))
                 end, before = path[min(per_step, len(path) - 1)], path[max(per_step - 1, 0)]
@@ -155,7 +179,9 @@ class FlightEnvelope:
                 )
             else:
                 out_cells[i], out_headings[i] = cand.cell, cand.heading
-        return FlightChoice(out_aims, out_cells, out_headings, overrides, worst_clear, worst_sep)
+        return FlightChoice(
+            out_aims, out_cells, out_headings, out_speeds, overrides, worst_clear, worst_sep
+        )
 
     # ------------------------------------------------------------------ pieces
 
@@ -186,13 +212,16 @@ class FlightEnvelope:
         out.append(_Candidate(cell, heading, env.grid.centre_km(cell), derived=True))
         return out
 
-    def _loiter_clearance(self, aims_km: np.ndarray) -> np.ndarray:
-        """Distance (km) from the loiter circle around each aim to the nearest threat edge."""
+    def _loiter_clearance(self, aims_km: np.ndarray, speeds_mps: np.ndarray) -> np.ndarray:
+        """Distance (km) from the loiter circle around each aim, flown at ``speeds_mps``, to the
+        nearest threat edge."""
         env = self.cells
         if len(env.threat_radius_km) == 0:
             return np.full(len(aims_km), np.inf)
         d = np.hypot(*(aims_km[:, None, :] - env.threat_xy_km[None]).transpose(2, 0, 1))
-        return (d - env.threat_radius_km[None]).min(axis=1) - self.model.loiter_radius_km
+        return (d - env.threat_radius_km[None]).min(axis=1) - self.model.loiter_radius_km(
+            speeds_mps
+        )
 
     def _threat_clearance(self, paths: np.ndarray) -> np.ndarray:
         """Smallest distance (km) of each predicted path to a threat edge: every predicted

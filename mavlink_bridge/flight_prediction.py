@@ -1,15 +1,24 @@
-"""Where a plane sent to a point will fly: the daemon's model of ArduPlane guided flight.
+"""Where a plane sent to a point will fly, and how fast to send it: the daemon's model of
+ArduPlane guided flight.
 
-A plane given a DO_REPOSITION target flies towards it at constant airspeed, turning no faster
-than a coordinated turn at its bank limit, and on arrival (within WP_RADIUS, or when the point
-passes close abeam, inside its turn circle) loiters clockwise around it on the tightest circle it
-can fly (the requested radius, never below ~1.05 x the minimum turn radius). The daemon predicts
-that path for every candidate guided target, so the safety envelope can judge the path the plane
-will really fly (turn radius, loiter circle, lag on diagonal legs) rather than the cell centres
-the planner thinks in::
+A plane given a DO_REPOSITION target flies towards it at its airspeed, turning no faster than a
+coordinated turn at its bank limit, and on arrival (within WP_RADIUS, or when the point passes
+close abeam, inside its turn circle) loiters clockwise around it on the tightest circle it can fly
+(the requested radius, never below ~1.05 x the minimum turn radius). A DO_CHANGE_SPEED moves its
+airspeed toward the new value at a bounded acceleration. The daemon predicts that path for every
+candidate guided target, so the safety envelope can judge the path the plane will really fly
+(turn radius, loiter circle, lag) rather than the cell centres the planner thinks in::
 
     turn_rate = g * tan(bank_limit) / V            (5.6 deg/s at 100 m/s, 45 deg)
-    min_turn_radius = V**2 / (g * tan(bank_limit))  (1.02 km)
+    min_turn_radius = V**2 / (g * tan(bank_limit))  (1.02 km at 100 m/s, 2.29 km at 150 m/s)
+
+Leg timing. The paper's grid moves every UAV one cell per decision step, a diagonal cell too, so
+its model flies 1 km legs at v and 1.41 km legs at sqrt(2) v (design.md, "mission grid"). With
+``leg_timing`` the daemon asks each plane for the airspeed that brings it to its next cell centre
+at the next decision instant (``leg_speed_mps``), within [min_speed_mps, max_speed_mps]; a plane
+that fell behind (a turn, an envelope override) catches up. Without it every plane flies its
+cruise speed and falls behind the grid on diagonals (~245 km flown in 250 steps instead of the
+grid's ~310 km).
 
 Vectorised over rows (UAVs x candidates). Positions in km in the mission frame (x east, y
 north); courses in radians counter-clockwise from east, as the planner's grid headings.
@@ -33,22 +42,64 @@ class PlaneModel:
     capture_radius_m: float = 90.0  # WP_RADIUS
     loiter_radius_factor: float = 1.05  # tightest loiter flown, in minimum turn radii
     loiter_gain: float = 2.0  # how hard the loiter path converges onto its circle
+    #: slowest airspeed asked for when timing legs: cruise, since a slower plane turns more than
+    #: phi_max in a step (with 75 m/s allowed, 14 turn breaches in one paper-10uav mission)
+    min_speed_mps: float = 100.0
+    max_speed_mps: float = 150.0  # fastest (<= AIRSPEED_MAX): sqrt(2) v and room to catch up
+    accel_mps2: float = 5.0  # how fast the airspeed follows a DO_CHANGE_SPEED
 
-    @property
-    def min_turn_radius_km(self) -> float:
-        return self.speed_mps**2 / (GRAVITY_MPS2 * np.tan(np.radians(self.bank_limit_deg))) / 1e3
+    def min_turn_radius_km(self, speed_mps: np.ndarray | float | None = None) -> np.ndarray:
+        v = self.speed_mps if speed_mps is None else np.asarray(speed_mps, dtype=float)
+        return v**2 / (GRAVITY_MPS2 * np.tan(np.radians(self.bank_limit_deg))) / 1e3
 
-    @property
-    def turn_rate_radps(self) -> float:
-        return GRAVITY_MPS2 * float(np.tan(np.radians(self.bank_limit_deg))) / self.speed_mps
+    def turn_rate_radps(self, speed_mps: np.ndarray | float | None = None) -> np.ndarray:
+        v = self.speed_mps if speed_mps is None else np.asarray(speed_mps, dtype=float)
+        return GRAVITY_MPS2 * float(np.tan(np.radians(self.bank_limit_deg))) / np.maximum(v, 1.0)
 
-    @property
-    def loiter_radius_km(self) -> float:
-        return self.loiter_radius_factor * self.min_turn_radius_km
+    def loiter_radius_km(self, speed_mps: np.ndarray | float | None = None) -> np.ndarray:
+        return self.loiter_radius_factor * self.min_turn_radius_km(speed_mps)
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:
     return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def leg_speed_mps(
+    model: PlaneModel,
+    position_km: np.ndarray,
+    from_km: np.ndarray,
+    to_km: np.ndarray,
+    speed_now_mps: np.ndarray,
+    step_s: float,
+) -> np.ndarray:
+    """Airspeed (M,) to command so that planes at ``position_km`` (M, 2), flying
+    ``speed_now_mps``, reach the centre ``to_km`` of the leg ``from_km`` -> ``to_km`` in
+    ``step_s``: the distance still to go along the leg (plus the cross-track offset), and the
+    acceleration limit on the way to the new speed, solved for the commanded speed ``v``::
+
+        flown in step_s = v T - (v - v0) |v - v0| / (2 a) = distance to go
+
+    Clipped to [min_speed_mps, max_speed_mps]; a plane ahead of its schedule slows down, one
+    behind catches up, and a leg of zero length (circle here) is flown at cruise speed."""
+    p = np.asarray(position_km, dtype=float).reshape(-1, 2)
+    a_km = np.asarray(from_km, dtype=float).reshape(-1, 2)
+    b_km = np.asarray(to_km, dtype=float).reshape(-1, 2)
+    v0 = np.broadcast_to(np.asarray(speed_now_mps, dtype=float), (len(p),))
+    leg = b_km - a_km
+    length = np.hypot(leg[:, 0], leg[:, 1])
+    unit = leg / np.maximum(length, 1e-9)[:, None]
+    to_go = b_km - p
+    along = np.einsum("ij,ij->i", to_go, unit)
+    cross = unit[:, 0] * to_go[:, 1] - unit[:, 1] * to_go[:, 0]
+    distance_m = np.where(along > 0, np.hypot(along, cross), 0.0) * 1e3
+    t, acc = float(step_s), float(model.accel_mps2)
+    excess = distance_m - v0 * t  # beyond what the current speed covers
+    reachable = acc * t * t / 2
+    root = np.sqrt(np.maximum(acc * acc * t * t - 2 * acc * np.abs(excess), 0.0))
+    change = np.where(np.abs(excess) < reachable, acc * t - root, np.inf)
+    wanted = v0 + np.sign(excess) * change
+    speed = np.clip(np.nan_to_num(wanted), model.min_speed_mps, model.max_speed_mps)
+    return np.where(length > 1e-9, speed, model.speed_mps)
 
 
 def predict_paths(
@@ -59,41 +110,51 @@ def predict_paths(
     horizon_s: float,
     sample_s: float = 1.0,
     dt_s: float = 0.2,
+    speed_mps: np.ndarray | None = None,
+    commanded_mps: np.ndarray | None = None,
 ) -> np.ndarray:
     """Positions (M, S + 1, 2) every ``sample_s`` from now (index 0) to ``horizon_s`` of planes
-    at ``xy_km`` (M, 2) flying ``course_rad`` (M,) after being sent to ``aim_km`` (M, 2)."""
+    at ``xy_km`` (M, 2) flying ``course_rad`` (M,) at ``speed_mps`` (M,; default cruise) after
+    being sent to ``aim_km`` (M, 2) and, when given, to the airspeed ``commanded_mps`` (M,)."""
     p = np.array(xy_km, dtype=float, copy=True).reshape(-1, 2)
     course = np.array(course_rad, dtype=float, copy=True).reshape(-1)
     aim = np.asarray(aim_km, dtype=float).reshape(-1, 2)
     m = len(p)
-    step_km = model.speed_mps * dt_s / 1000.0
-    max_turn = model.turn_rate_radps * dt_s
+    speed = np.array(
+        np.broadcast_to(model.speed_mps if speed_mps is None else speed_mps, (m,)), dtype=float
+    )
+    target = speed.copy() if commanded_mps is None else np.broadcast_to(commanded_mps, (m,))
+    max_dv = model.accel_mps2 * dt_s
     capture_km = model.capture_radius_m / 1000.0
-    passed_km = 2.0 * model.min_turn_radius_km
-    loiter_km = model.loiter_radius_km
     orbiting = np.zeros(m, dtype=bool)
     per_sample = max(1, round(sample_s / dt_s))
     samples = max(1, round(horizon_s / sample_s))
     out = np.empty((m, samples + 1, 2))
     out[:, 0] = p
     for k in range(samples * per_sample):
+        before = speed
+        speed = speed + np.clip(target - speed, -max_dv, max_dv)
+        step_km = 0.5 * (before + speed) * dt_s / 1000.0
+        max_turn = model.turn_rate_radps(speed) * dt_s
         d = aim - p
         dist = np.hypot(d[:, 0], d[:, 1])
         to_aim = np.arctan2(d[:, 1], d[:, 0])
         desired = to_aim.copy()
         if orbiting.any():
             # clockwise loiter: tangent = bearing from the centre - 90 deg, steered onto the circle
+            loiter_km = model.loiter_radius_km(speed[orbiting])
             from_centre = to_aim[orbiting] + np.pi
             correction = np.arctan(model.loiter_gain * (dist[orbiting] - loiter_km) / loiter_km)
             desired[orbiting] = from_centre - (np.pi / 2 + correction)
         turn = np.clip(_wrap(desired - course), -max_turn, max_turn)
         mid = course + 0.5 * turn
         course = course + turn
-        p = p + step_km * np.stack([np.cos(mid), np.sin(mid)], axis=1)
+        p = p + step_km[:, None] * np.stack([np.cos(mid), np.sin(mid)], axis=1)
         if not orbiting.all():
             d = aim - p
             dist = np.hypot(d[:, 0], d[:, 1])
             ahead = np.cos(course) * d[:, 0] + np.sin(course) * d[:, 1]
+            passed_km = 2.0 * model.min_turn_radius_km(speed)
             orbiting |= (dist <= capture_km) | ((ahead < 0) & (dist < passed_km))
         if (k + 1) % per_sample == 0:
             out[:, (k + 1) // per_sample] = p

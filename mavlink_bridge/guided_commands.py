@@ -1,5 +1,6 @@
 """Commands to vehicles with acknowledgement and retry: arm, mode changes, guided reposition
-(COMMAND_INT MAV_CMD_DO_REPOSITION) and engagement requests (camera capture).
+(COMMAND_INT MAV_CMD_DO_REPOSITION), airspeed (MAV_CMD_DO_CHANGE_SPEED) and engagement requests
+(camera capture).
 
 ``send_commands`` sends a batch (one command per vehicle, to many vehicles at once), pumps the
 link until each has its COMMAND_ACK, and resends what is unanswered. COMMAND_LONG retries carry
@@ -179,6 +180,15 @@ def reposition_command(
         (-1, 1, loiter_radius_m, math.nan, round(lat_deg * 1e7), round(lon_deg * 1e7), altitude_m),
         as_int=True,
         frame=mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+    )
+
+
+def change_speed_command(vehicle: VehicleState, airspeed_mps: float) -> Command:
+    """MAV_CMD_DO_CHANGE_SPEED: param1 = 0 (airspeed), param2 = m/s, param3 = -1 (throttle
+    unchanged). ArduPlane and PX4 act on it in GUIDED; ArduPlane DENIES a speed outside
+    [AIRSPEED_MIN, AIRSPEED_MAX]."""
+    return Command(
+        vehicle, mavlink.MAV_CMD_DO_CHANGE_SPEED, (0, float(airspeed_mps), -1, 0, 0, 0, 0)
     )
 
 

@@ -57,7 +57,7 @@ def parse_key(raw: bytes, where: str) -> bytes:
         return bytes(raw)
     raise SigningKeyError(
         f"{where} is not a MAVLink signing key: give 64 hex characters or 32 raw bytes "
-        f"(got {len(raw)} bytes); e.g. python -c \"import secrets; print(secrets.token_hex(32))\""
+        f'(got {len(raw)} bytes); e.g. python -c "import secrets; print(secrets.token_hex(32))"'
     )
 
 
@@ -106,8 +106,10 @@ class SignatureCheck:
 
     def accept(self, frame: bytes | bytearray, msg_id: int) -> bool:
         frame = bytes(frame)
-        signed = len(frame) > SIGNATURE_BLOCK and frame[0] == mavlink.PROTOCOL_MARKER_V2 and (
-            frame[2] & mavlink.MAVLINK_IFLAG_SIGNED
+        signed = (
+            len(frame) > SIGNATURE_BLOCK
+            and frame[0] == mavlink.PROTOCOL_MARKER_V2
+            and (frame[2] & mavlink.MAVLINK_IFLAG_SIGNED)
         )
         if not signed:
             if msg_id in UNSIGNED_ALLOWED:

@@ -67,9 +67,12 @@ class SafetyModel:
         for h in range(8):
             nxt = cells + HEADING_STEPS[h]
             clear = np.ones(grid.shape, dtype=bool)
-            clear[near] = segment_clearance(
-                start[near], grid.centre_km(nxt[near]), self.threat_xy, self.threat_r
-            ) > 0
+            clear[near] = (
+                segment_clearance(
+                    start[near], grid.centre_km(nxt[near]), self.threat_xy, self.threat_r
+                )
+                > 0
+            )
             safe[h] = grid.inside(nxt) & clear
         #: edge_safe[h, x, y]: the move from (x, y) along heading h is inside and clear of threats.
         self.edge_safe = safe

@@ -137,10 +137,20 @@ def command_do_set_mission_current(v: Vehicle, c: CommandArgs) -> Result:
 
 
 def command_do_change_speed(v: Vehicle, c: CommandArgs) -> Result:
-    if not math.isfinite(c.p2) or not 0 < c.p2 <= 400:
+    """param1 speed type (0 airspeed, 1 ground speed: the same without wind), param2 m/s: -1 no
+    change, -2 back to AIRSPEED_CRUISE; outside [AIRSPEED_MIN, AIRSPEED_MAX] DENIED (as
+    ArduPlane). The plane reaches the new speed at its acceleration limit."""
+    speed = v.params["AIRSPEED_CRUISE"] if c.p2 == -2 else c.p2
+    if c.p2 == -1 and c.p1 in (0, 1):
+        return mavlink.MAV_RESULT_ACCEPTED
+    if (
+        c.p1 not in (0, 1)
+        or not math.isfinite(speed)
+        or not v.params["AIRSPEED_MIN"] <= speed <= v.params["AIRSPEED_MAX"]
+    ):
         v.host.stats.rejected_commands += 1
         return mavlink.MAV_RESULT_DENIED
-    v.fleet.airspeed_mps[v.index] = c.p2
+    v.fleet.set_airspeed(v.index, speed, at_once=not v.airborne)
     return mavlink.MAV_RESULT_ACCEPTED
 
 

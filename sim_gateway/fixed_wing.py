@@ -1,8 +1,9 @@
 """Fixed-wing kinematics for a fleet of simulated planes, vectorised over vehicles with numpy.
 
-The model is the coordinated-turn point mass a guidance loop sees: constant airspeed (no wind,
-so ground speed = airspeed), course changed at most at the turn rate of a coordinated turn at the
-bank limit, altitude driven toward its target at bounded climb / sink rates::
+The model is the coordinated-turn point mass a guidance loop sees: airspeed slewed toward its
+commanded value (MAV_CMD_DO_CHANGE_SPEED) at a bounded acceleration, no wind (so ground speed =
+airspeed), course changed at most at the turn rate of a coordinated turn at the bank limit and
+the current airspeed, altitude driven toward its target at bounded climb / sink rates::
 
     turn_rate = g * tan(bank_limit) / V            (5.6 deg/s at 100 m/s and 45 deg bank)
     min_turn_radius = V**2 / (g * tan(bank_limit))  (1019 m at 100 m/s and 45 deg bank)
@@ -35,6 +36,7 @@ HOLD, PURSUIT, ORBIT = 0, 1, 2
 ORBIT_RADIUS_FACTOR = 1.05  # smallest loiter radius flown, in units of the min turn radius
 ORBIT_GAIN = 2.0  # vector-field convergence gain onto the loiter circle
 PASSED_RADIUS_FACTOR = 2.0  # a point behind the plane within this x turn radius counts as reached
+SPEED_ACCEL_MPS2 = 5.0  # airspeed change rate toward a commanded speed (about 0.5 g)
 
 
 def wrap_pi(angle: np.ndarray) -> np.ndarray:
@@ -69,7 +71,9 @@ class FleetKinematics:
         self.y_m = np.asarray(y_m, dtype=float).copy()
         self.alt_m = np.zeros(n)  # above home
         self.course_rad = np.asarray(course_rad, dtype=float).copy()
-        self.airspeed_mps = np.full(n, float(airspeed_mps))
+        self.airspeed_mps = np.full(n, float(airspeed_mps))  # now
+        self.target_airspeed_mps = self.airspeed_mps.copy()  # commanded
+        self.speed_accel_mps2 = np.full(n, SPEED_ACCEL_MPS2)
         self.bank_limit_rad = np.full(n, np.radians(bank_limit_deg))
         self.climb_mps = np.full(n, float(climb_mps))
         self.sink_mps = np.full(n, float(sink_mps))
@@ -153,16 +157,27 @@ class FleetKinematics:
             desired[orbit] = from_centre + side * (np.pi / 2 + correction)
         return desired
 
+    def set_airspeed(self, i: int, airspeed_mps: float, at_once: bool = False) -> None:
+        """Command an airspeed: reached at ``speed_accel_mps2`` (``at_once``: a parameter set on
+        the ground, or the cruise speed of a plane not yet flying)."""
+        self.target_airspeed_mps[i] = float(airspeed_mps)
+        if at_once:
+            self.airspeed_mps[i] = float(airspeed_mps)
+
     def step(self, dt_s: float) -> StepEvents:
         """Advance every airborne plane by ``dt_s`` seconds."""
         flying = self.airborne
+        max_dv = self.speed_accel_mps2 * dt_s
+        dv = np.clip(self.target_airspeed_mps - self.airspeed_mps, -max_dv, max_dv)
+        v_before = self.airspeed_mps.copy()
+        self.airspeed_mps = np.where(flying, self.airspeed_mps + dv, self.target_airspeed_mps)
         error = wrap_pi(self.desired_course() - self.course_rad)
         max_turn = self.turn_rate_radps() * dt_s
         turn = np.clip(error, -max_turn, max_turn)
         turn[~flying] = 0.0
         mid_course = self.course_rad + 0.5 * turn
         self.course_rad = np.mod(self.course_rad + turn, 2 * np.pi)
-        speed = self.ground_speed_mps()
+        speed = np.where(flying, 0.5 * (v_before + self.airspeed_mps), 0.0)
         self.bank_rad = np.arctan(speed * (turn / dt_s) / GRAVITY_MPS2)
         self.x_m += speed * np.sin(mid_course) * dt_s
         self.y_m += speed * np.cos(mid_course) * dt_s

@@ -52,5 +52,5 @@ def handle_param_set(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
         v.host.stats.rejected_commands += 1
         v.statustext(f"Param {refused}"[:50], mavlink.MAV_SEVERITY_WARNING)
     else:
-        v.apply_params()
+        v.apply_params(changed=name)
     send_param_value(v, name)

@@ -47,7 +47,8 @@ def default_specs(sysid: int, airspeed_mps: float, altitude_m: float) -> tuple[P
         p("SYSID_MYGCS", INT16, 255, 1, 255, True, "ground station system id"),
         p("AIRSPEED_CRUISE", REAL32, airspeed_mps, 5, 400, True, "sim: cruise airspeed, m/s"),
         p("AIRSPEED_MIN", INT16, max(5, round(airspeed_mps * 0.6)), 5, 400, True, "m/s"),
-        p("AIRSPEED_MAX", INT16, round(airspeed_mps * 1.3), 5, 400, True, "m/s"),
+        # 1.5 x cruise: the paper's grid flies a diagonal cell (1.41 km) in one 10 s step
+        p("AIRSPEED_MAX", INT16, round(airspeed_mps * 1.5), 5, 400, True, "m/s"),
         p("ROLL_LIMIT_DEG", REAL32, 45, 10, 89, True, "bank limit, deg (sets the turn rate)"),
         p("TECS_CLMB_MAX", REAL32, 5, 0.1, 50, True, "max climb rate, m/s"),
         p("TECS_SINK_MAX", REAL32, 5, 0.1, 50, True, "max sink rate, m/s"),

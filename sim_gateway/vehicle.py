@@ -140,10 +140,12 @@ class Vehicle:
             mode |= mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
         return mode
 
-    def apply_params(self) -> None:
-        """Push the flight parameters into the kinematics row."""
+    def apply_params(self, changed: str | None = None) -> None:
+        """Push the flight parameters into the kinematics row (after a PARAM_SET of ``changed``:
+        a speed commanded in flight stays unless AIRSPEED_CRUISE itself was set)."""
         i, p = self.index, self.params
-        self.fleet.airspeed_mps[i] = p["AIRSPEED_CRUISE"]
+        if changed in (None, "AIRSPEED_CRUISE"):
+            self.fleet.set_airspeed(i, p["AIRSPEED_CRUISE"], at_once=not self.airborne)
         self.fleet.bank_limit_rad[i] = math.radians(p["ROLL_LIMIT_DEG"])
         self.fleet.climb_mps[i] = p["TECS_CLMB_MAX"]
         self.fleet.sink_mps[i] = p["TECS_SINK_MAX"]
@@ -319,8 +321,8 @@ class Vehicle:
         i, fleet, p = self.index, self.fleet, self.params
         cmd = item.command
         if cmd == mavlink.MAV_CMD_DO_CHANGE_SPEED:
-            if 0 < item.param2 <= 400:
-                fleet.airspeed_mps[i] = item.param2
+            if p["AIRSPEED_MIN"] <= item.param2 <= p["AIRSPEED_MAX"]:
+                fleet.set_airspeed(i, item.param2, at_once=not self.airborne)
             return item.seq + 1
         if cmd == mavlink.MAV_CMD_DO_JUMP:
             target, repeat = int(item.param1), int(item.param2)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from mavlink_bridge.cli import add_leg_timing_arguments
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
 from planner.errors import UserError
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
@@ -55,6 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="output folder (default runs/<scenario>-seed<S>-demo)",
     )
+    add_leg_timing_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print only the result JSON on stdout")
 
 
@@ -148,6 +150,7 @@ def main(args: argparse.Namespace) -> int:
         lost_after_s=3.0 if lockstep else max(1.0, 200.0 / args.speedup),
         time_scale=RELEASED_SPEEDUP if lockstep else args.speedup,
         lockstep=lockstep,
+        leg_timing=args.leg_timing,
         tlog_path=out / "mission.tlog",
         progress=say,
         on_step=on_step,

@@ -1,9 +1,10 @@
 """A minimal stand-in swarm for the daemon's tests: N vehicles, each its own UDP socket sending
 to the daemon (like SITL's udpout), speaking just enough ArduPlane: heartbeats with an
 initialising phase, GLOBAL_POSITION_INT, fence upload, arm (refusable with a PreArm
-STATUSTEXT), mode changes, COMMAND_INT DO_REPOSITION (COMMAND_LONG answered UNSUPPORTED), sensor
-looks and engagement captures from the camera component. Flies straight to each target at a
-fixed speed. For protocol tests only; the end-to-end tests use ``swarmplan sim``.
+STATUSTEXT), mode changes, COMMAND_INT DO_REPOSITION (COMMAND_LONG answered UNSUPPORTED),
+DO_CHANGE_SPEED within 60..150 m/s, sensor looks and engagement captures from the camera
+component. Flies straight to each target at the commanded speed. For protocol tests only; the
+end-to-end tests use ``swarmplan sim``.
 
 Also the helpers the tests of this folder share: running ``python -m swarmplan`` and finding a
 block of free loopback ports."""
@@ -87,6 +88,8 @@ class FakeVehicle:
     look_index: int = 0
     engagement_seq: set = field(default_factory=set)
     commands: list = field(default_factory=list)
+    speeds: list = field(default_factory=list)  # every accepted DO_CHANGE_SPEED, m/s
+    airspeed: float = 150.0
 
     def __post_init__(self) -> None:
         self.sock.bind(("127.0.0.1", 0))
@@ -218,7 +221,7 @@ class FakeSwarm(threading.Thread):
             dn = (v.target[0] - v.lat) * M_PER_DEG
             de = (v.target[1] - v.lon) * M_PER_DEG * math.cos(math.radians(v.lat))
             d = math.hypot(dn, de)
-            step = min(d, 150.0 * dt)
+            step = min(d, v.airspeed * dt)
             if d > 0:
                 v.lat += dn / d * step / M_PER_DEG
                 v.lon += de / d * step / (M_PER_DEG * math.cos(math.radians(v.lat)))
@@ -263,6 +266,13 @@ class FakeSwarm(threading.Thread):
                 else:
                     v.armed = True
                     self._ack(v, v.ap, msg.command, mavlink.MAV_RESULT_ACCEPTED)
+            elif msg.command == mavlink.MAV_CMD_DO_CHANGE_SPEED:
+                ok = 60 <= msg.param2 <= 150
+                if ok:
+                    v.airspeed = msg.param2
+                    v.speeds.append(msg.param2)
+                result = mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
+                self._ack(v, v.ap, msg.command, result)
             elif msg.command == mavlink.MAV_CMD_DO_SET_MODE:
                 v.mode = int(msg.param2)
                 self._ack(v, v.ap, msg.command, mavlink.MAV_RESULT_ACCEPTED)

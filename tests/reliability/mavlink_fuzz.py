@@ -37,6 +37,7 @@ def _field_value(rng: random.Random, kind: str, length: int, name: str):
         return bytes(rng.randrange(256) for _ in range(rng.randint(0, length or 1)))
     else:
         lo, hi = _INT_RANGES[base]
+
         def one():
             if name == "command":
                 return rng.choice(_COMMANDS) if rng.random() < 0.7 else rng.randint(lo, hi)
@@ -50,6 +51,7 @@ def _field_value(rng: random.Random, kind: str, length: int, name: str):
             if r < 0.6:
                 return rng.randint(max(lo, -100), min(hi, 100))
             return rng.randint(lo, hi)
+
     if length > 1 and base != "char":
         return [one() for _ in range(length)]
     return one()

@@ -83,9 +83,7 @@ def _fly_again(sim: Simulator, seq0: int) -> None:
 
 @pytest.mark.timeout(120)
 def test_fuzzing_the_simulator_parse_path(capsys):
-    sim = Simulator(
-        load_scenario("paper-2uav"), SimOptions(gcs_port=9, airborne=True, boot_s=0.0)
-    )
+    sim = Simulator(load_scenario("paper-2uav"), SimOptions(gcs_port=9, airborne=True, boot_s=0.0))
     fuzzer = Fuzzer(11, classes_named(HANDLERS), [GCS, (1, 1), (7, 100), (0, 0)])
     fuzzer.senders += [(255, 190)] * 4
     started = time.perf_counter()

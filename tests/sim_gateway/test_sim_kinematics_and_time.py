@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 
+from mavlink_bridge.flight_prediction import PlaneModel, predict_paths
 from planner.scenario import load_scenario
 from sim_gateway.camera import FILE_URL_CHARS, look_urls, parse_look_url
 from sim_gateway.fixed_wing import ORBIT, FleetKinematics
@@ -104,3 +105,34 @@ def test_command_line_errors_are_one_line_without_traceback(argv, needle):
     assert "Traceback" not in proc.stderr
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert any(needle in line for line in lines), proc.stderr
+
+
+@pytest.mark.parametrize("speed_mps", [100.0, 140.0, 75.0])
+def test_daemon_flight_prediction_is_the_simulated_flight(speed_mps):
+    """The daemon's model of a plane (mavlink_bridge.flight_prediction) and the simulator's
+    kinematics agree: sent to a point behind its left wing at a new airspeed, the simulated
+    plane turns, speeds up or slows down, arrives and circles where the daemon predicted. A
+    constant changed on one side only (bank limit, loiter size, acceleration) shows here."""
+    fleet = _plane()
+    aim_m = (-2500.0, 1500.0)
+    fleet.fly_to(0, *aim_m, capture_radius_m=90.0, then_orbit_radius_m=60.0)
+    fleet.set_airspeed(0, speed_mps)
+    flown = [(0.0, 0.0)]
+    for k in range(120 * 5):
+        fleet.step(0.2)
+        if (k + 1) % 5 == 0:
+            flown.append((fleet.x_m[0] / 1e3, fleet.y_m[0] / 1e3))
+    predicted = predict_paths(
+        PlaneModel(),
+        np.zeros((1, 2)),
+        np.array([math.pi / 2]),  # north, counter-clockwise from east
+        np.array([aim_m]) / 1e3,
+        horizon_s=120.0,
+        commanded_mps=np.array([speed_mps]),
+    )[0]
+    gap_km = np.hypot(*(predicted - np.array(flown)).T)
+    assert gap_km.max() < 0.02, gap_km.max()
+    # it did circle: the last 15 s on the loiter circle flown at that airspeed
+    radius = np.hypot(*(np.array(flown[-15:]) - np.array(aim_m) / 1e3).T)
+    loiter = PlaneModel().loiter_radius_km(speed_mps)
+    assert np.all(np.abs(radius - loiter) < 0.1 * loiter)

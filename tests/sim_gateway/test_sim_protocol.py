@@ -287,7 +287,7 @@ def test_engagement_is_resolved_once_per_sequence_number(gcs, sim_factory):
     target = int(np.flatnonzero(sim.world.alive)[0])
     tx, ty = sim.world.positions[target] * 1000.0
     sim.fleet.x_m[1], sim.fleet.y_m[1] = tx + 100.0, ty
-    sim.fleet.airspeed_mps[1] = 1.0  # stay put while the request is in flight
+    sim.fleet.set_airspeed(1, 1.0, at_once=True)  # stay put while the request is in flight
     ack = gcs.command_long(2, ml.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1, 7, comp=100)
     assert ack.get_srcComponent() == 100 and ack.result == ml.MAV_RESULT_ACCEPTED
     assert ack.result_param2 == int(sim.world.target_ids[target])
@@ -297,3 +297,28 @@ def test_engagement_is_resolved_once_per_sequence_number(gcs, sim_factory):
     miss = gcs.command_long(2, ml.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1, 8, comp=100)
     assert miss.result == ml.MAV_RESULT_ACCEPTED and miss.result_param2 == 0
     assert gcs.wait("STATUSTEXT", 2, compid=100) is not None
+
+
+def test_change_speed_is_bounded_by_airspeed_limits_and_ramps(gcs, sim_factory):
+    """MAV_CMD_DO_CHANGE_SPEED as ArduPlane takes it: DENIED outside [AIRSPEED_MIN, AIRSPEED_MAX]
+    (60..150 m/s for a 100 m/s plane); accepted speeds are reached at a bounded acceleration,
+    seen in the ground speed of GLOBAL_POSITION_INT; -2 returns to AIRSPEED_CRUISE."""
+    sim_factory(speedup=10.0, airborne=True)
+    gcs.heartbeat()
+    change = ml.MAV_CMD_DO_CHANGE_SPEED
+    assert gcs.command_long(1, change, 0, 151, -1).result == ml.MAV_RESULT_DENIED
+    assert gcs.command_long(1, change, 0, 59, -1).result == ml.MAV_RESULT_DENIED
+    assert gcs.command_long(1, change, 0, 140, -1).result == ml.MAV_RESULT_ACCEPTED
+    samples = []  # (simulated s, ground speed m/s)
+    while not samples or samples[-1][1] < 139.5:
+        m = gcs.wait("GLOBAL_POSITION_INT", 1, timeout=3)
+        assert m is not None and len(samples) < 400
+        samples.append((m.time_boot_ms / 1e3, math.hypot(m.vx, m.vy) / 100))
+    t, v = np.array(samples).T
+    assert v[0] < 110  # not at once: 40 m/s more takes ~8 s
+    rates = np.diff(v) / np.maximum(np.diff(t), 1e-3)
+    assert rates.max() < 5.0 * 1.1 and t[-1] - t[0] > 6.0
+    assert gcs.command_long(1, change, 0, -2, -1).result == ml.MAV_RESULT_ACCEPTED
+    assert gcs.wait(
+        "GLOBAL_POSITION_INT", 1, timeout=5, cond=lambda m: abs(math.hypot(m.vx, m.vy) - 1e4) < 50
+    )

@@ -1,0 +1,94 @@
+"""Leg timing: the daemon asks each plane for the airspeed that flies its leg in one decision
+step, so the planes keep the paper's grid clock (a diagonal cell, 1.41 km, per 10 s step)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from test_daemon_protocol import options
+
+from mavlink_bridge.daemon import MissionDaemon
+from mavlink_bridge.flight_prediction import PlaneModel, leg_speed_mps, predict_paths
+from mavlink_bridge.protocol import mavlink
+from planner.grid import HEADING_STEPS, Grid
+
+STEP_S = 10.0
+
+
+def fly_legs(headings: list[int], timed: bool) -> np.ndarray:
+    """Fly a plane cell to cell along ``headings`` with the daemon's own model (guided target one
+    leg beyond the next centre, as the daemon sends it); the distance (km) from the planned
+    cell centre at every decision instant."""
+    model, grid = PlaneModel(), Grid(100, 100, 1.0)
+    cell = np.array([20, 20])
+    position = grid.centre_km(cell)
+    course, speed = math.radians(45 * headings[0]), model.speed_mps
+    lags = []
+    for h in headings:
+        nxt = cell + HEADING_STEPS[h]
+        a, b = grid.centre_km(cell), grid.centre_km(nxt)
+        command = model.speed_mps
+        if timed:
+            command = float(leg_speed_mps(model, position, a, b, speed, STEP_S)[0])
+        path = predict_paths(
+            model, position, np.array([course]), b + (b - a), STEP_S,
+            speed_mps=np.array([speed]), commanded_mps=np.array([command]),
+        )[0]  # fmt: skip
+        course = math.atan2(*(path[-1] - path[-2])[::-1])
+        speed += float(
+            np.clip(command - speed, -model.accel_mps2 * STEP_S, model.accel_mps2 * STEP_S)
+        )
+        position, cell = path[-1], nxt
+        lags.append(float(np.hypot(*(position - b))))
+    return np.array(lags)
+
+
+def test_timed_legs_keep_the_grid_clock_where_cruise_speed_falls_behind():
+    # a search pattern of diagonal runs and 45 degree turns (the planner's phi_max)
+    headings = [0, 1, 1, 1, 1, 1, 2, 1, 1, 1, 0, 1, 1, 1, 1, 1]
+    timed = fly_legs(headings, timed=True)
+    cruise = fly_legs(headings, timed=False)
+    assert cruise[-1] > 4.0  # ~0.41 km lost on every diagonal
+    # a turn costs up to half a km, made up on the next legs: the lag never builds up
+    assert timed.max() < 0.6 and timed[-1] < 0.15 and np.median(timed) < 0.1
+
+
+def test_leg_speed_limits():
+    model = PlaneModel()
+    a, b = np.array([[10.5, 10.5]]), np.array([[11.5, 11.5]])
+    on_time = leg_speed_mps(model, a, a, b, 141.4, STEP_S)[0]
+    assert abs(on_time - 141.4) < 0.5  # already at sqrt(2) v on a diagonal: keep it
+    from_cruise = leg_speed_mps(model, a, a, b, 100.0, STEP_S)[0]
+    assert from_cruise == model.max_speed_mps  # 5 m/s^2 cannot make 1.41 km from 100 m/s
+    past = leg_speed_mps(model, b + 0.2, a, b, 120.0, STEP_S)[0]
+    assert past == model.min_speed_mps  # ahead of the grid clock: as slow as allowed
+    assert leg_speed_mps(model, a, a, a, 140.0, STEP_S)[0] == model.speed_mps  # circle here
+    orthogonal = leg_speed_mps(model, a, a, a + [1.0, 0.0], 100.0, STEP_S)[0]
+    assert abs(orthogonal - 100.0) < 1e-6
+
+
+def test_daemon_sends_leg_airspeeds_and_cruise_before_rtl(paper10, udp_port, fake_swarm_factory):
+    swarm = fake_swarm_factory(2, udp_port)
+    report = MissionDaemon(paper10, options(udp_port, expect=2)).fly()
+    assert report.result["refused_commands"] == 0
+    for v in swarm.vehicles:
+        assert len(v.speeds) >= 3 and all(100 <= s <= 150 for s in v.speeds)
+        assert max(v.speeds) > 120  # diagonal legs and catching up
+        assert v.speeds[-1] == 100 and v.mode == 11  # back to cruise, then RTL
+
+
+def test_refused_airspeed_falls_back_to_cruise(paper10, udp_port, fake_swarm_factory):
+    """An airframe that refuses the leg airspeeds (outside its AIRSPEED_MIN/MAX): one warning,
+    the mission flies on at the scenario's speed, and the daemon stops asking."""
+    swarm = fake_swarm_factory(2, udp_port, refuse_command=mavlink.MAV_CMD_DO_CHANGE_SPEED)
+    said: list[str] = []
+    report = MissionDaemon(paper10, options(udp_port, expect=2, progress=said.append)).fly()
+    result = report.result
+    assert result["steps"] == 12 and result["refused_commands"] >= 1
+    warnings = [s for s in said if "MAV_CMD_DO_CHANGE_SPEED" in s]
+    assert len(warnings) == 1 and "--airspeed-range" in warnings[0]
+    for v in swarm.vehicles:
+        asked = v.commands.count(mavlink.MAV_CMD_DO_CHANGE_SPEED)
+        assert 1 <= asked <= 2  # the refused leg speed and the cruise reset, not once a step
+        assert v.speeds == [] and v.mode == 11
