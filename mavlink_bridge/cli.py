@@ -12,6 +12,7 @@ from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
 from mavlink_bridge.signing import KEY_ENV, load_signing_key
 from mavlink_bridge.waypoint_export import export_all
 from planner.errors import UserError
+from planner.metrics import format_summary
 from planner.scenario import load_scenario
 
 HELP = "fly MAVLink vehicles (SITL, hardware or the simulator) with the HAPF-ACO planner"
@@ -197,21 +198,9 @@ def main(args: argparse.Namespace) -> int:
 
 
 def print_summary(result: dict, out: Path, files: list[Path]) -> None:
-    """The metrics a person reads first, then where the files are."""
-    v = result.get("violations", {})
-    print(
-        f"scenario {result.get('scenario')}  seed {result.get('seed')}  steps {result.get('steps')}"
-    )
-    print(f"coverage        {result.get('coverage', 0) * 100:.1f}%")
-    print(
-        f"engaged         {result.get('engaged_count')} targets, "
-        f"value {result.get('engaged_value')}"
-    )
-    print(f"min separation  {result.get('min_separation_km', float('nan')):.2f} km")
-    print(f"returned        {result.get('returned_count')}")
-    print("violations      " + ", ".join(f"{k} {v[k]}" for k in sorted(v)))
+    """The metrics a person reads first, the lost vehicles, then where the files are."""
+    print(format_summary(result))
     lost = result.get("lost_uavs") or []
     if lost:
         print(f"lost vehicles   {', '.join(str(i + 1) for i in lost)} (system ids)")
-    print(f"wall time       {result.get('wall_time_s', 0):.1f} s")
     print(f"files in        {out}/ (result.json, mission.tlog, {len(files)} waypoint/map files)")

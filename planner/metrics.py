@@ -219,3 +219,22 @@ class MissionRecorder:
         if extra:
             result.update(extra)
         return result
+
+
+def format_summary(result: dict) -> str:
+    """The lines a person reads first of a result (``MissionRecorder.result``), for every
+    command that prints one (``run``, ``demo``, ``daemon``)."""
+    v = result["violations"]
+    sep = result["min_separation_km"]
+    return "\n".join([
+        f"scenario {result['scenario']}  algorithm {result['algorithm']}  seed {result['seed']}"
+        f"  steps {result['steps']}",
+        f"coverage        {100 * result['coverage']:.1f} %"
+        f"  (slope over the first 50 steps {100 * result['coverage_slope_50']:.3f} %/step)",
+        f"engaged         {result['engaged_count']} targets, value {result['engaged_value']:g}",
+        f"min separation  {'n/a' if sep is None else f'{sep:.2f} km'}",
+        f"returned home   {result['returned_count']} of {result['uav_count']}",
+        f"violations      threat {v['threat']}, separation {v['separation']}, turn {v['turn']},"
+        f" range {v['range']}",
+        f"wall time       {result['wall_time_s']:.2f} s",
+    ])  # fmt: skip

@@ -18,8 +18,9 @@ from tqdm import tqdm
 from mavlink_bridge.cli import add_leg_timing_arguments
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
 from planner.errors import UserError
+from planner.metrics import format_summary
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
-from swarmplan.run_command import positive_int, seed_int, summary, write_outputs
+from swarmplan.run_command import positive_int, seed_int, write_outputs
 
 HELP = "fly a scenario end to end: the MAVLink simulator and the planner daemon on loopback UDP"
 
@@ -184,7 +185,7 @@ def main(args: argparse.Namespace) -> int:
     if quiet:
         print(json.dumps(result))
         return 0
-    print(summary(result))
+    print(format_summary(result))
     lost = result.get("lost_uavs") or []
     if lost:
         print(f"lost vehicles   {', '.join(str(i + 1) for i in lost)} (system ids)")

@@ -10,6 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from planner.errors import UserError
+from planner.metrics import format_summary
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
 from sim_gateway.offline_runner import PLANNERS, run_offline
 
@@ -73,23 +74,6 @@ def write_outputs(result: dict, out_dir: Path) -> list[Path]:
     return written + list(export_all(result, out_dir))
 
 
-def summary(result: dict) -> str:
-    v = result["violations"]
-    sep = result["min_separation_km"]
-    return "\n".join([
-        f"scenario {result['scenario']}  algorithm {result['algorithm']}  seed {result['seed']}"
-        f"  steps {result['steps']}",
-        f"coverage        {100 * result['coverage']:.1f} %"
-        f"  (slope over the first 50 steps {100 * result['coverage_slope_50']:.3f} %/step)",
-        f"engaged         {result['engaged_count']} targets, value {result['engaged_value']:g}",
-        f"min separation  {'n/a' if sep is None else f'{sep:.2f} km'}",
-        f"returned home   {result['returned_count']} of {result['uav_count']}",
-        f"violations      threat {v['threat']}, separation {v['separation']}, turn {v['turn']},"
-        f" range {v['range']}",
-        f"wall time       {result['wall_time_s']:.2f} s",
-    ])  # fmt: skip
-
-
 def main(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     steps = args.steps or scenario.steps
@@ -103,6 +87,6 @@ def main(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result))
     else:
-        print(summary(result))
+        print(format_summary(result))
         print(f"written: {', '.join(str(p) for p in written)}")
     return 0
