@@ -65,7 +65,7 @@ LOOP_STATE = (
 )
 
 #: The daemon's own counters carried across a restart.
-DAEMON_STATE = ("overrides", "refused_commands", "looks_missed", "events")
+DAEMON_STATE = ("overrides", "refused_commands", "looks_missed", "late_steps", "events")
 
 
 class CheckpointError(UserError):

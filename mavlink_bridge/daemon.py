@@ -74,6 +74,8 @@ from planner.scenario import Scenario, UavStart
 from planner.sensor_model import SensorReport
 
 ALGORITHM = "hapf-aco"
+#: paced time: share of a decision period the daemon may spend getting a step's commands out
+STEP_DEADLINE_SHARE = 0.6
 
 
 @dataclass
@@ -249,18 +251,65 @@ class MissionDaemon:
         xy = self.grid.centre_km(cells)
         return local_km_to_geodetic(xy[:, 0], xy[:, 1], self.scenario.origin)
 
-    def send(self, commands: list[Command], attempts: int | None = None) -> list[Command]:
+    def send(
+        self,
+        commands: list[Command],
+        attempts: int | None = None,
+        deadline: float | None = None,
+    ) -> list[Command]:
         """Send and resend until acknowledged. In lockstep simulated time waits for us, so a
         command is resent for as long as a vehicle may stay silent before it counts as lost
         (``lost_after_s``), not just ``command_attempts`` times: on a lossy link a guided
-        target that never arrives would leave the plane flying the previous leg."""
+        target that never arrives would leave the plane flying the previous leg. In paced time
+        the vehicles fly on meanwhile, so a decision step stops waiting at ``deadline``: what is
+        unanswered then is sent again at the next step."""
         assert self.link is not None
         opts = self.options
         if attempts is None:
             attempts = opts.command_attempts
             if opts.lockstep:
                 attempts = max(attempts, math.ceil(opts.lost_after_s / opts.command_retry_s))
-        return send_commands(self.link, commands, opts.command_retry_s, attempts)
+        return send_commands(self.link, commands, opts.command_retry_s, attempts, deadline)
+
+    def step_deadline(self) -> float | None:
+        """Paced time: the instant (monotonic) by which this step's commands must be out, 60 %
+        of a decision period (wall seconds at ``time_scale``) after its looks came in; lockstep:
+        none, simulated time waits."""
+        if self.clock is not None:
+            return None
+        period_s = self.scenario.config.step_s / max(self.options.time_scale, 1e-6)
+        return time.monotonic() + STEP_DEADLINE_SHARE * period_s
+
+    def note_lateness(self, step: int, looks: dict[int, Look]) -> None:
+        """Paced time: is the daemon keeping the vehicles' clock? A step is late when its
+        commands go out more than half a decision period (of the vehicles' clock) after its
+        decision instant (the newest look), so its targets were planned from positions long
+        gone, or when a whole decision instant passed without a decision (the decision instants
+        of this step and the last more than 1.5 periods apart: the daemon stalled, and the
+        planes flew two legs on one command). Late steps are counted in ``late_steps``; the
+        first one is said with what to do about it."""
+        if self.clock is not None or not looks:
+            return
+        step_ms = 1e3 * self.scenario.config.step_s
+        instant_ms = max(look.time_boot_ms for look in looks.values())
+        behind_ms = max(self.vehicle(i).time_boot_ms - looks[i].time_boot_ms for i in looks)
+        previous_ms, self._decision_instant_ms = self._decision_instant_ms, instant_ms
+        stalled = previous_ms is not None and instant_ms - previous_ms > 1.5 * step_ms
+        if behind_ms <= 0.5 * step_ms and not stalled:
+            return
+        self.late_steps += 1
+        if self.late_steps == 1:
+            what = (
+                f"{(instant_ms - previous_ms) / 1e3:.0f} s passed between two decisions"
+                if stalled
+                else f"they had flown {behind_ms / 1e3:.1f} s past the decision instant as its "
+                "commands went out"
+            )
+            self.say(
+                f"warning: the daemon is behind the vehicles' clock at step {step}: {what} (a "
+                f"step is {step_ms / 1e3:g} s); lower the vehicles' speedup (--time-scale "
+                f"{self.options.time_scale:g}) or use lockstep"
+            )
 
     # ------------------------------------------------------------------ phases
 
@@ -488,12 +537,17 @@ class MissionDaemon:
         active: np.ndarray,
     ) -> FlightChoice:
         """Guided targets whose predicted flight is safe (flight_envelope.py); without the
-        flight-path envelope, the aim points of the checked cells."""
+        flight-path envelope, the aim points of the checked cells. Paths are predicted from each
+        plane's latest position, course and speed: in lockstep that is the decision instant
+        (``positions``); in paced time the plane has flown on while the step was planned."""
         lead = self.options.lead_steps
         speeds = np.full(self.n, self.plane.speed_mps)
         courses = np.empty(self.n)
+        positions = np.array(positions, dtype=float, copy=True)
         for i in range(self.n):
             v = self.vehicle(i)
+            if self.clock is None and v.has_position and active[i]:
+                positions[i] = self.local_km(v.lat_deg, v.lon_deg)
             if math.hypot(v.vn_mps, v.ve_mps) > 1.0:
                 courses[i] = math.atan2(v.vn_mps, v.ve_mps)  # course over ground, from east
                 speeds[i] = math.hypot(v.vn_mps, v.ve_mps)
@@ -668,6 +722,8 @@ class MissionDaemon:
         # airspeed last accepted by each vehicle (unknown at the start and after a restart)
         self.sent_speeds = np.full(n, np.nan)
         self.looks_missed = 0
+        self.late_steps = 0
+        self._decision_instant_ms: int | None = None
         first_step = 0
         if self.resume_from is not None:  # a restarted daemon: the state after its last step
             loop = resume_loop_state(self, self.resume_from, planner)
@@ -678,6 +734,7 @@ class MissionDaemon:
             first_step = self.resume_from.step + 1
         for step in range(first_step, self.steps + 1):  # the start, then one record per step
             looks = self.wait_for_step(step, consumed) if step > 0 else {}
+            deadline = self.step_deadline()
             active = np.array([not self.vehicle(i).lost for i in range(n)])
             reports: list[SensorReport | None] = [None] * n
             for i in range(n):
@@ -744,9 +801,11 @@ class MissionDaemon:
                 planned_km=self.grid.centre_km(checked.next_cells),
                 done=done,
             )
-            # engagements first: the vehicle is where the planner asked for it
-            # an engagement left unanswered is asked again with the same sequence number (the
-            # camera replays its outcome, never engages twice) before any new one
+            # one batch: engagement requests first (each vehicle gets its request before its
+            # next guided target, so it is resolved where the planner asked for it), then the
+            # guided targets and the airspeed of each leg. An engagement left unanswered is
+            # asked again with the same sequence number (the camera replays its outcome, never
+            # engages twice) before any new one
             requests = [
                 (i, engagement_command(self.vehicle(i), pending_engage[i] or engage_seq[i] + 1))
                 for i in range(n)
@@ -754,23 +813,6 @@ class MissionDaemon:
             ]
             for i, cmd in requests:
                 engage_seq[i] = max(engage_seq[i], int(cmd.params[3]))
-            for i, cmd in zip(
-                [r[0] for r in requests], self.send([c for _, c in requests]), strict=True
-            ):
-                pending_engage[i] = int(cmd.params[3]) if cmd.ack is None else 0
-                if cmd.ack is None:
-                    continue  # unanswered: asked again at the next step
-                target = int(cmd.ack.result_param2) if cmd.accepted else 0
-                value = float(self._target_values.get(target, 0.0)) if target else 0.0
-                engagements[i] = EngagementOutcome(target != 0, target, value)
-                if target and target not in engaged_ids:
-                    engaged_ids.add(target)
-                    engaged_value += value
-                    recorder.record_engagement(step, i, target, value)
-                elif not target:
-                    recorder.record_engagement_miss()
-            # guided targets, and the airspeed of each leg
-            speed_commands = self.speed_commands(flight.speeds_mps, active)
             aims = flight.aims_km
             lat, lon = local_km_to_geodetic(aims[:, 0], aims[:, 1], scenario.origin)
             moves = []
@@ -784,7 +826,24 @@ class MissionDaemon:
                     self.vehicle(i), float(lat[i]), float(lon[i]), scenario.altitude_m
                 )
                 moves.append((i, aim, cmd))
-            sent = self.send([c for *_, c in moves] + speed_commands)
+            batch = [c for _, c in requests] + [c for *_, c in moves]
+            batch += self.speed_commands(flight.speeds_mps, active)
+            self.note_lateness(step, looks)
+            sent = self.send(batch, deadline=deadline)
+            answered, sent = sent[: len(requests)], sent[len(requests) :]
+            for i, cmd in zip([r[0] for r in requests], answered, strict=True):
+                pending_engage[i] = int(cmd.params[3]) if cmd.ack is None else 0
+                if cmd.ack is None:
+                    continue  # unanswered: asked again at the next step
+                target = int(cmd.ack.result_param2) if cmd.accepted else 0
+                value = float(self._target_values.get(target, 0.0)) if target else 0.0
+                engagements[i] = EngagementOutcome(target != 0, target, value)
+                if target and target not in engaged_ids:
+                    engaged_ids.add(target)
+                    engaged_value += value
+                    recorder.record_engagement(step, i, target, value)
+                elif not target:
+                    recorder.record_engagement_miss()
             self.speeds_answered(sent[len(moves) :], step)
             for (i, aim, _), cmd in zip(moves, sent[: len(moves)], strict=True):
                 if cmd.ack is not None and not cmd.accepted:
@@ -827,6 +886,7 @@ class MissionDaemon:
             "envelope_overrides": dict(self.overrides),
             "refused_commands": self.refused_commands,
             "looks_missed": self.looks_missed,
+            "late_steps": self.late_steps,
             "link_events": [
                 {"step": e.step, "uav": e.uav, "system_id": e.uav + 1, "event": e.event}
                 for e in self.events

@@ -101,11 +101,13 @@ def send_commands(
     commands: list[Command],
     retry_interval_s: float = 0.3,
     max_attempts: int = 5,
+    deadline: float | None = None,
 ) -> list[Command]:
     """Send every command, wait for their acknowledgements, resend the unanswered ones.
 
-    Returns the commands with ``ack`` set (None where no answer came after ``max_attempts``).
-    Never raises for a refusal: the caller decides what a refusal means."""
+    Returns the commands with ``ack`` set (None where no answer came after ``max_attempts``, or
+    by ``deadline``, a ``time.monotonic()`` instant). Never raises for a refusal: the caller
+    decides what a refusal means."""
     for cmd in commands:
         cmd._serial_before = cmd.vehicle.ack_serial
         cmd.ack = None
@@ -129,6 +131,8 @@ def send_commands(
 
     while not collect():
         now = time.monotonic()
+        if deadline is not None and now >= deadline:
+            break
         if now - last_send >= retry_interval_s:
             pending = [c for c in commands if c.ack is None and not c.vehicle.lost]
             if not pending or all(c.attempts >= max_attempts for c in pending):

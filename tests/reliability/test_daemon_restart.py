@@ -163,6 +163,7 @@ class _Daemon:
     overrides = {"area": 0}
     refused_commands = 2
     looks_missed = 1
+    late_steps = 0
     events: list = []
 
 

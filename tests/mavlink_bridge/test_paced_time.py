@@ -1,0 +1,53 @@
+"""Paced time (the vehicles' clock runs on its own, as real aircraft and SITL do): a decision
+step bounds how long it waits for acknowledgements, and a daemon that falls behind the
+vehicles' clock says so and counts it."""
+
+from __future__ import annotations
+
+import time
+
+from test_daemon_protocol import options
+
+from mavlink_bridge.daemon import MissionDaemon
+from mavlink_bridge.guided_commands import request_message_command, send_commands
+from mavlink_bridge.protocol import mavlink
+from mavlink_bridge.swarm_link import SwarmLink
+
+
+def test_a_stalled_step_is_counted_late_and_said_once(paper10, udp_port, fake_swarm_factory):
+    fake_swarm_factory(2, udp_port)  # 50x: a 10 s decision period is 0.2 s of wall time
+    said: list[str] = []
+    late_before_stall: list[int] = []
+    daemon = MissionDaemon(paper10, options(udp_port, expect=2, progress=said.append))
+
+    def on_step(status) -> None:
+        if status.step == 4:
+            late_before_stall.append(daemon.late_steps)
+            time.sleep(0.8)  # the planner stalls for ~40 s of the vehicles' clock
+
+    daemon.options.on_step = on_step
+    result = daemon.fly().result
+    assert late_before_stall == [0]
+    assert result["late_steps"] >= 1
+    warnings = [s for s in said if "behind the vehicles' clock" in s]
+    assert len(warnings) == 1 and "--time-scale" in warnings[0] and "step 5" in warnings[0]
+
+
+def test_acknowledgements_are_awaited_until_the_deadline_only(udp_port, fake_swarm_factory):
+    """A vehicle that hears nothing: without a deadline every attempt is made; with one the
+    batch gives up when it passes (the step's commands go again at the next step)."""
+    swarm = fake_swarm_factory(1, udp_port)
+    link = SwarmLink.open([f"udpin:127.0.0.1:{udp_port}"])
+    try:
+        link.pump_until(lambda: 1 in link.vehicles, 5.0)
+        vehicle = link.vehicles[1]
+        swarm.vehicles[0].silent.set()
+        home = mavlink.MAVLINK_MSG_ID_HOME_POSITION
+        (bounded,) = send_commands(
+            link, [request_message_command(vehicle, home)], 0.02, 200, time.monotonic() + 0.2
+        )
+        assert bounded.ack is None and 1 <= bounded.attempts < 100
+        (unbounded,) = send_commands(link, [request_message_command(vehicle, home)], 0.02, 20)
+        assert unbounded.ack is None and unbounded.attempts == 20
+    finally:
+        link.close()
