@@ -528,6 +528,7 @@ class MissionDaemon:
     def choose_flight(
         self,
         positions: np.ndarray,
+        positions_ms: np.ndarray,
         cells: np.ndarray,
         headings: np.ndarray,
         checked: EnvelopeDecision,
@@ -539,15 +540,19 @@ class MissionDaemon:
         """Guided targets whose predicted flight is safe (flight_envelope.py); without the
         flight-path envelope, the aim points of the checked cells. Paths are predicted from each
         plane's latest position, course and speed: in lockstep that is the decision instant
-        (``positions``); in paced time the plane has flown on while the step was planned."""
+        (``positions``, measured at the vehicle's ``positions_ms``); in paced time the plane has
+        flown on while the step was planned."""
         lead = self.options.lead_steps
         speeds = np.full(self.n, self.plane.speed_mps)
         courses = np.empty(self.n)
+        decision_positions = positions
         positions = np.array(positions, dtype=float, copy=True)
+        elapsed_s = np.zeros(self.n)
         for i in range(self.n):
             v = self.vehicle(i)
             if self.clock is None and v.has_position and active[i]:
                 positions[i] = self.local_km(v.lat_deg, v.lon_deg)
+                elapsed_s[i] = max(0.0, (v.time_boot_ms - positions_ms[i]) / 1e3)
             if math.hypot(v.vn_mps, v.ve_mps) > 1.0:
                 courses[i] = math.atan2(v.vn_mps, v.ve_mps)  # course over ground, from east
                 speeds[i] = math.hypot(v.vn_mps, v.ve_mps)
@@ -576,6 +581,7 @@ class MissionDaemon:
         choice = self.flight_envelope.choose(
             positions, courses, speeds, cells, headings, checked.next_cells,
             checked.next_headings, previous, flown_km, home_km, active, lead,
+            decision_positions, elapsed_s,
         )  # fmt: skip
         for reason, count in choice.overrides.items():
             self.overrides[reason] += count
@@ -724,6 +730,7 @@ class MissionDaemon:
         self.looks_missed = 0
         self.late_steps = 0
         self._decision_instant_ms: int | None = None
+        positions_ms = np.zeros(n)  # the vehicle's clock when it was at positions[i]
         first_step = 0
         if self.resume_from is not None:  # a restarted daemon: the state after its last step
             loop = resume_loop_state(self, self.resume_from, planner)
@@ -752,10 +759,11 @@ class MissionDaemon:
                     and look.time_boot_ms < (v.time_boot_ms - 500 * cfg.step_s)
                 )
                 if look_km is not None and not stale:
-                    positions[i] = look_km
+                    positions[i], positions_ms[i] = look_km, look.time_boot_ms
                 elif v.has_position:
                     self.looks_missed += step > 0 and look is None
                     positions[i] = self.local_km(v.lat_deg, v.lon_deg)
+                    positions_ms[i] = v.time_boot_ms
                 cell = self.grid.cell_of(positions[i])
                 if look is not None:  # where it looked, which is usually where it is
                     reports[i] = look_report(
@@ -786,8 +794,9 @@ class MissionDaemon:
             for o in checked.overrides:
                 self.overrides[o.reason] += 1
             flight = self.choose_flight(
-                positions, cells, headings, checked, last_target, flown_km, home_km, active
-            )
+                positions, positions_ms, cells, headings, checked, last_target, flown_km,
+                home_km, active,
+            )  # fmt: skip
             checked.next_cells, checked.next_headings = flight.next_cells, flight.next_headings
             # distance flown so far, between measured cells (as the planner counts)
             centres = self.grid.centre_km(cells)

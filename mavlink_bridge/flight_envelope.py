@@ -84,11 +84,18 @@ class FlightEnvelope:
         home_km: np.ndarray,
         active: np.ndarray,
         lead: float,
+        decision_positions_km: np.ndarray | None = None,
+        elapsed_s: np.ndarray | None = None,
     ) -> FlightChoice:
-        """Guided targets for every UAV flying at ``speeds_mps`` now (inactive ones keep the
-        proposal; nothing is sent)."""
+        """Guided targets for every UAV at ``positions_km`` flying at ``speeds_mps`` now
+        (inactive ones keep the proposal; nothing is sent). In paced time a plane is
+        ``elapsed_s`` past the decision instant, when it was at ``decision_positions_km`` (where
+        the measured chord to the next decision instant starts); by default it is there now."""
         grid = self.cells.grid
         n = len(cells)
+        if decision_positions_km is None:
+            decision_positions_km = positions_km
+        elapsed = np.zeros(n) if elapsed_s is None else np.asarray(elapsed_s, dtype=float)
         candidates: list[list[_Candidate]] = []
         for i in range(n):
             candidates.append(
@@ -125,8 +132,14 @@ class FlightEnvelope:
             speed_mps=speeds_now,
             commanded_mps=commanded,
         )
+        row_uav = np.array([i for i, _ in rows], dtype=np.int64)
         clearance = np.minimum(
-            self._threat_clearance(paths), self._loiter_clearance(aims, commanded)
+            self._threat_clearance(
+                paths,
+                np.asarray(decision_positions_km, dtype=float)[row_uav].reshape(-1, 2),
+                elapsed[row_uav],
+            ),
+            self._loiter_clearance(aims, commanded),
         )
         row_of = {key: r for r, key in enumerate(rows)}
         out_aims = grid.centre_km(proposed_cells)
@@ -223,17 +236,24 @@ class FlightEnvelope:
             speeds_mps
         )
 
-    def _threat_clearance(self, paths: np.ndarray) -> np.ndarray:
-        """Smallest distance (km) of each predicted path to a threat edge: every predicted
-        second, and the chords between the decision instants (what the result measures)."""
+    def _threat_clearance(
+        self, paths: np.ndarray, decision_km: np.ndarray, elapsed_s: np.ndarray
+    ) -> np.ndarray:
+        """Smallest distance (km) of each predicted path (sampled every second from now) to a
+        threat edge: every predicted second, and the chords between the decision instants
+        (what the result measures), the first from where the plane was at the last decision
+        instant (``decision_km``, ``elapsed_s`` ago) to where it will be at the next."""
         env = self.cells
         if len(env.threat_radius_km) == 0:
             return np.full(len(paths), np.inf)
         dense = segment_clearance(
             paths[:, :-1], paths[:, 1:], env.threat_xy_km, env.threat_radius_km
         ).min(axis=1)
-        per_step = max(1, round(self.step_s))
-        marks = paths[:, ::per_step]
+        samples = paths.shape[1] - 1
+        instants = self.step_s * np.arange(1, int(samples // self.step_s) + 1)  # s after it
+        index = np.clip(np.round(instants[None] - elapsed_s[:, None]), 0, samples).astype(int)
+        ahead = np.take_along_axis(paths, index[:, :, None], axis=1)
+        marks = np.concatenate([decision_km[:, None], ahead], axis=1)
         if marks.shape[1] >= 2:
             chords = segment_clearance(
                 marks[:, :-1], marks[:, 1:], env.threat_xy_km, env.threat_radius_km

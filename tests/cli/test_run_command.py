@@ -1,17 +1,13 @@
 import json
-import subprocess
-import sys
 
-
-def swarmplan(*args, timeout=120):
-    return subprocess.run(
-        [sys.executable, "-m", "swarmplan", *args], capture_output=True, text=True, timeout=timeout
-    )
+from loopback import run_swarmplan
 
 
 def test_run_writes_result_and_figures(tmp_path):
     out = tmp_path / "out"
-    done = swarmplan("run", "paper-2uav", "--steps", "30", "--seed", "3", "--out", str(out))
+    done = run_swarmplan(
+        ["run", "paper-2uav", "--steps", "30", "--seed", "3", "--out", str(out)], timeout=120
+    )
     assert done.returncode == 0, done.stderr
     assert "coverage" in done.stdout and "violations" in done.stdout
     result = json.loads((out / "result.json").read_text())
@@ -20,7 +16,9 @@ def test_run_writes_result_and_figures(tmp_path):
 
 
 def test_json_flag_prints_only_the_result(tmp_path):
-    done = swarmplan("run", "paper-2uav", "--steps", "5", "--json", "--out", str(tmp_path))
+    done = run_swarmplan(
+        ["run", "paper-2uav", "--steps", "5", "--json", "--out", str(tmp_path)], timeout=120
+    )
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
     for key in ("scenario", "algorithm", "seed", "steps", "coverage", "coverage_curve",
@@ -36,7 +34,7 @@ def test_bad_input_gives_one_line_and_exit_2(tmp_path):
     for args in (["run", "no-such-scenario"], ["run", str(bad)],
                  ["run", "paper-2uav", "--steps", "0"],
                  ["run", "paper-2uav", "--seed", "abc"]):  # fmt: skip
-        done = swarmplan(*args)
+        done = run_swarmplan(args, timeout=120)
         assert done.returncode == 2, args
         assert "Traceback" not in done.stderr
         assert "error" in done.stderr.strip().splitlines()[-1]
@@ -45,7 +43,7 @@ def test_bad_input_gives_one_line_and_exit_2(tmp_path):
 def test_demo_refuses_bad_seed_and_steps_before_starting_anything(tmp_path):
     out = tmp_path / "demo"
     for args in (["--seed", "-1"], ["--steps", "0"], ["--seed", "abc"]):
-        done = swarmplan("demo", "paper-2uav", *args, "--out", str(out), timeout=30)
+        done = run_swarmplan(["demo", "paper-2uav", *args, "--out", str(out)], timeout=30)
         assert done.returncode == 2, args
         assert "Traceback" not in done.stderr
         assert "error" in done.stderr.strip().splitlines()[-1]

@@ -4,64 +4,21 @@ initialising phase, GLOBAL_POSITION_INT, fence upload, arm (refusable with a Pre
 STATUSTEXT), mode changes, COMMAND_INT DO_REPOSITION (COMMAND_LONG answered UNSUPPORTED),
 DO_CHANGE_SPEED within 60..150 m/s, sensor looks and engagement captures from the camera
 component. Flies straight to each target at the commanded speed. For protocol tests only; the
-end-to-end tests use ``swarmplan sim``.
-
-Also the helpers the tests of this folder share: running ``python -m swarmplan`` and finding a
-block of free loopback ports."""
+end-to-end tests use ``swarmplan sim``."""
 
 from __future__ import annotations
 
 import math
 import os
 import socket
-import subprocess
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 M_PER_DEG = 111_320.0
-REPO = Path(__file__).resolve().parents[2]
-ENV = dict(os.environ, PYTHONPATH=str(REPO))
-
-
-def run_swarmplan(args: list[str], timeout: float) -> subprocess.CompletedProcess[str]:
-    """``python -m swarmplan ARGS`` from the repository, output captured as text."""
-    return subprocess.run(
-        [sys.executable, "-m", "swarmplan", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        env=ENV,
-        cwd=REPO,
-    )
-
-
-def free_port_block(count: int) -> int:
-    """A base port with ``count`` consecutive UDP ports free on 127.0.0.1 right now."""
-    for _ in range(50):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-            probe.bind(("127.0.0.1", 0))
-            base = probe.getsockname()[1]
-        if base + count > 65535:
-            continue
-        socks = []
-        try:
-            for k in range(count):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", base + k))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no block of free UDP ports")
 
 
 @dataclass

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import socket
 from collections.abc import Iterator
 
 import pytest
@@ -11,15 +10,9 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 
 from bridge_fake_swarm import FakeSwarm  # noqa: E402
+from loopback import free_udp_port  # noqa: E402
 
 from planner.scenario import Scenario, load_scenario  # noqa: E402
-
-
-def free_udp_port() -> int:
-    """A UDP port free on 127.0.0.1 right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture

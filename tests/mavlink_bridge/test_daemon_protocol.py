@@ -5,7 +5,7 @@ from __future__ import annotations
 import socket
 
 import pytest
-from bridge_fake_swarm import run_swarmplan
+from loopback import run_swarmplan
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
 from mavlink_bridge.discovery import DiscoveryError

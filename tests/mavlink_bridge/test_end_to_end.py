@@ -6,44 +6,24 @@ from __future__ import annotations
 import json
 import socket
 import subprocess
-import sys
 import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
-from bridge_fake_swarm import ENV, REPO, free_port_block, run_swarmplan
+from loopback import free_port_block, run_swarmplan, start_swarmplan, stop
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
-from swarmplan.demo import stop_simulator
 
 SPEEDUP = 100
 
 
 def start_sim(port: int, seed: int, log: Path, extra: list[str] | None = None) -> subprocess.Popen:
-    with open(log, "wb") as sink:
-        return subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "swarmplan",
-                "sim",
-                "--scenario",
-                "paper-10uav",
-                "--seed",
-                str(seed),
-                "--speedup",
-                str(SPEEDUP),
-                "--gcs-port",
-                str(port),
-                "--quiet",
-                *(extra or []),
-            ],
-            stdout=sink,
-            stderr=subprocess.STDOUT,
-            env=ENV,
-            cwd=REPO,
-        )
+    return start_swarmplan(
+        ["sim", "--scenario", "paper-10uav", "--seed", str(seed), "--speedup", str(SPEEDUP),
+         "--gcs-port", str(port), "--quiet", *(extra or [])],
+        log,
+    )  # fmt: skip
 
 
 def run_demo(out: Path, seed: int, steps: int, timeout: float = 100) -> dict:
@@ -172,7 +152,7 @@ def test_cut_link_vehicle_is_lost_and_others_go_on(paper10, tmp_path):
     try:
         report = daemon.fly()
     finally:
-        stop_simulator(sim)
+        stop(sim)
         for r in relays:
             r.stop()
     result = report.result

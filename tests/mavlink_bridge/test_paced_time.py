@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 from test_daemon_protocol import options
 
 from mavlink_bridge.daemon import MissionDaemon
@@ -51,3 +52,24 @@ def test_acknowledgements_are_awaited_until_the_deadline_only(udp_port, fake_swa
         assert unbounded.ack is None and unbounded.attempts == 20
     finally:
         link.close()
+
+
+def test_measured_chord_from_the_decision_instant_is_judged(paper10):
+    """In paced time a plane has flown on while its step was planned. The threat check still
+    judges the chord the result will measure: from where the plane was at the decision instant
+    to where it will be at the next one, not from where it is now."""
+    from mavlink_bridge.flight_envelope import FlightEnvelope
+    from mavlink_bridge.flight_prediction import PlaneModel
+    from mavlink_bridge.safety_envelope import SafetyEnvelope
+
+    cells = SafetyEnvelope.for_scenario(paper10, 1.0, 1.0)
+    envelope = FlightEnvelope(cells, PlaneModel())
+    centre, radius = cells.threat_xy_km[0], float(cells.threat_radius_km[0])
+    now = centre + [0.0, radius + 0.5]  # just north of the zone, flying east along it
+    path = (now + np.outer(np.arange(31) * 0.1, [1.0, 0.0]))[None]  # one sample a second
+    on_time = envelope._threat_clearance(path, now[None], np.zeros(1))
+    assert 0.4 < on_time[0] <= 0.5
+    # five seconds ago it was south of the zone: the chord to the next decision instant crosses it
+    before = centre + [-1.0, -(radius + 0.5)]
+    late = envelope._threat_clearance(path, before[None], np.array([5.0]))
+    assert late[0] < 0

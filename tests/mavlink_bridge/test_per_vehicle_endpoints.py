@@ -7,14 +7,11 @@ import json
 import os
 import socket
 import subprocess
-import sys
 import threading
 from pathlib import Path
 
 import pytest
-from bridge_fake_swarm import ENV, REPO, free_port_block, run_swarmplan
-
-from swarmplan.demo import stop_simulator
+from loopback import free_port_block, run_swarmplan, start_swarmplan, stop
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
@@ -22,12 +19,11 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 def start_lockstep_sim(base: int, log: Path) -> subprocess.Popen:
     """The 2-UAV paper scenario, vehicle i sending to udp BASE + i, in lockstep."""
-    with open(log, "wb") as sink:
-        return subprocess.Popen(
-            [sys.executable, "-m", "swarmplan", "sim", "--scenario", "paper-2uav", "--seed", "1",
-             "--lockstep", "--per-vehicle-ports", str(base), "--quiet"],
-            stdout=sink, stderr=subprocess.STDOUT, env=ENV, cwd=REPO,
-        )  # fmt: skip
+    return start_swarmplan(
+        ["sim", "--scenario", "paper-2uav", "--seed", "1", "--lockstep", "--per-vehicle-ports",
+         str(base), "--quiet"],
+        log,
+    )  # fmt: skip
 
 
 def run_daemon(connect: list[str], out: Path) -> dict:
@@ -48,7 +44,7 @@ def test_one_udp_port_per_vehicle(tmp_path):
     try:
         result = run_daemon([f"udpin:127.0.0.1:{base}", f"udpin:127.0.0.1:{base + 1}"], tmp_path)
     finally:
-        stop_simulator(sim)
+        stop(sim)
     assert result["steps"] == 8 and len(result["uavs"]) == 2
     assert str(base) in result["endpoints"] and str(base + 1) in result["endpoints"]
     assert all(u["distance_km"] > 4 for u in result["uavs"])  # both flew
@@ -119,7 +115,7 @@ def test_one_tcp_connection_per_vehicle(tmp_path):
     try:
         result = run_daemon([f"tcp:127.0.0.1:{s.port}" for s in servers], tmp_path)
     finally:
-        stop_simulator(sim)
+        stop(sim)
         for s in servers:
             s.stop()
     assert result["steps"] == 8 and len(result["uavs"]) == 2

@@ -11,7 +11,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
-from bridge_fake_swarm import run_swarmplan
+from loopback import run_swarmplan
 
 from mavlink_bridge.export_command import load_result
 from mavlink_bridge.waypoint_export import (

@@ -5,12 +5,10 @@ print one line naming the problem and exit 2: never a traceback, never a hang.""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-from reliability_harness import REPO, env
+from loopback import run_swarmplan
 
 from swarmplan.cli import main
 
@@ -36,11 +34,9 @@ def test_broken_scenario_is_one_clear_line_and_exit_2(path: Path, tmp_path: Path
 @pytest.mark.timeout(60)
 def test_broken_scenarios_through_the_real_command_line(tmp_path: Path):
     for name in ("garbage_bytes", "grid_huge", "start_inside_threat"):
-        proc = subprocess.run(
-            [sys.executable, "-m", "swarmplan", "run", str(CORPUS[0].parent / f"{name}.toml"),
-             "--out", str(tmp_path)],
-            capture_output=True, text=True, timeout=60, env=env(), cwd=REPO,
-        )  # fmt: skip
+        proc = run_swarmplan(
+            ["run", str(CORPUS[0].parent / f"{name}.toml"), "--out", str(tmp_path)], timeout=60
+        )
         assert proc.returncode == 2
         assert "Traceback" not in proc.stderr
         assert proc.stderr.strip().splitlines()[-1].startswith("swarmplan run: error: scenario")

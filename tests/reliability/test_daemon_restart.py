@@ -11,22 +11,14 @@ import os
 import pickle
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from loopback import env, free_udp_port, run_swarmplan, start_swarmplan, stop
 from pymavlink.dialects.v20 import ardupilotmega as ml
-from reliability_harness import (
-    KEY_HEX,
-    REPO,
-    env,
-    free_udp_port,
-    last_json,
-    start_swarmplan,
-    stop,
-)
+from reliability_harness import KEY_HEX, last_json
 
 from mavlink_bridge.checkpoint import (
     MAGIC,
@@ -108,13 +100,7 @@ def test_killed_daemon_resumes_from_its_checkpoint_and_finishes(tmp_path: Path):
         tlog_at_kill = tlog.stat().st_size  # the restarted daemon appends from here
         with open(daemon_log, "a") as f:
             f.write("\n--- killed, restarting ---\n")
-        second = subprocess.Popen(
-            [sys.executable, "-m", "swarmplan", *daemon_args, "--resume"],
-            stdout=subprocess.PIPE,
-            stderr=open(daemon_log, "ab"),  # noqa: SIM115 - closed with the process
-            env=env(),
-            cwd=REPO,
-        )
+        second = start_swarmplan([*daemon_args, "--resume"], daemon_log, stdout_pipe=True)
         assert _wait(lambda: _checkpoint_step(ckpt) > killed_step, 30, [second]), (
             daemon_log.read_text()[-2000:]
         )
@@ -226,10 +212,10 @@ def test_daemon_cli_resume_errors_are_one_line_exit_2(tmp_path: Path):
         (["--signing-key-file", str(tmp_path / "missing.key")], "cannot read signing key"),
     ]
     for extra, message in cases:
-        proc = subprocess.run(
-            [sys.executable, "-m", "swarmplan", "daemon", "--connect", "udpin:127.0.0.1:0",
-             "--out", str(tmp_path / "o"), "--timeout", "1", *extra],
-            capture_output=True, text=True, timeout=60, env=env(), cwd=REPO,
+        proc = run_swarmplan(
+            ["daemon", "--connect", "udpin:127.0.0.1:0", "--out", str(tmp_path / "o"),
+             "--timeout", "1", *extra],
+            timeout=60,
         )  # fmt: skip
         assert proc.returncode == 2, (extra, proc.stderr)
         assert message in proc.stderr and "Traceback" not in proc.stderr

@@ -13,8 +13,9 @@ from collections import deque  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
+from loopback import start_swarmplan, stop  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
-from reliability_harness import last_json, start_swarmplan, stop  # noqa: E402
+from reliability_harness import last_json  # noqa: E402
 from udp_fault_relay import FaultProfile, FaultRelay  # noqa: E402
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402

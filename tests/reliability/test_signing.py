@@ -9,15 +9,14 @@ import os
 os.environ.setdefault("MAVLINK20", "1")
 
 import socket  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
+from loopback import env, run_swarmplan  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
-from reliability_harness import KEY_HEX, REPO, env  # noqa: E402
+from reliability_harness import KEY_HEX  # noqa: E402
 
 from mavlink_bridge import signing as bridge_signing  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
@@ -199,10 +198,7 @@ def test_sim_cli_bad_key_is_one_line_exit_2(tmp_path: Path):
         (["--signing-key-file", str(bad)], env()),
         ([], env(SWARMPLAN_SIGNING_KEY="1234")),
     ):
-        proc = subprocess.run(
-            [sys.executable, "-m", "swarmplan", "sim", "--duration-s", "1", *extra],
-            capture_output=True, text=True, timeout=60, env=environ, cwd=REPO,
-        )  # fmt: skip
+        proc = run_swarmplan(["sim", "--duration-s", "1", *extra], timeout=60, environ=environ)
         assert proc.returncode == 2
         assert "signing key" in proc.stderr and "Traceback" not in proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1

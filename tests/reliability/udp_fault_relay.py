@@ -26,6 +26,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+from loopback import bind_port_block
+
 Address = tuple[str, int]
 
 
@@ -47,27 +49,6 @@ class RelayCounters:
     duplicated: int = 0
     reordered: int = 0
     by_direction: dict[str, int] = field(default_factory=lambda: {"up": 0, "down": 0})
-
-
-def bind_port_block(count: int, host: str = "127.0.0.1", tries: int = 50) -> list[socket.socket]:
-    """``count`` UDP sockets bound to consecutive free ports (the first one's port is the base)."""
-    for _ in range(tries):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-            probe.bind((host, 0))
-            base = probe.getsockname()[1]
-        if base + count > 65535:
-            continue
-        socks: list[socket.socket] = []
-        try:
-            for k in range(count):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind((host, base + k))
-            return socks
-        except OSError:
-            for s in socks:
-                s.close()
-    raise RuntimeError(f"no block of {count} free UDP ports on {host}")
 
 
 class FaultRelay(threading.Thread):

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from loopback import run_swarmplan
 
 from mavlink_bridge.flight_prediction import PlaneModel, predict_paths
 from planner.scenario import load_scenario
@@ -95,12 +94,7 @@ def test_bad_options_raise_one_clear_error():
     ],
 )
 def test_command_line_errors_are_one_line_without_traceback(argv, needle):
-    proc = subprocess.run(
-        [sys.executable, "-m", "swarmplan", "sim", *argv, "--duration-s", "1"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    proc = run_swarmplan(["sim", *argv, "--duration-s", "1"], timeout=60)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr
     lines = [line for line in proc.stderr.splitlines() if line.strip()]

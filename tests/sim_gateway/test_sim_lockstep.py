@@ -3,15 +3,10 @@ UTC), the vehicles say where they hold, a release lets it run, a real clock is n
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import time
-from pathlib import Path
 
+from loopback import run_swarmplan
 from sim_harness import GroundStation, start_sim
-
-REPO = Path(__file__).resolve().parents[2]
 
 
 def _times(gcs, sysid: int, seconds: float) -> list[int]:
@@ -92,15 +87,7 @@ def test_same_commands_at_the_same_holds_fly_the_same_path():
 
 
 def test_fast_and_lockstep_together_is_one_line_exit_2():
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.run(
-        [sys.executable, "-m", "swarmplan", "sim", "--fast", "--lockstep", "--gcs-port", "9"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env=env,
-        cwd=REPO,
-    )
+    proc = run_swarmplan(["sim", "--fast", "--lockstep", "--gcs-port", "9"], timeout=60)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "--fast and --lockstep" in lines[0]

@@ -7,16 +7,13 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 
 import pytest
-
-REPO = Path(__file__).resolve().parents[2]
+from loopback import env, free_udp_port, start_swarmplan, stop
 
 
 def _require(module: str, pip_command: str):
@@ -29,23 +26,6 @@ def _require(module: str, pip_command: str):
         pytest.skip(f"{module} not installed ({pip_command})")
 
 
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _stop(proc: subprocess.Popen) -> str:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
-    return proc.stdout.read() if proc.stdout else ""
-
-
 WAYPOINTS = """QGC WPL 110
 0\t1\t0\t16\t0\t0\t0\t0\t-35.263000\t149.275000\t584.000000\t1
 1\t0\t3\t22\t0\t0\t0\t0\t0\t0\t120.000000\t1
@@ -56,32 +36,15 @@ WAYPOINTS = """QGC WPL 110
 
 def test_mavproxy_sees_every_vehicle_changes_mode_and_flies_a_wpl_mission(tmp_path):
     _require("MAVProxy", "pip install --no-deps mavproxy==1.8.75")
-    port = _free_udp_port()
+    port = free_udp_port()
     wp_file = tmp_path / "mission.txt"
     wp_file.write_text(WAYPOINTS)
-    env = dict(os.environ, PYTHONPATH=str(REPO), MAVLINK20="1")
-    sim = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "swarmplan",
-            "sim",
-            "--scenario",
-            "paper-2uav",
-            "--gcs-port",
-            str(port),
-            "--boot-s",
-            "2",
-            "--speedup",
-            "10",
-            "--quiet",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-        cwd=REPO,
-    )
+    sim_log = tmp_path / "sim.log"
+    sim = start_swarmplan(
+        ["sim", "--scenario", "paper-2uav", "--gcs-port", str(port), "--boot-s", "2",
+         "--speedup", "10", "--quiet"],
+        sim_log,
+    )  # fmt: skip
     mavproxy = subprocess.Popen(
         [
             sys.executable,
@@ -95,7 +58,7 @@ def test_mavproxy_sees_every_vehicle_changes_mode_and_flies_a_wpl_mission(tmp_pa
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
-        env=env,
+        env=env(),
         cwd=tmp_path,
     )
     output: list[str] = []
@@ -131,8 +94,9 @@ def test_mavproxy_sees_every_vehicle_changes_mode_and_flies_a_wpl_mission(tmp_pa
         assert wait_for("waypoint 2", timeout=30), output  # took off (item 1 done), flying to 2
     finally:
         send("exit")
-        _stop(mavproxy)
-        sim_out = _stop(sim)
+        stop(mavproxy, sig=signal.SIGINT)
+        stop(sim, sig=signal.SIGINT)
+    sim_out = sim_log.read_text(errors="replace")
     assert "Traceback" not in sim_out, sim_out
 
 
@@ -189,7 +153,7 @@ def gcs_free_sim():
     from planner.scenario import load_scenario
     from sim_gateway.simulator import SimOptions, Simulator
 
-    port = _free_udp_port()
+    port = free_udp_port()
     running = RunningSim(
         Simulator(load_scenario("paper-2uav"), SimOptions(gcs_port=port, boot_s=0.0, speedup=10.0))
     )
