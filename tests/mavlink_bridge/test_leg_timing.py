@@ -92,3 +92,22 @@ def test_refused_airspeed_falls_back_to_cruise(paper10, udp_port, fake_swarm_fac
         asked = v.commands.count(mavlink.MAV_CMD_DO_CHANGE_SPEED)
         assert 1 <= asked <= 2  # the refused leg speed and the cruise reset, not once a step
         assert v.speeds == [] and v.mode == 11
+
+
+def test_cli_airspeed_range_errors_are_one_line(udp_port, tmp_path):
+    from loopback import run_swarmplan
+
+    for value, words in (
+        ("100", "expected MIN:MAX in m/s"),
+        ("150:120", "need 0 < MIN <= MAX"),
+        ("120:150", "must hold the scenario's speed 100 m/s"),
+    ):
+        proc = run_swarmplan(
+            ["daemon", "--connect", f"udpin:127.0.0.1:{udp_port}", "--airspeed-range", value,
+             "--timeout", "1", "--out", str(tmp_path)],
+            timeout=60,
+        )  # fmt: skip
+        assert proc.returncode == 2, value
+        assert "Traceback" not in proc.stderr
+        last = proc.stderr.strip().splitlines()[-1]
+        assert words in last and "--airspeed-range" in last, last
