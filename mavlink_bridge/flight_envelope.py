@@ -18,11 +18,13 @@ leg (``leg_timing``: the leg to the candidate's cell in one decision step, see
 ``flight_prediction.leg_speed_mps``; the keep-going and circle-here fallbacks at cruise speed),
 and the loiter circle is the one flown at that airspeed.
 
-Candidates, in order: the cell-level envelope's choice; the other cells reachable within
-phi_max that pass the cell-level rules, nearest the planner's cell first; the target the plane
-already flies to (keep going); the centre of its current cell (circle here). The first safe one
-is sent; when none is, the one that breaks the rules least. Replacements are counted as
-``predicted_threat`` / ``predicted_separation`` overrides.
+Candidates, in order: the cell-level envelope's choice; with leg timing, the same cell at cruise
+speed (a slower plane turns and circles tighter: near a threat the planner's cell is kept and
+flown late rather than replaced, and that is not counted as a replacement); the other cells
+reachable within phi_max that pass the cell-level rules, nearest the planner's cell first; the
+target the plane already flies to (keep going); the centre of its current cell (circle here).
+The first safe one is sent; when none is, the one that breaks the rules least. Replacements
+are counted as ``predicted_threat`` / ``predicted_separation`` overrides.
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ class _Candidate:
     heading: int
     aim: np.ndarray
     derived: bool = False  # cell/heading come from the predicted path (keep / circle)
+    cruise: bool = False  # flown at cruise speed even with leg timing (a slower, tighter try)
 
 
 @dataclass(frozen=True)
@@ -120,9 +123,11 @@ class FlightEnvelope:
         if self.leg_timing and rows:  # a cell's leg in one step; keep going / circle: cruise
             leg_from = grid.centre_km(np.array([cells[i] for i, _ in rows]))
             leg_to = grid.centre_km(np.array([candidates[i][k].cell for i, k in rows]))
-            derived = np.array([candidates[i][k].derived for i, k in rows])
+            untimed = np.array(
+                [candidates[i][k].derived or candidates[i][k].cruise for i, k in rows]
+            )
             timed = leg_speed_mps(self.model, starts, leg_from, leg_to, speeds_now, self.step_s)
-            commanded = np.where(derived, commanded, timed)
+            commanded = np.where(untimed, commanded, timed)
         paths = predict_paths(
             self.model,
             starts,
@@ -172,7 +177,8 @@ class FlightEnvelope:
                     best = (score, k, float(clearance[r]), sep)
             assert best is not None
             _, k, clear, sep = best
-            if first_reason is not None:
+            kept = k == 1 and candidates[i][1].cruise  # the planner's cell, only flown slower
+            if first_reason is not None and not kept:
                 overrides[first_reason] += 1
             worst_clear, worst_sep = min(worst_clear, clear), min(worst_sep, sep)
             cand = candidates[i][k]
@@ -210,7 +216,10 @@ class FlightEnvelope:
         lead: float,
     ) -> list[_Candidate]:
         env = self.cells
-        out = [_Candidate(proposed, proposed_heading, env.aim_point_km(cell, proposed, lead))]
+        first = _Candidate(proposed, proposed_heading, env.aim_point_km(cell, proposed, lead))
+        out = [first]
+        if self.leg_timing:  # the planner's cell at cruise speed: a tighter turn and loiter
+            out.append(_Candidate(first.cell, first.heading, first.aim, cruise=True))
         others = []
         for turn in turn_options(env.max_turn_deg):
             h = int((heading + turn) % 8)

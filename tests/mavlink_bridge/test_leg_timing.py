@@ -111,3 +111,39 @@ def test_cli_airspeed_range_errors_are_one_line(udp_port, tmp_path):
         assert "Traceback" not in proc.stderr
         last = proc.stderr.strip().splitlines()[-1]
         assert words in last and "--airspeed-range" in last, last
+
+
+def test_a_leg_too_fast_near_a_threat_is_flown_at_cruise_speed_not_replaced(paper10):
+    """Near a threat the loiter circle at a leg-timed 150 m/s (2.4 km) can reach into the margin
+    where the one at cruise speed (1.07 km) does not: the planner's cell is then kept and flown at
+    cruise speed (late, but where the planner asked), and no override is counted."""
+    from mavlink_bridge.flight_envelope import FlightEnvelope
+    from mavlink_bridge.safety_envelope import SafetyEnvelope
+
+    cells = SafetyEnvelope.for_scenario(paper10, 1.0, 1.0)
+    envelope = FlightEnvelope(cells, PlaneModel())
+    grid = cells.grid
+    centre = cells.threat_xy_km[int(np.argmax(cells.threat_radius_km))]
+    tried = kept = 0
+    for offset in np.ndindex(19, 19):  # cells around the zone, flying east
+        cell = grid.cell_of(centre + np.array(offset) - 9)
+        for heading in (1, 7):  # a diagonal leg, 45 degrees left or right
+            nxt = cell + HEADING_STEPS[heading]
+            aim = cells.aim_point_km(cell, nxt, 1.0)
+            fast = envelope._loiter_clearance(aim[None], np.array([150.0]))[0]
+            slow = envelope._loiter_clearance(aim[None], np.array([100.0]))[0]
+            if cells.static_reason(cell, nxt, 0.0, grid.centre_km(cell)) or not (
+                fast < envelope.threat_margin_km <= slow
+            ):
+                continue
+            tried += 1
+            choice = envelope.choose(
+                grid.centre_km(cell)[None], np.zeros(1), np.full(1, 100.0), cell[None],
+                np.zeros(1, dtype=int), nxt[None], np.full(1, heading), np.full((1, 2), np.nan),
+                np.zeros(1), grid.centre_km(cell)[None], np.ones(1, dtype=bool), 1.0,
+            )  # fmt: skip
+            assert choice.speeds_mps[0] < 150.0  # never the leg speed whose circle is unsafe
+            if np.array_equal(choice.next_cells[0], nxt):
+                kept += 1
+                assert choice.speeds_mps[0] == 100.0 and sum(choice.overrides.values()) == 0
+    assert tried >= 10 and kept >= 0.8 * tried, (tried, kept)
