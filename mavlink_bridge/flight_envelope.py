@@ -23,8 +23,10 @@ speed (a slower plane turns and circles tighter: near a threat the planner's cel
 flown late rather than replaced, and that is not counted as a replacement); the other cells
 reachable within phi_max that pass the cell-level rules, nearest the planner's cell first; the
 target the plane already flies to (keep going); the centre of its current cell (circle here).
-The first safe one is sent; when none is, the one that breaks the rules least. Replacements
-are counted as ``predicted_threat`` / ``predicted_separation`` overrides.
+The first safe one is sent; when none is, the one that breaks the rules least. UAVs settle in
+index order; one left without a safe candidate re-opens the choice of the settled UAV it comes
+closest to (``_repair``). Replacements of the planner's cell are counted as
+``predicted_threat`` / ``predicted_separation`` overrides.
 """
 
 from __future__ import annotations
@@ -152,40 +154,41 @@ class FlightEnvelope:
         out_cells = np.array(proposed_cells, dtype=np.int64, copy=True)
         out_headings = np.array(proposed_headings, dtype=np.int64, copy=True)
         overrides = {"predicted_threat": 0, "predicted_separation": 0}
-        settled: list[np.ndarray] = []
         need_sep = self.cells.min_separation_km + self.separation_margin_km
-        worst_clear, worst_sep = np.inf, np.inf
+        threat_ok = clearance >= self.threat_margin_km
+        chosen: dict[int, int] = {}  # UAV -> candidate index, settled in index order
         for i in range(n):
             if not candidates[i]:
                 continue
-            best: tuple[float, int, float, float] | None = None
-            first_reason: str | None = None
-            for k, _cand in enumerate(candidates[i]):
+            others = [paths[row_of[(j, k)]] for j, k in chosen.items()]
+            best: tuple[float, int] | None = None
+            for k in range(len(candidates[i])):
                 r = row_of[(i, k)]
-                sep = self._separation(paths[r], settled)
-                threat_ok = clearance[r] >= self.threat_margin_km
-                sep_ok = sep >= need_sep
-                if k == 0 and not threat_ok:
-                    first_reason = "predicted_threat"
-                elif k == 0 and not sep_ok:
-                    first_reason = "predicted_separation"
-                if threat_ok and sep_ok:
-                    best = (np.inf, k, float(clearance[r]), sep)
+                sep = self._separation(paths[r], others)
+                if threat_ok[r] and sep >= need_sep:
+                    best = (np.inf, k)
                     break
                 score = min(clearance[r] - self.threat_margin_km, sep - need_sep)
                 if best is None or score > best[0]:
-                    best = (score, k, float(clearance[r]), sep)
+                    best = (score, k)
             assert best is not None
-            _, k, clear, sep = best
+            chosen[i] = best[1]
+            if np.isfinite(best[0]):
+                self._repair(i, chosen, candidates, paths, row_of, threat_ok, need_sep)
+        worst_clear, worst_sep = np.inf, np.inf
+        for i, k in chosen.items():
+            r = row_of[(i, k)]
             kept = k == 1 and candidates[i][1].cruise  # the planner's cell, only flown slower
-            if first_reason is not None and not kept:
-                overrides[first_reason] += 1
-            worst_clear, worst_sep = min(worst_clear, clear), min(worst_sep, sep)
+            if k != 0 and not kept:
+                first = row_of[(i, 0)]
+                overrides["predicted_separation" if threat_ok[first] else "predicted_threat"] += 1
+            others = [paths[row_of[(j, kj)]] for j, kj in chosen.items() if j != i]
+            worst_clear = min(worst_clear, float(clearance[r]))
+            worst_sep = min(worst_sep, self._separation(paths[r], others))
             cand = candidates[i][k]
-            path = paths[row_of[(i, k)]]
-            settled.append(path)
+            path = paths[r]
             out_aims[i] = cand.aim
-            out_speeds[i] = commanded[row_of[(i, k)]]
+            out_speeds[i] = commanded[r]
             if cand.derived:
                 per_step = max(1, round(self.step_s))
                 end, before = path[min(per_step, len(path) - 1)], path[max(per_step - 1, 0)]
@@ -203,6 +206,41 @@ class FlightEnvelope:
         )
 
     # ------------------------------------------------------------------ pieces
+
+    def _repair(
+        self,
+        i: int,
+        chosen: dict[int, int],
+        candidates: list[list[_Candidate]],
+        paths: np.ndarray,
+        row_of: dict[tuple[int, int], int],
+        threat_ok: np.ndarray,
+        need_sep: float,
+    ) -> None:
+        """UAV ``i`` found no safe candidate next to the UAVs settled before it. Re-open the
+        choice of the settled UAV it comes closest to, ``j``: the first pair of candidates (j's
+        in its order, then i's) that are both clear of threats, of every other settled UAV and
+        of each other replaces both choices. Without such a pair nothing changes."""
+        mine = paths[row_of[(i, chosen[i])]]
+        rivals = [j for j in chosen if j != i]
+        if not rivals:
+            return
+        j = min(rivals, key=lambda o: self._separation(mine, [paths[row_of[(o, chosen[o])]]]))
+        rest = [paths[row_of[(o, ko)]] for o, ko in chosen.items() if o not in (i, j)]
+        safe_i = [
+            k
+            for k in range(len(candidates[i]))
+            if threat_ok[row_of[(i, k)]]
+            and self._separation(paths[row_of[(i, k)]], rest) >= need_sep
+        ]
+        for kj in range(len(candidates[j])):
+            rj = row_of[(j, kj)]
+            if not threat_ok[rj] or self._separation(paths[rj], rest) < need_sep:
+                continue
+            for ki in safe_i:
+                if self._separation(paths[row_of[(i, ki)]], [paths[rj]]) >= need_sep:
+                    chosen[i], chosen[j] = ki, kj
+                    return
 
     def _candidates(
         self,
