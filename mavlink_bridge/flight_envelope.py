@@ -50,8 +50,7 @@ class FlightChoice:
     next_headings: np.ndarray  # (N,)
     speeds_mps: np.ndarray  # (N,) airspeed to fly the leg at
     overrides: dict[str, int] = field(default_factory=dict)
-    min_clearance_km: float = np.inf  # predicted, over the accepted paths
-    min_separation_km: float = np.inf
+    min_separation_km: float = np.inf  # predicted, between the accepted paths
 
 
 @dataclass
@@ -175,16 +174,12 @@ class FlightEnvelope:
             chosen[i] = best[1]
             if np.isfinite(best[0]):
                 self._repair(i, chosen, candidates, paths, row_of, threat_ok, need_sep)
-        worst_clear, worst_sep = np.inf, np.inf
         for i, k in chosen.items():
             r = row_of[(i, k)]
             kept = k == 1 and candidates[i][1].cruise  # the planner's cell, only flown slower
             if k != 0 and not kept:
                 first = row_of[(i, 0)]
                 overrides["predicted_separation" if threat_ok[first] else "predicted_threat"] += 1
-            others = [paths[row_of[(j, kj)]] for j, kj in chosen.items() if j != i]
-            worst_clear = min(worst_clear, float(clearance[r]))
-            worst_sep = min(worst_sep, self._separation(paths[r], others))
             cand = candidates[i][k]
             path = paths[r]
             out_aims[i] = cand.aim
@@ -201,9 +196,12 @@ class FlightEnvelope:
                 )
             else:
                 out_cells[i], out_headings[i] = cand.cell, cand.heading
-        return FlightChoice(
-            out_aims, out_cells, out_headings, out_speeds, overrides, worst_clear, worst_sep
+        accepted = [paths[row_of[(i, k)]] for i, k in chosen.items()]
+        closest = min(
+            (self._separation(path, accepted[a + 1 :]) for a, path in enumerate(accepted)),
+            default=np.inf,
         )
+        return FlightChoice(out_aims, out_cells, out_headings, out_speeds, overrides, closest)
 
     # ------------------------------------------------------------------ pieces
 

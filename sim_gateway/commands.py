@@ -150,7 +150,7 @@ def command_do_change_speed(v: Vehicle, c: CommandArgs) -> Result:
     ):
         v.host.stats.rejected_commands += 1
         return mavlink.MAV_RESULT_DENIED
-    v.fleet.set_airspeed(v.index, speed, at_once=not v.airborne)
+    v.fleet.set_airspeed(v.index, speed)
     return mavlink.MAV_RESULT_ACCEPTED
 
 

@@ -99,9 +99,6 @@ class FleetKinematics:
     def min_turn_radius_m(self) -> np.ndarray:
         return self.airspeed_mps**2 / (GRAVITY_MPS2 * np.tan(self.bank_limit_rad))
 
-    def ground_speed_mps(self) -> np.ndarray:
-        return np.where(self.airborne, self.airspeed_mps, 0.0)
-
     # ------------------------------------------------------------------ commands
 
     def hold_course(self, i: int) -> None:
@@ -158,10 +155,10 @@ class FleetKinematics:
         return desired
 
     def set_airspeed(self, i: int, airspeed_mps: float, at_once: bool = False) -> None:
-        """Command an airspeed: reached at ``speed_accel_mps2`` (``at_once``: a parameter set on
-        the ground, or the cruise speed of a plane not yet flying)."""
+        """Command an airspeed: a flying plane reaches it at ``speed_accel_mps2``; one on the
+        ground (or ``at_once``) has it at once."""
         self.target_airspeed_mps[i] = float(airspeed_mps)
-        if at_once:
+        if at_once or not self.airborne[i]:
             self.airspeed_mps[i] = float(airspeed_mps)
 
     def step(self, dt_s: float) -> StepEvents:

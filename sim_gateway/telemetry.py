@@ -101,7 +101,7 @@ class FleetSnapshot:
 
 
 def _ground_speed_mps(v: Vehicle) -> float:
-    """This vehicle's row of ``FleetKinematics.ground_speed_mps()``, without the fleet array."""
+    """This vehicle's ground speed: its airspeed when flying (no wind), else 0."""
     return float(v.fleet.airspeed_mps[v.index]) if v.airborne else 0.0
 
 

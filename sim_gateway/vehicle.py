@@ -145,7 +145,7 @@ class Vehicle:
         a speed commanded in flight stays unless AIRSPEED_CRUISE itself was set)."""
         i, p = self.index, self.params
         if changed in (None, "AIRSPEED_CRUISE"):
-            self.fleet.set_airspeed(i, p["AIRSPEED_CRUISE"], at_once=not self.airborne)
+            self.fleet.set_airspeed(i, p["AIRSPEED_CRUISE"])
         self.fleet.bank_limit_rad[i] = math.radians(p["ROLL_LIMIT_DEG"])
         self.fleet.climb_mps[i] = p["TECS_CLMB_MAX"]
         self.fleet.sink_mps[i] = p["TECS_SINK_MAX"]
@@ -322,7 +322,7 @@ class Vehicle:
         cmd = item.command
         if cmd == mavlink.MAV_CMD_DO_CHANGE_SPEED:
             if p["AIRSPEED_MIN"] <= item.param2 <= p["AIRSPEED_MAX"]:
-                fleet.set_airspeed(i, item.param2, at_once=not self.airborne)
+                fleet.set_airspeed(i, item.param2)
             return item.seq + 1
         if cmd == mavlink.MAV_CMD_DO_JUMP:
             target, repeat = int(item.param1), int(item.param2)
