@@ -1,0 +1,42 @@
+"""Fixtures for tests against the real ArduPlane SITL (tests/sitl/sitl_harness.py).
+
+``sitl_binary``: the binary from ``ARDUPLANE_SITL``, or the test is skipped with the reason.
+``sitl_swarm``: a factory ``sitl_swarm(homes, speedup=10, params={...})`` returning a started
+:class:`SitlSwarm`; every swarm it made is stopped at teardown (process groups killed).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("MAVLINK20", "1")
+
+from sitl_harness import SitlSwarm, sitl_binary_from_env, skip_reason  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def sitl_binary() -> Path:
+    binary = sitl_binary_from_env()
+    if binary is None:
+        pytest.skip(skip_reason())
+    return binary
+
+
+@pytest.fixture
+def sitl_swarm(sitl_binary: Path, tmp_path: Path) -> Iterator:
+    started: list[SitlSwarm] = []
+
+    def make(homes, **options) -> SitlSwarm:
+        options.setdefault("workdir", tmp_path / f"sitl{len(started)}")
+        swarm = SitlSwarm(sitl_binary, homes, **options)
+        started.append(swarm)
+        swarm.start()
+        return swarm
+
+    yield make
+    for swarm in started:
+        swarm.stop()
