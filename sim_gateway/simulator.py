@@ -41,6 +41,7 @@ from sim_gateway import flight_modes as modes
 from sim_gateway.camera import look_urls
 from sim_gateway.fixed_wing import FleetKinematics
 from sim_gateway.geofence import FleetFence
+from sim_gateway.ground_truth import GROUPS, GroundTruthSafety
 from sim_gateway.lockstep import LockstepGate
 from sim_gateway.mavlink_endpoint import DatagramParser, LinkStats, VehicleSocket
 from sim_gateway.message_handlers import AUTOPILOT_ONLY, HANDLERS
@@ -51,6 +52,10 @@ from sim_gateway.world import World
 
 MAX_VEHICLES = 200  # system ids 201-255 are left to ground stations (MAVSDK 245, MAVProxy 255)
 TELEMETRY_FRAME_S = 0.02  # telemetry is checked at most 50 times per wall second
+#: lockstep: GLOBAL_POSITION_INT of every vehicle once per this many simulated seconds, on top
+#: of the wall-clock stream (ticks run back to back, so a wall-clock rate alone would report a
+#: few positions per decision period: too few to judge the flight between decisions)
+LOCKSTEP_POSITION_S = 1.0
 DUPLICATE_WINDOW_S = 2.0
 
 
@@ -200,6 +205,13 @@ class Simulator:
         self.engagements = 0
         self.lockstep = LockstepGate(options.lockstep, options.lockstep_timeout_s)
         self.fence_breaches = 0
+        self.truth = GroundTruthSafety(
+            n,
+            np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(-1, 2) * 1e3,
+            np.array([t.radius_km for t in scenario.threats], float) * 1e3,
+            self.config.min_separation_km * 1e3,
+        )
+        self._group_index = {name: k for k, name in enumerate(GROUPS)}
         self._home_cache: tuple[tuple[float, ...], list[int], list[int]] | None = None
         if options.airborne:
             self._start_airborne()
@@ -359,9 +371,33 @@ class Simulator:
                 v.on_timer()
         self._check_fence()
         self._check_range()
+        self.truth.observe(
+            self.sim_time_s, self.fleet.x_m, self.fleet.y_m, self.fleet.airborne, self._groups()
+        )
         if self.sim_time_s + 1e-9 >= self.next_decision_s:
             self.next_decision_s += self.config.step_s
             self.decision()
+        if self.lockstep.locked:
+            every = max(1, round(LOCKSTEP_POSITION_S / dt))
+            if self.ticks % every == 0:
+                snapshot = self.snapshot()
+                for v in self.vehicles:
+                    v.send(BUILDERS["GLOBAL_POSITION_INT"](v, snapshot))
+
+    def _groups(self) -> list[int]:
+        """Each vehicle's ground-truth mode group (``ground_truth.GROUPS``)."""
+        index = self._group_index
+        out = []
+        for v in self.vehicles:
+            if v.failsafe.stage:
+                out.append(index["failsafe"])
+            elif v.mode == modes.RTL:
+                out.append(index["rtl"])
+            elif v.mode == modes.GUIDED:
+                out.append(index["guided"])
+            else:
+                out.append(index["other"])
+        return out
 
     def _check_fence(self) -> None:
         inside = self.fence.inside(self.fleet.x_m, self.fleet.y_m) & self.fleet.airborne
@@ -574,4 +610,5 @@ class Simulator:
             ),
             "fence_breaches": self.fence_breaches,
             "lockstep_grants": self.lockstep.grants,
+            "safety": self.truth.summary(),
         }
