@@ -147,7 +147,7 @@ def validate(args: argparse.Namespace) -> None:
 def print_step(status: StepStatus) -> None:
     lost = f" lost {status.lost}" if status.lost else ""
     print(
-        f"\rstep {status.step + 1:>4}/{status.steps}  active {status.active:>2}  coverage "
+        f"\rstep {status.step:>4}/{status.steps}  active {status.active:>2}  coverage "
         f"{status.coverage * 100:5.1f}%  engaged {status.engaged:>2} "
         f"(value {status.engaged_value:g})"
         f"{lost}   ",

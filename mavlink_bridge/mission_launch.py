@@ -1,0 +1,163 @@
+"""The launch of a mission, phase by phase: discover, ready, fence, arm, take off, homes.
+
+Each phase is a named unit (:class:`LaunchPhase`) run in order by :func:`run_launch`; a phase
+that cannot complete raises a ``UserError`` naming the vehicle and the fix. A new phase (e.g.
+reading each airframe's limits before take-off) is one more entry in :func:`launch_phases`, not
+an edit of the others. The phases talk to the vehicles through the daemon's link and its
+``send`` (acknowledged, retried commands) and ``wait_sim`` (pumps; in lockstep it grants
+simulated time meanwhile).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from mavlink_bridge.discovery import wait_for_vehicles, wait_until_ready
+from mavlink_bridge.guided_commands import (
+    CommandRefusedError,
+    arm_command,
+    request_message_command,
+    require_accepted,
+    set_mode_command,
+)
+from mavlink_bridge.mission_upload import FenceCircle, upload_fence
+from mavlink_bridge.protocol import (
+    PLANE_MODE_GUIDED,
+    PLANE_MODE_TAKEOFF,
+    mavlink,
+    result_name,
+)
+from planner.errors import UserError
+from planner.geodesy import local_km_to_geodetic
+
+if TYPE_CHECKING:
+    from mavlink_bridge.daemon import MissionDaemon
+
+
+@dataclass(frozen=True)
+class LaunchPhase:
+    """One phase of the launch: its name (said and listed) and what it does."""
+
+    name: str
+    run: Callable[[MissionDaemon], None]
+
+
+def discover(daemon: MissionDaemon) -> None:
+    """A heartbeat of every expected system id (``discovery.wait_for_vehicles``)."""
+    link = daemon.require_link()
+    daemon.say(f"listening on {link.describe()} for {daemon.n} vehicles")
+    wait_for_vehicles(link, daemon.system_ids, daemon.options.discovery_timeout_s, daemon.say)
+    daemon.say(f"all {daemon.n} vehicles heard; waiting for them to finish initialising")
+
+
+def ready(daemon: MissionDaemon) -> None:
+    """Every autopilot past its initialisation (STANDBY)."""
+    wait_until_ready(
+        daemon.require_link(),
+        daemon.system_ids,
+        daemon.options.ready_timeout_s,
+        wait=daemon.wait_sim,
+    )
+
+
+def fence(daemon: MissionDaemon) -> None:
+    """Every threat zone as a fence exclusion circle, to every vehicle."""
+    threats = daemon.scenario.threats
+    lat, lon = local_km_to_geodetic(
+        [t.x_km for t in threats], [t.y_km for t in threats], daemon.scenario.origin
+    )
+    circles = (
+        [
+            FenceCircle(float(la), float(lo), t.radius_km * 1000.0)
+            for la, lo, t in zip(lat, lon, threats, strict=True)
+        ]
+        if threats
+        else []
+    )
+    upload_fence(daemon.require_link(), daemon.vehicles(), circles)
+    daemon.say(f"fence uploaded: {len(circles)} exclusion circles to each vehicle")
+
+
+def arm(daemon: MissionDaemon, attempts: int = 3) -> None:
+    """Arm every vehicle; a refusal is retried, then reported with the prearm reasons."""
+    link = daemon.require_link()
+    todo = [v for v in daemon.vehicles() if not v.armed]
+    for attempt in range(attempts):
+        started = time.monotonic()
+        tries = daemon.options.launch_command_attempts
+        results = daemon.send([arm_command(v) for v in todo], tries)
+        todo = [c.vehicle for c in results if not c.accepted]
+        if not todo:
+            break
+        link.pump_until(lambda: False, 0.3)  # let the STATUSTEXTs arrive
+        if attempt == attempts - 1:
+            cmd = next(c for c in results if not c.accepted)
+            reasons = cmd.vehicle.prearm_reasons(since_s=started - 0.5)
+            because = "; ".join(reasons) if reasons else "no PreArm message"
+            result = result_name(cmd.ack.result) if cmd.ack else "no answer"
+            raise CommandRefusedError(
+                f"vehicle {cmd.vehicle.system_id} refused to arm ({result}): {because}"
+            )
+        link.pump_until(lambda: False, 1.0)
+    daemon.say(f"armed {daemon.n} vehicles")
+
+
+def take_off(daemon: MissionDaemon) -> None:
+    """TAKEOFF mode, wait for the climb, then GUIDED."""
+    link = daemon.require_link()
+    options = daemon.options
+    vehicles = daemon.vehicles()
+    climb = min(options.takeoff_altitude_m, daemon.scenario.altitude_m)
+    attempts = options.launch_command_attempts
+    # vehicles already flying (a restarted daemon, airborne SITL) go straight to GUIDED
+    link.pump_until(lambda: all(v.has_position for v in vehicles), 2.0)
+    on_ground = [v for v in vehicles if not (v.armed and v.relative_alt_m >= climb)]
+    require_accepted(
+        daemon.send([set_mode_command(v, PLANE_MODE_TAKEOFF) for v in on_ground], attempts)
+    )
+    if not daemon.wait_sim(
+        lambda: all(v.relative_alt_m >= climb for v in vehicles), options.takeoff_timeout_s
+    ):
+        low = [str(v.system_id) for v in vehicles if v.relative_alt_m < climb]
+        raise UserError(
+            f"vehicle {', '.join(low)} did not climb to {climb:g} m within "
+            f"{options.takeoff_timeout_s:g} s of TAKEOFF; check its takeoff setup"
+        )
+    require_accepted(
+        daemon.send([set_mode_command(v, PLANE_MODE_GUIDED) for v in vehicles], attempts)
+    )
+    daemon.launched = True
+    daemon.say("airborne, GUIDED")
+
+
+def request_homes(daemon: MissionDaemon) -> None:
+    """Ask every vehicle whose home is not known yet for HOME_POSITION (REQUEST_MESSAGE): the
+    launch point is each UAV's start and return point, and ArduPilot streams it rarely."""
+    link = daemon.require_link()
+    missing = [v for v in daemon.vehicles() if v.home is None]
+    if missing:
+        home = mavlink.MAVLINK_MSG_ID_HOME_POSITION
+        daemon.send([request_message_command(v, home) for v in missing])
+        link.pump_until(lambda: all(v.home is not None for v in missing), 1.0)
+
+
+def launch_phases() -> list[LaunchPhase]:
+    """The launch, in order (docs/daemon.md, "A mission, phase by phase")."""
+    return [
+        LaunchPhase("discover", discover),
+        LaunchPhase("ready", ready),
+        LaunchPhase("fence", fence),
+        LaunchPhase("arm", arm),
+        LaunchPhase("take off", take_off),
+        LaunchPhase("homes", request_homes),
+    ]
+
+
+def run_launch(daemon: MissionDaemon, phases: list[LaunchPhase]) -> None:
+    """Run ``phases`` in order; the daemon notes the phase it is in (for its exit report)."""
+    for phase in phases:
+        daemon.phase = phase.name
+        phase.run(daemon)

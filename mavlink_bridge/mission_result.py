@@ -1,0 +1,129 @@
+"""What a mission run tells the world: the per-step record its listeners get, the link events,
+the daemon's own counters, and the result dict (``planner.metrics.MissionRecorder``'s, as in
+``swarmplan run``, plus the fields only a MAVLink run has).
+
+Listeners (``DaemonOptions.step_listeners``) receive one :class:`StepRecord` after every decision
+step: copies of the step's arrays, and the planner itself, to be read and never changed (a live
+view takes its beliefs from it; the planner stays free of I/O).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+ALGORITHM = "hapf-aco"
+
+
+@dataclass
+class StepStatus:
+    """What one decision step did (for a progress display)."""
+
+    step: int
+    steps: int
+    active: int
+    lost: list[int]
+    coverage: float
+    engaged: int
+    engaged_value: float
+    overrides: int
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """A read-only snapshot of one decision step, for step listeners (live view, audits).
+
+    Positions in km in the mission frame; arrays are copies. ``planner`` is the planner after
+    this step: read it, never change it."""
+
+    status: StepStatus
+    positions_km: np.ndarray  # (N, 2) measured at the decision instant
+    positions_ms: np.ndarray  # (N,) the vehicle's clock (time_boot_ms) at that position
+    cells: np.ndarray  # (N, 2) the cell each UAV is in
+    headings: np.ndarray  # (N,)
+    next_cells: np.ndarray  # (N, 2) the cells sent (after both envelopes)
+    aims_km: np.ndarray  # (N, 2) the guided targets
+    speeds_mps: np.ndarray  # (N,) the leg airspeeds
+    active: np.ndarray  # (N,) bool
+    done: np.ndarray  # (N,) bool
+    engage: np.ndarray  # (N,) bool: engagement requested this step
+    late: bool  # paced time: this step's commands went out late
+    planner: Any = None
+
+
+StepListener = Callable[[StepRecord], None]
+
+
+@dataclass
+class LinkEvent:
+    step: int
+    uav: int
+    event: str  # "lost" or "rejoined"
+    wall_s: float
+    reason: str = ""  # why it was lost ("silent 3.2 s", "link closed", "disarmed", ...)
+
+
+@dataclass
+class MissionAccount:
+    """The daemon's own counters (carried across a restart by the checkpoint)."""
+
+    overrides: dict[str, int] = field(
+        default_factory=lambda: {
+            "area": 0,
+            "threat": 0,
+            "separation": 0,
+            "range": 0,
+            "predicted_threat": 0,
+            "predicted_separation": 0,
+        }
+    )
+    refused_commands: int = 0
+    looks_missed: int = 0
+    late_steps: int = 0
+    events: list[LinkEvent] = field(default_factory=list)
+
+
+@dataclass
+class MissionReport:
+    """The result dict (same fields as ``swarmplan run``) and the daemon's own account."""
+
+    result: dict[str, Any]
+    events: list[LinkEvent] = field(default_factory=list)
+
+
+def link_event_rows(events: list[LinkEvent]) -> list[dict[str, Any]]:
+    rows = []
+    for e in events:
+        row: dict[str, Any] = {"step": e.step, "uav": e.uav, "system_id": e.uav + 1}
+        row["event"] = e.event
+        if e.reason:
+            row["reason"] = e.reason
+        rows.append(row)
+    return rows
+
+
+def mavlink_extra(
+    account: MissionAccount,
+    link: Any,
+    tlog: str | None,
+    resumed_from_step: int | None,
+) -> dict[str, Any]:
+    """The result fields only a MAVLink run has (docs/daemon.md, "What the result measures")."""
+    return {
+        "source": "mavlink",
+        "endpoints": link.describe(),
+        "envelope_overrides": dict(account.overrides),
+        "refused_commands": account.refused_commands,
+        "looks_missed": account.looks_missed,
+        "late_steps": account.late_steps,
+        "link_events": link_event_rows(account.events),
+        "lost_uavs": sorted({e.uav for e in account.events if e.event == "lost"}),
+        "frames_received": link.messages_received,
+        "stale_positions": sum(v.stale_positions for v in link.vehicles.values()),
+        "signing": None if link.signature_check is None else link.signature_check.counters(),
+        "resumed_from_step": resumed_from_step,
+        "tlog": tlog,
+    }

@@ -1,0 +1,259 @@
+"""When a decision step runs: one small interface, one implementation per source of time.
+
+* :class:`LockstepPacing`: the daemon is the clock of a ``swarmplan sim --lockstep``: it grants
+  one decision period and waits until every vehicle still heard holds at its end (its look of that
+  instant has then arrived). Simulated time waits for the daemon: never late, no deadline.
+* :class:`LookPacing`: the vehicles' cameras report one sensor look per decision period of
+  their own clock; a step runs when every active vehicle's new look is in, or, for stragglers,
+  0.4 x the measured step interval after the first one.
+* :class:`WallClockPacing`: vehicles that send no looks: one step per ``step_s / time_scale``
+  wall seconds. It hands over to :class:`LookPacing` as soon as a look arrives.
+
+Every pacing answers the same three questions (:class:`Pacing`): wait for the next decision
+instant (and return the looks of it), by when must this step's commands be out (``deadline``),
+and was this step late (``late``, counted in ``late_steps`` and said once). A behaviour such as
+"hold when late" plugs in here: it reads :meth:`Pacing.late` (and :class:`DecisionInstant`)
+rather than the loop's branches.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from mavlink_bridge.lockstep_clock import LockstepClock
+from mavlink_bridge.mission_result import MissionAccount
+from mavlink_bridge.swarm_link import SwarmLink
+from mavlink_bridge.vehicle_state import Look, VehicleState
+
+#: paced time: share of a decision period the daemon may spend getting a step's commands out
+STEP_DEADLINE_SHARE = 0.6
+
+
+@dataclass
+class DecisionInstant:
+    """What waiting for a decision instant produced."""
+
+    step: int
+    looks: dict[int, Look]  # UAV index -> its newest look (the ones new since the last step)
+    deadline: float | None = None  # monotonic instant by which the commands must be out
+    source: str = ""  # the pacing that produced it
+
+
+@dataclass
+class PacingContext:
+    """What every pacing reads: the link, the expected vehicles (index = UAV), the loss watch
+    run at every pump, the decision period and the vehicles' clock speed, and where lateness
+    goes."""
+
+    link: SwarmLink
+    vehicles: Callable[[], list[VehicleState]]
+    watch: Callable[[int], None]  # loss / return detection, called with the step at every pump
+    step_s: float
+    time_scale: float
+    lost_after_s: float
+    account: MissionAccount
+    say: Callable[[str], None] = lambda text: None
+    #: paced time: wall seconds between decision instants, as measured (median of the last 20)
+    gaps: list[float] = field(default_factory=list)
+    last_step_wall: float = 0.0
+    decision_instant_ms: int | None = None
+
+    @property
+    def period_wall_s(self) -> float:
+        """One decision period of the vehicles' clock, in wall seconds."""
+        return self.step_s / max(self.time_scale, 1e-6)
+
+    def gap_s(self) -> float:
+        if self.gaps:
+            return statistics.median(self.gaps[-20:])
+        return self.period_wall_s
+
+    def measure_gap(self) -> None:
+        now = time.monotonic()
+        if self.last_step_wall:
+            self.gaps.append(now - self.last_step_wall)
+        self.last_step_wall = now
+
+    def new_looks(self, consumed: list[int]) -> dict[int, Look]:
+        """The newest look of every vehicle still heard that sent one since ``consumed``."""
+        return {
+            i: v.looks[v.latest_look]
+            for i, v in enumerate(self.vehicles())
+            if v.latest_look > consumed[i] and not v.lost
+        }
+
+    def any_looks(self) -> bool:
+        return any(v.latest_look >= 0 for v in self.vehicles())
+
+
+def consume(fresh: dict[int, Look], consumed: list[int]) -> dict[int, Look]:
+    """Mark ``fresh`` looks as used by a step."""
+    for i, look in fresh.items():
+        consumed[i] = look.index
+    return fresh
+
+
+class Pacing(Protocol):
+    """One source of decision instants."""
+
+    name: str
+
+    def wait(self, step: int, consumed: list[int]) -> DecisionInstant | None:
+        """Pump until the decision instant of ``step``; its looks (``consumed`` updated). None:
+        this source does not apply any more (hand over to the next choice)."""
+
+    def late(self, instant: DecisionInstant) -> bool:
+        """Called as the step's commands go out: is the daemon behind the vehicles' clock?
+        Counts and says it (the first time)."""
+
+
+class LockstepPacing:
+    """Grant one decision period of simulated time per step (``mavlink_bridge.lockstep_clock``)."""
+
+    name = "lockstep"
+
+    def __init__(self, ctx: PacingContext, clock: LockstepClock) -> None:
+        self.ctx = ctx
+        self.clock = clock
+
+    def wait(self, step: int, consumed: list[int]) -> DecisionInstant:
+        self.clock.advance(self.ctx.vehicles(), on_pump=lambda: self.ctx.watch(step))
+        return DecisionInstant(
+            step, consume(self.ctx.new_looks(consumed), consumed), None, self.name
+        )
+
+    def late(self, instant: DecisionInstant) -> bool:
+        return False  # simulated time waits for the daemon
+
+
+class LookPacing:
+    """Steps on the vehicles' sensor looks (one per decision period of their clock)."""
+
+    name = "looks"
+
+    def __init__(self, ctx: PacingContext) -> None:
+        self.ctx = ctx
+
+    def wait(self, step: int, consumed: list[int]) -> DecisionInstant:
+        ctx = self.ctx
+        start = time.monotonic()
+        first_fresh: float | None = None
+        gap = ctx.gap_s()
+        limit = max(gap * 3, ctx.lost_after_s + 0.5)
+        while True:
+            ctx.link.pump(0.003)
+            ctx.watch(step)
+            now = time.monotonic()
+            fresh = ctx.new_looks(consumed)
+            vehicles = ctx.vehicles()
+            waiting = [i for i, v in enumerate(vehicles) if i not in fresh and not v.lost]
+            if fresh and first_fresh is None:
+                first_fresh = now
+            if fresh and not waiting:
+                break
+            if first_fresh is not None and now - first_fresh > max(0.05, 0.4 * gap):
+                break  # stragglers miss this step's look
+            if now - start > limit:
+                break
+        ctx.measure_gap()
+        looks = consume(fresh, consumed)
+        return DecisionInstant(step, looks, self.deadline(), self.name)
+
+    def deadline(self) -> float:
+        """60 % of a decision period (wall seconds at ``time_scale``) from now."""
+        return time.monotonic() + STEP_DEADLINE_SHARE * self.ctx.period_wall_s
+
+    def late(self, instant: DecisionInstant) -> bool:
+        """A step is late when its commands go out more than half a decision period (of the
+        vehicles' clock) after its decision instant (the newest look), so its targets were
+        planned from positions long gone, or when a whole decision instant passed without a
+        decision (the decision instants of this step and the last more than 1.5 periods apart:
+        the daemon stalled, and the planes flew two legs on one command)."""
+        looks = instant.looks
+        if not looks:
+            return False
+        vehicles = self.ctx.vehicles()
+        instant_ms = max(look.time_boot_ms for look in looks.values())
+        behind_ms = max(vehicles[i].time_boot_ms - looks[i].time_boot_ms for i in looks)
+        return note_late(self.ctx, instant.step, instant_ms, behind_ms)
+
+
+class WallClockPacing:
+    """Vehicles that send no looks (ArduPlane without a payload simulator): one step per
+    ``step_s / time_scale`` wall seconds. Hands over (returns None) when a look arrives."""
+
+    name = "wall clock"
+
+    def __init__(self, ctx: PacingContext) -> None:
+        self.ctx = ctx
+
+    def wait(self, step: int, consumed: list[int]) -> DecisionInstant | None:
+        ctx = self.ctx
+        start = time.monotonic()
+        gap = ctx.gap_s()
+        while True:
+            ctx.link.pump(0.003)
+            ctx.watch(step)
+            if ctx.new_looks(consumed):
+                return None  # the cameras speak: pace by their looks
+            if time.monotonic() - start > gap:
+                break
+        ctx.measure_gap()
+        return DecisionInstant(
+            step, {}, time.monotonic() + STEP_DEADLINE_SHARE * ctx.period_wall_s, self.name
+        )
+
+    def late(self, instant: DecisionInstant) -> bool:
+        return False
+
+
+def note_late(ctx: PacingContext, step: int, instant_ms: int, behind_ms: int) -> bool:
+    """Count a late step (``late_steps``) and say the first one with what to do about it."""
+    step_ms = 1e3 * ctx.step_s
+    previous_ms, ctx.decision_instant_ms = ctx.decision_instant_ms, instant_ms
+    stalled = previous_ms is not None and instant_ms - previous_ms > 1.5 * step_ms
+    if behind_ms <= 0.5 * step_ms and not stalled:
+        return False
+    ctx.account.late_steps += 1
+    if ctx.account.late_steps == 1:
+        assert previous_ms is not None or not stalled
+        what = (
+            f"{(instant_ms - previous_ms) / 1e3:.0f} s passed between two decisions"
+            if stalled and previous_ms is not None
+            else f"they had flown {behind_ms / 1e3:.1f} s past the decision instant as its "
+            "commands went out"
+        )
+        ctx.say(
+            f"warning: the daemon is behind the vehicles' clock at step {step}: {what} (a "
+            f"step is {step_ms / 1e3:g} s); lower the vehicles' speedup (--time-scale "
+            f"{ctx.time_scale:g}) or use lockstep"
+        )
+    return True
+
+
+class PacingChoice:
+    """Picks the pacing of each step: lockstep when granted, else the looks once any vehicle
+    has sent one, else the wall clock (which hands over to the looks when they start)."""
+
+    def __init__(self, ctx: PacingContext, clock: LockstepClock | None) -> None:
+        self.ctx = ctx
+        self.lockstep = None if clock is None else LockstepPacing(ctx, clock)
+        self.looks = LookPacing(ctx)
+        self.wall = WallClockPacing(ctx)
+        self.current: Pacing = self.lockstep or self.wall
+
+    def choose(self) -> Pacing:
+        if self.lockstep is not None:
+            return self.lockstep
+        return self.looks if self.ctx.any_looks() else self.wall
+
+    def wait(self, step: int, consumed: list[int]) -> DecisionInstant:
+        while True:
+            self.current = self.choose()
+            instant = self.current.wait(step, consumed)
+            if instant is not None:
+                return instant

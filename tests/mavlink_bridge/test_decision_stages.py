@@ -1,0 +1,102 @@
+"""The decision step's stages driven on their own, without a network: vehicles known only from
+the MAVLink messages they would have sent (parsed by VehicleState's handlers), one step through
+gather, plan, envelope, record, command batch and account."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mavlink_bridge.decision_step import DecisionStep, LoopState
+from mavlink_bridge.flight_envelope import FlightEnvelope
+from mavlink_bridge.flight_prediction import PlaneModel
+from mavlink_bridge.mission_result import MissionAccount
+from mavlink_bridge.protocol import mavlink
+from mavlink_bridge.safety_envelope import SafetyEnvelope
+from mavlink_bridge.vehicle_state import VehicleState
+from planner.geodesy import local_km_to_geodetic
+from planner.grid import Grid
+from planner.hapf_aco import HapfAcoPlanner
+from planner.metrics import MissionRecorder
+
+
+def _heard(sysid: int, lat: float, lon: float, time_ms: int) -> VehicleState:
+    """A vehicle as the daemon knows it after its heartbeat and one position report (flying
+    east at 100 m/s, 100 m up)."""
+    v = VehicleState(sysid, link=None)  # type: ignore[arg-type]
+    mav = mavlink.MAVLink(None, sysid, 1)
+    armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    for msg in (
+        mav.heartbeat_encode(
+            mavlink.MAV_TYPE_FIXED_WING, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, armed, 15,
+            mavlink.MAV_STATE_ACTIVE,
+        ),
+        mav.global_position_int_encode(
+            time_ms, int(lat * 1e7), int(lon * 1e7), 100_000, 100_000, 0, 10_000, 0, 9000
+        ),
+    ):  # fmt: skip
+        v.handle(mavlink.MAVLink(None).parse_char(msg.pack(mav)))
+    return v
+
+
+def _stages(paper10, vehicles):
+    cfg = paper10.config
+    cells = SafetyEnvelope.for_scenario(paper10, 1.0, 1.0)
+    plane = PlaneModel(speed_mps=cfg.speed_mps)
+    return DecisionStep(
+        scenario=paper10,
+        grid=Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km),
+        cell_envelope=cells,
+        plane=plane,
+        flight_envelope=FlightEnvelope(cells, plane, step_s=cfg.step_s),
+        vehicles=vehicles,
+        counters=MissionAccount(),
+        target_values={t.id: t.value for t in paper10.targets},
+    )
+
+
+def test_one_step_through_every_stage(paper10):
+    starts = paper10.starts_for_seed(1)[:3]
+    grid = Grid(paper10.config.grid_nx, paper10.config.grid_ny, paper10.config.cell_km)
+    # the three planes 2 cells east of their starts, 5 s into their flight
+    here = np.array([[s.x_km + 2.0, s.y_km] for s in starts])
+    lat, lon = local_km_to_geodetic(here[:, 0], here[:, 1], paper10.origin)
+    vehicles = [_heard(i + 1, lat[i], lon[i], 5000) for i in range(3)]
+    vehicles[2].lost = True  # lost: inactive to the planner, no command
+    stages = _stages(paper10, vehicles)
+    planner = HapfAcoPlanner(paper10, starts, 1)
+    recorder = MissionRecorder(paper10, starts)
+    state = LoopState.start(grid, planner, recorder, starts, [-1, -1, -1])
+
+    inputs = stages.gather(state, 1, looks={})
+    assert inputs.active.tolist() == [True, True, False]
+    np.testing.assert_allclose(state.positions[:2], here[:2], atol=1e-3)
+    assert (state.cells[:2] == grid.cell_of(here[:2])).all()
+    assert state.headings[0] == 0 and state.headings[1] == 0  # east, from the velocity
+    assert stages.counters.looks_missed == 2  # no camera, no look
+
+    plan = stages.plan(state, inputs)
+    assert plan.proposed_cells.shape == (3, 2)
+    flight = stages.envelope(state, inputs, plan)
+    assert flight.aims_km.shape == (3, 2) and np.isfinite(flight.speeds_mps).all()
+
+    stages.record(state, inputs, plan, flight)
+    assert recorder.steps == 1
+    batch = stages.command_batch(state, inputs, plan, flight)
+    moved = [i for i, _, _ in batch.moves]
+    assert moved == [0, 1]  # not the lost one
+    assert all(c.command == mavlink.MAV_CMD_DO_REPOSITION for _, _, c in batch.moves)
+    assert {c.vehicle.system_id for c in batch.speeds} <= {1, 2}
+
+    # vehicle 1 accepts its guided target, vehicle 2 refuses it: one refusal counted
+    for cmd in batch.commands:
+        result = mavlink.MAV_RESULT_ACCEPTED
+        if cmd.vehicle.system_id == 2 and cmd.command == mavlink.MAV_CMD_DO_REPOSITION:
+            result = mavlink.MAV_RESULT_DENIED
+        mav = mavlink.MAVLink(None, cmd.vehicle.system_id, 1)
+        frame = mav.command_ack_encode(cmd.command, result).pack(mav)
+        cmd.vehicle.handle(mavlink.MAVLink(None).parse_char(frame))
+        cmd.ack = cmd.vehicle.acks[(1, cmd.command)]
+    stages.account(state, 1, batch, batch.commands, flight)
+    assert state.last_target[0] == batch.moves[0][1] and state.last_target[1] is None
+    assert state.refusals == [0, 1, 0] and stages.counters.refused_commands == 1
+    assert (state.commanded_cells == flight.next_cells).all()
