@@ -24,7 +24,7 @@ Nothing here does I/O; randomness comes from one seeded generator.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -132,6 +132,9 @@ class HapfAcoPlanner:
         )
         self.k = 0
         self._safety: dict[bytes, SafetyModel] = {}  # by the known-threat row's bytes
+        #: Read-only observers, called as ``observe(planner, decision)`` after each decision and
+        #: before the forecast (``planner.pursuit_log.PursuitLog``); they must not change state.
+        self.observers: list[Callable[[HapfAcoPlanner, StepDecision], None]] = []
 
     # ------------------------------------------------------------------ helpers
 
@@ -207,6 +210,8 @@ class HapfAcoPlanner:
 
         # 5-6. potential field and transition
         decision = self._decide(flying, hears, positions, distances)
+        for observe in self.observers:  # read-only (the target account's planner facts)
+            observe(self, decision)
 
         # 7. forecast (eqs 19-22) to the next decision step
         self.tpm.forecast()

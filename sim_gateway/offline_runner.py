@@ -15,7 +15,9 @@ from planner.grid import Grid, heading_of_angle
 from planner.hapf_aco import HapfAcoPlanner
 from planner.metrics import MissionRecorder
 from planner.pso import PsoPlanner
+from planner.pursuit_log import PursuitLog
 from planner.scenario import Scenario
+from sim_gateway.target_account import TargetAccount, account_of
 from sim_gateway.world import World
 
 #: Planners by the name users give on the command line.
@@ -32,8 +34,11 @@ def run_offline(
     steps: int | None = None,
     algorithm: str = "hapf-aco",
     progress: Callable[[int], None] | None = None,
+    account: bool = True,
 ) -> dict:
-    """Fly ``scenario`` for ``steps`` decision steps with one seed; returns the result dict."""
+    """Fly ``scenario`` for ``steps`` decision steps with one seed; returns the result dict,
+    with the per-target account (``sim_gateway.target_account``) unless ``account`` is False
+    (the flight is the same either way: the account only reads)."""
     started = time.perf_counter()
     cfg = scenario.config
     steps = scenario.steps if steps is None else steps
@@ -42,6 +47,8 @@ def run_offline(
     world = World(scenario, seed)
     planner = PLANNERS[algorithm](scenario, starts, seed)
     recorder = MissionRecorder(scenario, starts)
+    truth = TargetAccount(world) if account else None  # beside the planner, never passed to it
+    log = PursuitLog().attach(planner) if account else None  # the planner's facts, read-only
     cells = grid.cell_of(np.array([[s.x_km, s.y_km] for s in starts]))
     headings = heading_of_angle(np.radians([s.heading_deg for s in starts]))
     done = np.zeros(len(starts), dtype=bool)
@@ -51,11 +58,15 @@ def run_offline(
         positions = grid.centre_km(cells)
         looks = world.sense(positions)
         reports = [None if done[i] else looks[i] for i in range(len(starts))]
+        if truth is not None:
+            truth.observe(k, positions, ~done, reports)
         decision = planner.step(cells, headings, reports, outcomes)
         outcomes = [None] * len(starts)
         for i in np.flatnonzero(decision.engage):
             outcome = world.engage(positions[i], k)
             outcomes[i] = outcome
+            if truth is not None:
+                truth.record_engagement(k, int(i), outcome)
             if outcome.success:
                 recorder.record_engagement(k, int(i), outcome.target_id, outcome.value)
             else:
@@ -65,4 +76,7 @@ def run_offline(
         recorder.record_step(grid.centre_km(cells), planned_km=grid.centre_km(cells), done=done)
         if progress is not None:
             progress(k + 1)
-    return recorder.result(seed, algorithm, time.perf_counter() - started)
+    extra = None
+    if truth is not None and log is not None:
+        extra = {"target_account": account_of(truth.truth(), log.facts())}
+    return recorder.result(seed, algorithm, time.perf_counter() - started, extra=extra)

@@ -117,20 +117,12 @@ class World:
         UAV-target), and with probability P_F otherwise."""
         cfg, grid = self.config, self.grid
         uav_xy_km = np.asarray(uav_xy_km, dtype=float).reshape(-1, 2)
-        offsets, reach, slot = self.footprint, self.footprint_reach, self.footprint_slot
         uav_cells = grid.cell_of(uav_xy_km)
-        cells = uav_cells[:, None, :] + offsets[None]  # (N, K, 2)
+        cells = uav_cells[:, None, :] + self.footprint[None]  # (N, K, 2)
         p_b1 = np.full(cells.shape[:2], cfg.p_false)
         live = np.flatnonzero(self.alive)
         if live.size:
-            rel = (
-                grid.cell_of(self.positions[live])[None, :, :] - uav_cells[:, None, :]
-            )  # (N, T, 2)
-            near = (np.abs(rel) <= reach).all(axis=2)
-            uav, target = np.nonzero(near)
-            k = slot[rel[uav, target, 0] + reach, rel[uav, target, 1] + reach]
-            hit = k >= 0
-            uav, target, k = uav[hit], target[hit], k[hit]
+            uav, target, k = self.footprint_hits(uav_cells, live)
             d = np.hypot(*(self.positions[live[target]] - uav_xy_km[uav]).T)
             # several targets in one cell: the nearest one decides the bit's probability
             np.maximum.at(p_b1, (uav, k), np.maximum(detection_probability(d, cfg), cfg.p_false))
@@ -143,6 +135,21 @@ class World:
             else SensorReport(cells[i][inside[i]], detected[i][inside[i]])
             for i in range(len(cells))
         ]
+
+    def footprint_hits(
+        self, uav_cells: np.ndarray, targets: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which of the ``targets`` (indices) lie in which UAV's sensor footprint: arrays
+        ``(uav, m, k)``, target ``targets[m]`` is in footprint cell ``k`` of UAV ``uav`` (whose
+        cell is ``uav_cells[uav]``). The one rule of "inside a footprint" for the sensor and
+        the target account (``sim_gateway.target_account``)."""
+        reach, slot = self.footprint_reach, self.footprint_slot
+        rel = self.grid.cell_of(self.positions[targets])[None, :, :] - uav_cells[:, None, :]
+        near = (np.abs(rel) <= reach).all(axis=2)  # (N, T)
+        uav, target = np.nonzero(near)
+        k = slot[rel[uav, target, 0] + reach, rel[uav, target, 1] + reach]
+        hit = k >= 0
+        return uav[hit], target[hit], k[hit]
 
     # ------------------------------------------------------------------ engagement
 

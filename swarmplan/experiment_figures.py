@@ -9,11 +9,13 @@ engaged over the steps      Fig. 5            Fig. 10
 coverage metrics (box)      Fig. 6            Fig. 11
 engaged per run (box)       Fig. 7            Fig. 12
 separation over the steps   (2 UAVs)          Fig. 13
+target funnel by kind       targets_funnel    targets_funnel
 =========================== ================= =================
 
 Curves are the mean over the seeds with a band of one standard deviation; box plots show every
 seed. The path figures reuse ``swarmplan.figures.plot_paths`` on the first seed of each
-(scenario, algorithm).
+(scenario, algorithm). The target funnel (not in the paper) is the mean per run of each
+stage of the runs' ``target_account``, by target kind (``swarmplan.figures.draw_funnel``).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from swarmplan.experiment_stats import groups
-from swarmplan.figures import plot_paths, plt, save
+from swarmplan.figures import draw_funnel, plot_paths, plt, save
 
 FIGURE_NUMBERS = {
     "efficiency": {
@@ -163,6 +165,47 @@ def plot_separation(results: Sequence[dict], title: str, path: Path) -> Path:
     return save(fig, path, dpi=110)
 
 
+def plot_target_funnels(results: Sequence[dict], title: str, path: Path) -> Path | None:
+    """The target funnel by kind, mean per run, one panel per (scenario, algorithm); None when
+    no run carries a target account."""
+    panels = [(key, [r for r in runs if r.get("target_account")])
+              for key, runs in groups(results).items()]  # fmt: skip
+    panels = [(key, runs) for key, runs in panels if runs]
+    if not panels:
+        return None
+    scenarios = list(dict.fromkeys(key[0] for key, _ in panels))
+    algorithms = list(dict.fromkeys(key[1] for key, _ in panels))
+    fig, axes = plt.subplots(len(scenarios), len(algorithms), squeeze=False,
+                             figsize=(4.6 * len(algorithms), 3.6 * len(scenarios)))  # fmt: skip
+    for ax in axes.ravel():
+        ax.set_visible(False)
+    for (scenario, algorithm), runs in panels:
+        ax = axes[scenarios.index(scenario), algorithms.index(algorithm)]
+        ax.set_visible(True)
+        kinds = list(dict.fromkeys(k for r in runs for k in r["target_account"]["by_kind"]))
+        mean = {
+            kind: {
+                stage: (
+                    None if any(r["target_account"]["by_kind"].get(kind, {}).get(stage, 0) is None
+                                for r in runs)
+                    else sum(r["target_account"]["by_kind"].get(kind, {}).get(stage, 0)
+                             for r in runs) / len(runs)
+                )
+                for stage in ("targets", "in_footprint", "seen", "pursued", "confirmed",
+                              "engaged")
+            }
+            for kind in kinds
+        }  # fmt: skip
+        seen = sum(r["target_account"]["totals"]["seen"] for r in runs)
+        engaged = sum(r["target_account"]["totals"]["engaged"] for r in runs)
+        conversion = f"{engaged / seen:.2f}" if seen else "n/a"
+        draw_funnel(ax, mean, f"{scenario} / {algorithm} ({len(runs)} runs): conversion "
+                              f"{conversion}")  # fmt: skip
+    axes[0, 0].legend(loc="upper right", fontsize=7)
+    fig.suptitle(title)
+    return save(fig, path, dpi=110)
+
+
 def write_experiment_figures(
     experiment: str, results: Sequence[dict], path_runs: Sequence[dict], out_dir: Path
 ) -> list[Path]:
@@ -222,4 +265,12 @@ def write_experiment_figures(
             out_dir / f"fig{n['separation']:02d}_separation.png",
         )
     )
+    funnel = plot_target_funnels(
+        results,
+        "Targets by kind: in a footprint, seen (>= 3 steps), pursued, confirmed, engaged "
+        "(mean per run)",
+        out_dir / "targets_funnel.png",
+    )
+    if funnel is not None:
+        written.append(funnel)
     return written

@@ -302,6 +302,56 @@ def friedman_table(results: Sequence[dict]) -> str:
     return "\n".join(lines)
 
 
+CONVERSION_COLUMNS = (
+    "scenario", "algorithm", "seeds", "targets seen (>= 3 steps)", "confirmed", "engaged",
+    "conversion", "misses per run", "paper's engaged",
+)  # fmt: skip
+
+
+def conversion_rows(results: Sequence[dict]) -> list[dict]:
+    """Per (scenario, algorithm), from each run's ``target_account``: mean targets seen (in a
+    footprint for >= 3 steps), confirmed and engaged per run, and the conversion engaged / seen
+    (of the sums over the runs, so the ratio of the means)."""
+    rows = []
+    for (scenario, algorithm), runs in groups(results).items():
+        runs = [r for r in runs if r.get("target_account")]
+        if not runs:
+            continue
+        totals = [r["target_account"]["totals"] for r in runs]
+        seen = sum(t["seen"] for t in totals)
+        engaged = sum(t["engaged"] for t in totals)
+        confirmed = [t["confirmed"] for t in totals if t["confirmed"] is not None]
+        seeds = sorted(r["seed"] for r in runs)
+        rows.append({
+            "scenario": scenario,
+            "algorithm": algorithm,
+            "runs": len(runs),
+            "seeds": f"{seeds[0]}-{seeds[-1]}" if len(seeds) > 1 else str(seeds[0]),
+            "seen": seen / len(runs),
+            "confirmed": sum(confirmed) / len(confirmed) if confirmed else math.nan,
+            "engaged": engaged / len(runs),
+            "conversion": engaged / seen if seen else math.nan,
+            "misses": sum(r["engage_misses"] for r in runs) / len(runs),
+            "paper": PAPER.get((scenario, algorithm), {}).get("engaged_count"),
+        })  # fmt: skip
+    return rows
+
+
+def conversion_table(results: Sequence[dict]) -> str:
+    """The issue-13 table (Markdown): scenario, seeds, seen, confirmed, engaged, conversion."""
+    lines = ["| " + " | ".join(CONVERSION_COLUMNS) + " |", "|" + "---|" * len(CONVERSION_COLUMNS)]
+    for row in conversion_rows(results):
+        cells = [
+            row["scenario"], row["algorithm"], row["seeds"], f"{row['seen']:.1f}",
+            "n/a" if math.isnan(row["confirmed"]) else f"{row['confirmed']:.1f}",
+            f"{row['engaged']:.1f}",
+            "n/a" if math.isnan(row["conversion"]) else f"{row['conversion']:.2f}",
+            f"{row['misses']:.1f}", "—" if row["paper"] is None else str(row["paper"]),
+        ]  # fmt: skip
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 PAPER_TEXT = {
     "efficiency": (
         'Section 4.2 (30 runs, 250 iterations): mean engaged ("destroyed") targets PSO 2.5, '
@@ -357,6 +407,14 @@ def report_markdown(
         "C_r (range); `returned` counts UAVs that ended within one cell of their start. ACOAPF "
         "ignores the range constraint when planning: a UAV of it that reaches L_max stops (it "
         "is lost, not returned) instead of flying on (docs/experiments.md).",
+        "",
+        "## Targets: seen, confirmed, engaged (ground truth, mean per run)",
+        "",
+        conversion_table(results),
+        "",
+        "A target counts as seen when it was inside some UAV's 3 km footprint at >= 3 decision "
+        "steps; conversion is engaged / seen; the funnel figure splits the stages by target "
+        "kind (`target_account` of each run, docs/experiments.md).",
         "",
         "## Friedman test across algorithms (seeds as blocks)",
         "",

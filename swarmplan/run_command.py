@@ -13,6 +13,7 @@ from planner.errors import UserError
 from planner.metrics import format_summary
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
 from sim_gateway.offline_runner import PLANNERS, run_offline
+from sim_gateway.target_account import format_account
 
 HELP = "fly a scenario offline (no MAVLink) and write result.json and figures"
 
@@ -88,5 +89,7 @@ def main(args: argparse.Namespace) -> int:
         print(json.dumps(result))
     else:
         print(format_summary(result))
+        if result.get("target_account"):
+            print(format_account(result["target_account"]))
         print(f"written: {', '.join(str(p) for p in written)}")
     return 0

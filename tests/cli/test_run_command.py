@@ -13,6 +13,12 @@ def test_run_writes_result_and_figures(tmp_path):
     result = json.loads((out / "result.json").read_text())
     assert result["steps"] == 30 and result["seed"] == 3
     assert (out / "paths.png").stat().st_size > 10_000 and (out / "coverage.png").exists()
+    # the per-target account and its funnel figure
+    account = result["target_account"]
+    assert len(account["targets"]) == len(result["targets"])
+    assert account["totals"]["engaged"] == result["engaged_count"]
+    assert (out / "targets.png").stat().st_size > 10_000
+    assert "conversion" in done.stdout
 
 
 def test_json_flag_prints_only_the_result(tmp_path):
