@@ -85,9 +85,10 @@ class DaemonOptions:
     #: guided targets lead the next cell by this many legs along the planned direction, so a
     #: plane passes through the cell centre on time instead of arriving and circling it
     lead_steps: float = 1.0
-    #: the flight-path envelope (flight_envelope.py): predict each plane's path this far ahead
-    #: (simulated s; 0 turns it off) and keep it clear of threats and of the other planes' paths
-    prediction_horizon_s: float = 30.0
+    #: the flight-path envelope (flight_envelope.py): predict each plane's path this many
+    #: decision steps ahead (0 turns it off) and keep it clear of threats and of the other
+    #: planes' paths
+    prediction_horizon_steps: float = 3.0
     predicted_threat_margin_km: float = 0.25
     predicted_separation_margin_km: float = 0.3
     bank_limit_deg: float = 45.0  # ArduPlane ROLL_LIMIT_DEG: sets the predicted turn radius
@@ -165,12 +166,12 @@ class MissionDaemon:
                 self.envelope,
                 self.plane,
                 step_s=cfg.step_s,
-                horizon_s=options.prediction_horizon_s,
+                horizon_steps=options.prediction_horizon_steps,
                 threat_margin_km=options.predicted_threat_margin_km,
                 separation_margin_km=options.predicted_separation_margin_km,
                 leg_timing=options.leg_timing,
             )
-            if options.prediction_horizon_s > 0
+            if options.prediction_horizon_steps > 0
             else None
         )
         self._target_values = {t.id: float(t.value) for t in scenario.targets}

@@ -3,8 +3,9 @@
 The cell-level envelope (``safety_envelope.py``) checks the planner's next cells. A plane does
 not fly cell centres: it turns on a ~1 km radius (more when it flies faster), lags after turns
 and circles a point it reaches. So before a guided target is sent, the daemon predicts the
-flown path (``flight_prediction.py``) over ``horizon_s`` (three decision steps by default:
-long enough to reach a target two legs ahead) and accepts a target only if
+flown path (``flight_prediction.py``) over ``horizon_steps`` decision steps (three by
+default: long enough to reach a target two legs ahead, whatever the step's length) and
+accepts a target only if
 
 * the predicted path, and the chord between its positions at the decision instants (what the
   result's threat count measures), keeps ``threat_margin_km`` clear of every threat circle;
@@ -69,10 +70,17 @@ class FlightEnvelope:
     cells: SafetyEnvelope
     model: PlaneModel
     step_s: float = 10.0
-    horizon_s: float = 30.0
+    #: how far ahead paths are predicted, in decision steps (a horizon in seconds would not
+    #: cover one step of a scenario with longer steps)
+    horizon_steps: float = 3.0
     threat_margin_km: float = 0.25
     separation_margin_km: float = 0.3
     leg_timing: bool = True  # airspeed per leg, so each leg takes one step (flight_prediction)
+
+    @property
+    def horizon_s(self) -> float:
+        """Prediction horizon (s): ``horizon_steps`` decision steps, at least one."""
+        return max(1.0, self.horizon_steps) * self.step_s
 
     def choose(
         self,
@@ -185,8 +193,9 @@ class FlightEnvelope:
             out_aims[i] = cand.aim
             out_speeds[i] = commanded[r]
             if cand.derived:
-                per_step = max(1, round(self.step_s))
-                end, before = path[min(per_step, len(path) - 1)], path[max(per_step - 1, 0)]
+                last = len(path) - 1  # samples are one second apart
+                per_step = min(max(1, round(self.step_s)), last)
+                end, before = path[per_step], path[per_step - 1]
                 out_cells[i] = grid.cell_of(end)
                 move = end - before
                 out_headings[i] = (

@@ -33,3 +33,30 @@ def test_head_on_pair_both_give_way_when_the_second_alone_cannot(paper10):
     assert (
         choice.overrides["predicted_separation"] == 2 and choice.overrides["predicted_threat"] == 0
     )
+
+
+def test_a_step_longer_than_thirty_seconds_keeps_going_without_index_error(paper10):
+    """A 50 s decision step (an ArduPlane scenario's): the prediction covers the whole step
+    (three steps ahead), and a plane left with only "keep flying to your last target" gets the
+    cell its predicted path reaches at the next decision instant. With a fixed 30 s horizon
+    this raised IndexError (index 49 of 31 samples)."""
+    from mavlink_bridge.flight_prediction import predict_paths
+
+    cells = SafetyEnvelope.for_scenario(paper10, 1.0, 1.0)
+    grid = cells.grid
+    envelope = FlightEnvelope(cells, PlaneModel(), step_s=50.0)
+    centre, radius = cells.threat_xy_km[0], float(cells.threat_radius_km[0])
+    # one km south of a threat circle, flying north into it; the planner says straight on,
+    # the last target sent is 6 km behind: only keeping on to it (a turn back) is safe
+    here = grid.cell_of(np.array([[centre[0], centre[1] - radius - 1.0]]))
+    position = grid.centre_km(here)
+    behind = position + [0.0, -6.0]
+    north = np.array([2])
+    choice = envelope.choose(
+        position, np.array([np.pi / 2]), np.full(1, 100.0), here, north, here + [[0, 1]], north,
+        behind, np.zeros(1), position, np.ones(1, dtype=bool), 1.0,
+    )  # fmt: skip
+    np.testing.assert_allclose(choice.aims_km, behind)
+    path = predict_paths(envelope.model, position, np.array([np.pi / 2]), behind, 50.0)[0]
+    assert (choice.next_cells[0] == grid.cell_of(path[50])).all()
+    assert envelope.horizon_s >= 3 * 50.0
