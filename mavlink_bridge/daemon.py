@@ -64,6 +64,7 @@ from mavlink_bridge.vehicle_state import VehicleState
 from planner.errors import UserError
 from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
 from planner.grid import Grid, heading_of_angle
+from planner.pursuit_log import PursuitLog
 from planner.scenario import Scenario, UavStart
 
 
@@ -459,6 +460,7 @@ class MissionDaemon:
             ),
         )
         planner = planner_cls(planning, starts, self.options.seed)
+        PursuitLog().attach(planner)  # the planner's half of the per-target account (read-only)
         recorder = recorder_cls(
             scenario, starts, turn_tolerance_deg=self.options.turn_tolerance_deg
         )
@@ -510,6 +512,9 @@ class MissionDaemon:
             str(self.options.tlog_path) if self.options.tlog_path else None,
             None if self.resume_from is None else self.resume_from.step,
         )
+        log = PursuitLog.of(state.planner)
+        if log is not None:  # joined with a simulator's truth by swarmplan demo
+            extra["planner_facts"] = log.facts()
         return state.recorder.result(
             self.options.seed, ALGORITHM, time.monotonic() - started, extra=extra
         )

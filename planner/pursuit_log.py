@@ -43,6 +43,15 @@ class PursuitLog:
         planner.observers.append(self.record)
         return self
 
+    @staticmethod
+    def of(planner) -> PursuitLog | None:
+        """The log attached to ``planner`` (also after a checkpoint restored it), or None."""
+        for observe in getattr(planner, "observers", ()):
+            owner = getattr(observe, "__self__", None)
+            if isinstance(owner, PursuitLog):
+                return owner
+        return None
+
     def record(self, planner, decision) -> None:
         """The facts of the step ``planner`` just decided (``decision``: its ``StepDecision``);
         called by the planner before its forecast, so beliefs are those the step acted on."""

@@ -16,12 +16,16 @@ import signal
 import sys
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 os.environ.setdefault("MAVLINK20", "1")
 
 from planner.errors import UserError  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 from sim_gateway.signing import load_signing_key  # noqa: E402
+
+if TYPE_CHECKING:
+    from sim_gateway.simulator import Simulator
 
 HELP = (
     "run N simulated fixed-wing autopilots (ArduPlane-like) over UDP MAVLink in front of the world"
@@ -119,6 +123,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="MAVLink 2 signing key (64 hex characters or 32 bytes): sign everything, refuse "
         "unsigned or wrongly signed commands; default $SWARMPLAN_SIGNING_KEY if set",
     )
+    parser.add_argument(
+        "--target-account",
+        type=Path,
+        metavar="PATH",
+        help="on exit, write the ground-truth half of the per-target account (JSON, "
+        "sim_gateway/target_account.py) here; swarmplan demo joins it into result.json",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
@@ -178,7 +189,23 @@ def main(args: argparse.Namespace) -> int:
         with contextlib.suppress(KeyboardInterrupt):
             sim.run(sim_duration_s=args.duration_s, on_progress=progress)
         print(json.dumps(sim.summary()), flush=True)
+        if args.target_account is not None:
+            write_target_truth(sim, args.target_account)
     return 0
+
+
+def write_target_truth(sim: Simulator, path: Path) -> None:
+    """The simulator's ground-truth target account as JSON at ``path`` (written whole, then
+    renamed into place, so a reader never sees half a file)."""
+    partial = path.with_name(path.name + ".partial")
+    try:
+        partial.write_text(json.dumps(sim.target_account.truth()))
+        partial.replace(path)
+    except OSError as exc:
+        raise UserError(
+            f"cannot write the target account to {path} ({exc.strerror}); choose another "
+            "--target-account path"
+        ) from None
 
 
 def _interrupt(signum: int, frame: object) -> None:

@@ -46,6 +46,7 @@ from sim_gateway.lockstep import LockstepGate
 from sim_gateway.mavlink_endpoint import DatagramParser, LinkStats, VehicleSocket
 from sim_gateway.message_handlers import AUTOPILOT_ONLY, HANDLERS
 from sim_gateway.mission_protocol import retry_upload
+from sim_gateway.target_account import TargetAccount
 from sim_gateway.telemetry import BUILDERS, FleetSnapshot
 from sim_gateway.vehicle import Vehicle
 from sim_gateway.world import World
@@ -142,6 +143,7 @@ class Simulator:
         self.origin: Origin = scenario.origin
         self.grid = Grid(self.config.grid_nx, self.config.grid_ny, self.config.cell_km)
         self.world = World(scenario, options.seed)
+        self.target_account = TargetAccount(self.world)  # ground truth per target (never sent)
         self.stats = LinkStats()
         self.parser = DatagramParser(self.stats)
         self.boot_s = 0.0 if options.airborne else options.boot_s
@@ -241,7 +243,9 @@ class Simulator:
     def engage(self, index: int) -> EngagementOutcome:
         xy_km = np.array([self.fleet.x_m[index], self.fleet.y_m[index]]) / 1000.0
         self.engagements += 1
-        return self.world.engage(xy_km, self.decision_step)
+        outcome = self.world.engage(xy_km, self.decision_step)
+        self.target_account.record_engagement(self.decision_step, index, outcome)
+        return outcome
 
     def snapshot(self) -> FleetSnapshot:
         """Geodetic positions of every vehicle (one vectorised conversion) and clocks."""
@@ -432,6 +436,7 @@ class Simulator:
         x_km, y_km = geodetic_to_local_km(lat_e7 / 1e7, lon_e7 / 1e7, self.origin)
         xy = np.stack([x_km, y_km], axis=1)
         reports = self.world.sense(xy)
+        self.target_account.observe(self.decision_step, xy, None, reports, self.time_boot_ms())
         look_cells = self.grid.cell_of(xy)
         boot_ms = self.time_boot_ms()
         utc_us = self.utc0_us + int(self.sim_time_s * 1e6)

@@ -53,15 +53,13 @@ class TargetAccount:
 
     def __init__(self, world: World) -> None:
         self.world = world
-        t = len(world.target_ids)
-        self.footprint_steps = np.zeros(t, dtype=np.int64)
-        self.first_sighting = np.full(t, -1, dtype=np.int64)
-        self.detections = np.zeros(t, dtype=np.int64)
-        self.first_detection = np.full(t, -1, dtype=np.int64)
-        self.engaged_step = np.full(t, -1, dtype=np.int64)
-        self.engaged_uav = np.full(t, -1, dtype=np.int64)
+        self.engaged_step = np.full(len(world.target_ids), -1, dtype=np.int64)
+        self.engaged_uav = np.full(len(world.target_ids), -1, dtype=np.int64)
         self.steps: list[int] = []
+        self.times_ms: list[int | None] = []
         self.positions: list[np.ndarray] = []  # (T, 2) km at each observed step
+        self.inside: list[np.ndarray] = []  # target indices inside some footprint, per step
+        self.detected: list[np.ndarray] = []  # ... and reported by a look (b = 1 at its cell)
 
     def observe(
         self,
@@ -69,25 +67,27 @@ class TargetAccount:
         uav_xy_km: np.ndarray,
         airborne: np.ndarray | None = None,
         reports: Sequence[SensorReport | None] | None = None,
+        time_ms: int | None = None,
     ) -> None:
         """Decision step ``step``: the UAVs looked from ``uav_xy_km`` (N, 2); only ``airborne``
         ones count. ``reports``, if given, are the looks the sensor returned, one per row of
         ``uav_xy_km`` (None for a UAV that did not look): a look with b = 1 at a target's cell
-        counts as a detection of it. Call it with the world as it was at the looks."""
+        counts as a detection of it. ``time_ms``: the looks' time stamp (``time_boot_ms`` of a
+        simulator), by which ``align_steps`` finds a ground station's step. Call it with the
+        world as it was at the looks."""
         world = self.world
         xy = np.asarray(uav_xy_km, dtype=float).reshape(-1, 2)
         flying = np.ones(len(xy), bool) if airborne is None else np.asarray(airborne, bool)
         self.steps.append(int(step))
+        self.times_ms.append(None if time_ms is None else int(time_ms))
         self.positions.append(world.positions.copy())
         live = np.flatnonzero(world.alive)
-        if live.size == 0 or not flying.any():
-            return
-        _, target, _ = world.footprint_hits(world.grid.cell_of(xy[flying]), live)
         inside = np.zeros(len(world.target_ids), dtype=bool)
-        inside[live[target]] = True
-        self.footprint_steps += inside
-        self.first_sighting[inside & (self.first_sighting < 0)] = step
-        if reports is not None:
+        if live.size and flying.any():
+            _, target, _ = world.footprint_hits(world.grid.cell_of(xy[flying]), live)
+            inside[live[target]] = True
+        detected = np.zeros_like(inside)
+        if reports is not None and inside.any():
             hit = np.zeros(world.grid.shape, dtype=bool)
             for i, report in enumerate(reports):
                 if report is not None and flying[i]:
@@ -95,8 +95,8 @@ class TargetAccount:
                     hit[cells[:, 0], cells[:, 1]] = True
             cells = world.grid.cell_of(world.positions)
             detected = inside & hit[cells[:, 0], cells[:, 1]]
-            self.detections += detected
-            self.first_detection[detected & (self.first_detection < 0)] = step
+        self.inside.append(np.flatnonzero(inside))
+        self.detected.append(np.flatnonzero(detected))
 
     def record_engagement(self, step: int, uav: int, outcome: EngagementOutcome) -> None:
         """An engagement of UAV ``uav`` (0-based) at ``step`` came back with ``outcome``."""
@@ -108,7 +108,9 @@ class TargetAccount:
             self.engaged_uav[index[0]] = uav
 
     def truth(self) -> dict:
-        """The truth half as a JSON-ready dict (``account_of`` joins it with planner facts)."""
+        """The truth half as a JSON-ready dict (``account_of`` joins it with planner facts):
+        per target its kind, value and engagement; per observed step the targets' positions and
+        which targets were inside a footprint and detected."""
         world, cfg = self.world, self.world.config
         return {
             "detection_radius_km": cfg.detection_radius_km,
@@ -119,22 +121,54 @@ class TargetAccount:
                     "id": int(world.target_ids[t]),
                     "kind": KIND_NAMES[int(world.kinds[t])],
                     "value": float(world.values[t]),
-                    "steps_in_footprint": int(self.footprint_steps[t]),
-                    "first_sighting": _step(self.first_sighting[t]),
-                    "detections": int(self.detections[t]),
-                    "first_detection": _step(self.first_detection[t]),
                     "engaged_step": _step(self.engaged_step[t]),
                     "engaged_uav": _step(self.engaged_uav[t]),
                 }
                 for t in range(len(world.target_ids))
             ],
             "steps": list(self.steps),
+            "times_ms": list(self.times_ms),
             "positions_km": [np.round(p, 3).tolist() for p in self.positions],
+            "in_footprint": [a.tolist() for a in self.inside],
+            "detected": [a.tolist() for a in self.detected],
         }
 
 
 def _step(value: int) -> int | None:
     return None if value < 0 else int(value)
+
+
+def align_steps(truth: dict, step_times_ms: dict[int, int], tolerance_ms: float) -> dict:
+    """``truth`` renumbered into a ground station's decision steps: a simulator counts its
+    decision steps from its own start, a ground station from the take-off, so the two are
+    joined by the looks' time stamps. ``step_times_ms`` maps each ground-station step to the
+    time stamp of the looks it used; a truth step is kept when its ``times_ms`` lies within
+    ``tolerance_ms`` of one (the nearest). An engagement keeps the step of the ground-station
+    step that asked for it (the one matched to the truth step it happened in)."""
+    times = np.array([np.nan if t is None else t for t in truth["times_ms"]], dtype=float)
+    renumber: dict[int, int] = {}
+    for step, stamp in sorted(step_times_ms.items()):
+        if not len(times):
+            break
+        gap = np.abs(times - stamp)
+        if np.isnan(gap).all():
+            continue
+        nearest = int(np.nanargmin(gap))
+        if gap[nearest] <= tolerance_ms:
+            renumber.setdefault(int(truth["steps"][nearest]), int(step))
+    # an engagement at a truth step no look was matched to: the steps' usual offset
+    offset = int(np.median([d - s for s, d in renumber.items()])) if renumber else 0
+    kept = [i for i, s in enumerate(truth["steps"]) if s in renumber]
+    aligned = dict(truth)
+    for key in ("times_ms", "positions_km", "in_footprint", "detected"):
+        aligned[key] = [truth[key][i] for i in kept]
+    aligned["steps"] = [renumber[truth["steps"][i]] for i in kept]
+    aligned["targets"] = [
+        {**t, "engaged_step": renumber.get(t["engaged_step"], t["engaged_step"] + offset)
+         if t["engaged_step"] is not None else None}
+        for t in truth["targets"]
+    ]  # fmt: skip
+    return aligned
 
 
 def _join_beliefs(beliefs: np.ndarray, at: np.ndarray, live: np.ndarray, truth_xy: np.ndarray,
@@ -179,17 +213,37 @@ def _join_tracks(
     return pursued, by, confirmed
 
 
-def account_of(truth: dict, facts: dict | None = None) -> dict:
+def account_of(truth: dict, facts: dict | None = None, last_step: int | None = None) -> dict:
     """The per-target account: the truth half (``TargetAccount.truth``) joined with the
-    planner's facts (``PursuitLog.facts``; None leaves belief, pursuit and confirmation out).
+    planner's facts (``PursuitLog.facts``; None leaves belief, pursuit and confirmation out),
+    over the steps up to ``last_step`` (default all; a simulator runs on after the mission).
     Returns ``{"targets": rows, "totals": counts, "by_kind": {kind: counts}}``."""
-    rows = [dict(r) for r in truth["targets"]]
+    rows = []
+    for r in truth["targets"]:
+        row = {k: r[k] for k in ("id", "kind", "value")}
+        late = last_step is not None and (r["engaged_step"] or 0) > last_step
+        row["engaged_step"] = None if late else r["engaged_step"]
+        row["engaged_uav"] = None if late else r["engaged_uav"]
+        rows.append(row)
     t = len(rows)
-    steps = list(truth["steps"])
+    kept = [i for i, s in enumerate(truth["steps"]) if last_step is None or s <= last_step]
+    steps = [truth["steps"][i] for i in kept]
     index = {s: i for i, s in enumerate(steps)}
-    positions = np.asarray(truth["positions_km"], dtype=float).reshape(len(steps), t, 2)
-    engaged = np.array([-1 if r["engaged_step"] is None else r["engaged_step"] for r in rows])
+    positions = np.asarray([truth["positions_km"][i] for i in kept], dtype=float).reshape(
+        len(steps), t, 2
+    )
+    inside = np.zeros((len(steps), t), dtype=bool)
+    detected = np.zeros((len(steps), t), dtype=bool)
+    for row_index, i in enumerate(kept):
+        inside[row_index, truth["in_footprint"][i]] = True
+        detected[row_index, truth["detected"][i]] = True
     step_arr = np.asarray(steps, dtype=np.int64)
+    for k, row in enumerate(rows):
+        row["steps_in_footprint"] = int(inside[:, k].sum())
+        row["first_sighting"] = int(step_arr[inside[:, k]][0]) if inside[:, k].any() else None
+        row["detections"] = int(detected[:, k].sum())
+        row["first_detection"] = int(step_arr[detected[:, k]][0]) if detected[:, k].any() else None
+    engaged = np.array([-1 if r["engaged_step"] is None else r["engaged_step"] for r in rows])
     live = (engaged[None, :] < 0) | (step_arr[:, None] <= engaged[None, :])  # (S, T)
     joined = facts is not None
     if joined:

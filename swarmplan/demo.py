@@ -11,15 +11,19 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from mavlink_bridge.cli import add_leg_timing_arguments
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
+from mavlink_bridge.mission_result import StepRecord
 from planner.errors import UserError
 from planner.metrics import format_summary
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
+from sim_gateway.target_account import account_of, align_steps, format_account
 from swarmplan.run_command import positive_int, seed_int, write_outputs
 
 HELP = "fly a scenario end to end: the MAVLink simulator and the planner daemon on loopback UDP"
@@ -62,10 +66,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def start_simulator(
-    scenario: str, seed: int, speedup: float | None, port: int, log: Path
-) -> subprocess.Popen:
+    scenario: str, seed: int, speedup: float | None, port: int, log: Path,
+    target_truth: Path | None = None,
+) -> subprocess.Popen:  # fmt: skip
     """``python -m swarmplan sim`` sending to our port (``--lockstep`` when ``speedup`` is
-    None); its output goes to ``log``."""
+    None); its output goes to ``log``, its ground-truth target account to ``target_truth``."""
     pace = ["--lockstep", "--speedup", f"{RELEASED_SPEEDUP:g}"]
     if speedup is not None:
         pace = ["--speedup", f"{speedup:g}"]
@@ -84,6 +89,7 @@ def start_simulator(
         "--gcs-port",
         str(port),
         "--quiet",
+        *([] if target_truth is None else ["--target-account", str(target_truth)]),
     ]
     with open(log, "wb") as sink:
         return subprocess.Popen(
@@ -107,6 +113,39 @@ def last_line(path: Path) -> str:
     except OSError:
         return ""
     return lines[-1] if lines else ""
+
+
+class LookTimes:
+    """A daemon step listener: the time stamp (the simulator's ``time_boot_ms``) of the looks
+    each decision step used, to find the simulator's step of each daemon step."""
+
+    def __init__(self) -> None:
+        self.by_step: dict[int, int] = {}
+
+    def __call__(self, record: StepRecord) -> None:
+        stamps = record.positions_ms[record.active & (record.positions_ms > 0)]
+        if stamps.size:
+            values, counts = np.unique(stamps.astype(np.int64), return_counts=True)
+            self.by_step[record.status.step] = int(values[np.argmax(counts)])
+
+
+def join_target_account(
+    result: dict, truth_path: Path, look_times: dict[int, int], step_s: float,
+    say: Callable[[str], None],
+) -> None:  # fmt: skip
+    """The per-target account of a demo: the simulator's ground truth (``truth_path``, written
+    when it stopped) renumbered into the daemon's steps by the looks' time stamps, joined with
+    the daemon's planner facts by step and position (``sim_gateway.target_account``), cut at
+    the mission's last step."""
+    try:
+        truth = json.loads(truth_path.read_text())
+    except (OSError, ValueError) as exc:
+        say(f"warning: no target account: the simulator's truth is unreadable ({exc})")
+        return
+    aligned = align_steps(truth, look_times, tolerance_ms=500 * step_s)
+    result["target_account"] = account_of(
+        aligned, result.get("planner_facts"), last_step=result["steps"]
+    )
 
 
 def main(args: argparse.Namespace) -> int:
@@ -141,6 +180,7 @@ def main(args: argparse.Namespace) -> int:
             bar.write(f"demo: {text}", file=sys.stderr)
 
     lockstep = args.speedup is None
+    look_times = LookTimes()  # to join the simulator's ground truth to the daemon's steps
     options = DaemonOptions(
         connect=["udpin:127.0.0.1:0"],
         seed=args.seed,
@@ -155,12 +195,15 @@ def main(args: argparse.Namespace) -> int:
         tlog_path=out / "mission.tlog",
         progress=say,
         on_step=on_step,
+        step_listeners=[look_times],
     )
     daemon = MissionDaemon(scenario, options)
     link = daemon.connect()
     port = link.endpoints[0].port
     sim_log = out / "sim.log"
-    sim = start_simulator(args.scenario, args.seed, args.speedup, port, sim_log)
+    truth_path = out / "target_truth.json"
+    truth_path.unlink(missing_ok=True)  # a file from an earlier run must not be joined
+    sim = start_simulator(args.scenario, args.seed, args.speedup, port, sim_log, truth_path)
     say(
         f"simulator started (pid {sim.pid}, {scenario.uav_count} vehicles, "
         f"{'lockstep' if lockstep else f'{args.speedup:g}x'}) "
@@ -181,11 +224,14 @@ def main(args: argparse.Namespace) -> int:
         stop_simulator(sim)
     result = report.result
     result["wall_time_s"] = time.monotonic() - started
+    join_target_account(result, truth_path, look_times.by_step, scenario.config.step_s, say)
     written = write_outputs(result, out)
     if quiet:
         print(json.dumps(result))
         return 0
     print(format_summary(result))
+    if result.get("target_account"):
+        print(format_account(result["target_account"]))
     lost = result.get("lost_uavs") or []
     if lost:
         print(f"lost vehicles   {', '.join(str(i + 1) for i in lost)} (system ids)")

@@ -75,8 +75,23 @@ def test_demo_json_short_mission_has_no_violations(tmp_path):
         "mission.geojson",
         "waypoints/uav01_flown.waypoints",
         "plan/uav10.plan",
+        "target_truth.json",
+        "targets.png",
     ):
         assert (tmp_path / name).exists(), name
+    # the per-target account: the simulator's truth joined with the daemon's planner facts
+    account = result["target_account"]
+    assert len(account["targets"]) == 16 and result["planner_facts"]["beliefs"]
+    assert account["totals"]["in_footprint"] > 0
+    rows = {r["id"]: r for r in account["targets"]}
+    assert sorted(r["id"] for r in rows.values() if r["outcome"] == "engaged") == sorted(
+        e["target_id"] for e in result["engagements"]
+    )
+    for e in result["engagements"]:  # the simulator's steps renumbered into the daemon's
+        row = rows[e["target_id"]]
+        assert (row["engaged_step"], row["engaged_uav"]) == (e["step"], e["uav"])
+        assert row["steps_in_footprint"] > 0 and row["first_sighting"] <= e["step"]
+    assert all(r["first_sighting"] is None or r["first_sighting"] <= 35 for r in rows.values())
 
 
 class CuttableRelay(threading.Thread):
