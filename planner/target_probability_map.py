@@ -323,6 +323,13 @@ def initial_layers(
     return specs, maps
 
 
+def existence_of_layers(maps: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Target existence probability ``p_mn = 1 - prod_layers (1 - layer_mn)`` of one UAV's
+    stored layers ``maps`` (L, nx, ny) with their scale (L,) (see the module docstring)."""
+    layers = maps.astype(np.float64) * np.asarray(scale)[:, None, None]
+    return 1.0 - np.prod(1.0 - np.clip(layers, 0.0, 1.0), axis=0)
+
+
 class TargetProbabilityMaps:
     """The TPMs of the whole swarm: layer l of UAV i's map is ``maps[l, i] * scale[l, i]``.
 
@@ -531,8 +538,7 @@ class TargetProbabilityMaps:
 
     def existence_map(self, uav: int) -> np.ndarray:
         """The whole existence-probability map of one UAV (for figures and tests)."""
-        layers = self.maps[:, uav].astype(np.float64) * self.scale[:, uav, None, None]
-        return 1.0 - np.prod(1.0 - np.clip(layers, 0.0, 1.0), axis=0)
+        return existence_of_layers(self.maps[:, uav], self.scale[:, uav])
 
     def layer_map(self, layer: int, uav: int) -> np.ndarray:
         """Expected number of layer ``layer``'s targets in each cell, as UAV ``uav`` believes."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -28,6 +29,21 @@ PLANNERS: dict[str, Callable] = {
 }
 
 
+@dataclass(frozen=True)
+class OfflineStep:
+    """What one offline decision step did, for an observer (the mission view's recorder):
+    read it, never change it. ``decision`` is None for the final record (no decision)."""
+
+    step: int
+    positions_km: np.ndarray  # (N, 2) cell centres at the decision instant
+    headings: np.ndarray  # (N,) heading indices
+    decision: object | None  # the planner's StepDecision
+    engagements: list[tuple[int, EngagementOutcome]]  # (UAV, outcome) requested this step
+    coverage: float  # J_E so far
+    truth: np.ndarray  # (T, 4) target id, x_km, y_km, alive (1/0), before the world moves on
+    planner: object
+
+
 def run_offline(
     scenario: Scenario,
     seed: int,
@@ -35,10 +51,12 @@ def run_offline(
     algorithm: str = "hapf-aco",
     progress: Callable[[int], None] | None = None,
     account: bool = True,
+    observer: Callable[[OfflineStep], None] | None = None,
 ) -> dict:
     """Fly ``scenario`` for ``steps`` decision steps with one seed; returns the result dict,
     with the per-target account (``sim_gateway.target_account``) unless ``account`` is False
-    (the flight is the same either way: the account only reads)."""
+    (the flight is the same either way: the account only reads). ``observer`` gets an
+    ``OfflineStep`` after every decision step and one for the end (the mission view's replay)."""
     started = time.perf_counter()
     cfg = scenario.config
     steps = scenario.steps if steps is None else steps
@@ -71,12 +89,44 @@ def run_offline(
                 recorder.record_engagement(k, int(i), outcome.target_id, outcome.value)
             else:
                 recorder.record_engagement_miss()
+        if observer is not None:
+            record = _observed(k, positions, headings, decision, outcomes, recorder, world, planner)
+            observer(record)
         cells, headings, done = decision.next_cells, decision.next_headings, decision.done
         world.step()
         recorder.record_step(grid.centre_km(cells), planned_km=grid.centre_km(cells), done=done)
         if progress is not None:
             progress(k + 1)
+    if observer is not None:
+        positions = grid.centre_km(cells)
+        observer(_observed(steps, positions, headings, None, [None] * len(starts), recorder, world,
+                           planner))  # fmt: skip
     extra = None
     if truth is not None and log is not None:
         extra = {"target_account": account_of(truth.truth(), log.facts())}
     return recorder.result(seed, algorithm, time.perf_counter() - started, extra=extra)
+
+
+def _observed(
+    k: int,
+    positions: np.ndarray,
+    headings: np.ndarray,
+    decision: object | None,
+    outcomes: list[EngagementOutcome | None],
+    recorder: MissionRecorder,
+    world: World,
+    planner: object,
+) -> OfflineStep:
+    truth = np.column_stack(
+        [world.target_ids, world.positions, world.alive.astype(float)]
+    ).astype(float)
+    return OfflineStep(
+        step=k,
+        positions_km=positions.copy(),
+        headings=np.array(headings, copy=True),
+        decision=decision,
+        engagements=[(i, o) for i, o in enumerate(outcomes) if o is not None],
+        coverage=recorder.coverage_curve[-1] if recorder.coverage_curve else 0.0,
+        truth=truth,
+        planner=planner,
+    )

@@ -75,15 +75,50 @@ def write_outputs(result: dict, out_dir: Path) -> list[Path]:
     return written + list(export_all(result, out_dir))
 
 
+class ReplayRecording:
+    """The replay of an offline run (``mission_view``; ``swarmplan view OUT`` shows it)."""
+
+    def __init__(self, scenario, seed: int, steps: int, out_dir: Path) -> None:
+        from mission_view.sources import OfflineViews
+        from mission_view.view_session import ViewSession
+
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(
+                f"cannot write to {out_dir} ({exc.strerror}); choose another --out folder"
+            ) from None
+        self.views = OfflineViews(scenario)
+        self.session = ViewSession(
+            scenario, seed=seed, steps=steps, uav_count=scenario.uav_count, source="offline",
+            truth=True, out_dir=out_dir, live=False,
+        )  # fmt: skip
+
+    def observe(self, record) -> None:
+        self.session.post(self.views.view(record), record.planner)
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def record_replay(scenario, seed: int, steps: int, out_dir: Path) -> ReplayRecording:
+    return ReplayRecording(scenario, seed, steps, out_dir)
+
+
 def main(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     steps = args.steps or scenario.steps
     out_dir = args.out or Path("runs") / f"{scenario.name}-seed{args.seed}"
+    recording = record_replay(scenario, args.seed, steps, out_dir)
     with tqdm(total=steps, desc=f"{scenario.name} seed {args.seed}", unit="step", disable=args.json,
               file=sys.stderr, leave=False) as bar:  # fmt: skip
-        result = run_offline(
-            scenario, args.seed, steps, args.algorithm, progress=lambda k: bar.update(1)
-        )
+        try:
+            result = run_offline(
+                scenario, args.seed, steps, args.algorithm, progress=lambda k: bar.update(1),
+                observer=recording.observe,
+            )  # fmt: skip
+        finally:
+            recording.close()
     written = write_outputs(result, out_dir)
     if args.json:
         print(json.dumps(result))

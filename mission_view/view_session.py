@@ -1,0 +1,112 @@
+"""One mission's view, as a command sets it up: the store, the feed from the decision loop, the
+replay file in the result folder and, for a live view, the server (see docs/view.md)."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from mission_view.belief_layers import LAYER_SCALES, layer_shape
+from mission_view.feed import ViewFeed
+from mission_view.mission_store import MissionStore
+from mission_view.replay_file import ReplayWriter, replay_path
+from mission_view.view_model import StepView, mission_layout
+from planner.errors import UserError
+from planner.scenario import Scenario
+
+
+@dataclass(frozen=True)
+class ViewOptions:
+    """``--no-view``, ``--view-host``, ``--view-port`` of ``daemon`` and ``demo``."""
+
+    serve: bool = True
+    host: str = "127.0.0.1"
+    port: int = 0  # 0: a free port, printed at start
+
+
+def add_view_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--no-view", action="store_true", help="do not serve the live view in the browser"
+    )
+    parser.add_argument(
+        "--view-host",
+        default="127.0.0.1",
+        help="address the live view listens on (default 127.0.0.1: this machine only)",
+    )
+    parser.add_argument(
+        "--view-port",
+        type=_port,
+        default=0,
+        help="port of the live view (default 0: a free one; the URL is printed at start)",
+    )
+
+
+def view_options(args: argparse.Namespace) -> ViewOptions:
+    return ViewOptions(not args.no_view, args.view_host, args.view_port)
+
+
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number (0..65535)")
+    return port
+
+
+class ViewSession:
+    """Records a mission into ``out_dir/replay.jsonl.gz`` and, with ``options.serve``, serves
+    it live. ``post`` once per decision step from the loop; ``close`` at the end."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        seed: int,
+        steps: int,
+        uav_count: int,
+        source: str,
+        truth: bool,
+        out_dir: Path | None,
+        options: ViewOptions | None = None,
+        live: bool = True,
+    ) -> None:
+        self.options = options or ViewOptions(serve=False)
+        layout = mission_layout(
+            scenario, seed=seed, steps=steps, uav_count=uav_count, source=source, live=live,
+            truth=truth, layer_shape=layer_shape(scenario.config), layer_scales=LAYER_SCALES,
+        )  # fmt: skip
+        self.store = MissionStore(layout)
+        self.writer = None if out_dir is None else ReplayWriter(replay_path(out_dir), layout)
+        self.server = None
+        self.url: str | None = None
+        if self.options.serve:
+            from mission_view.server import ViewServer
+
+            self.server = ViewServer(self.store, self.options.host, self.options.port)
+            try:
+                self.url = self.server.start()
+            except UserError:
+                if self.writer is not None:
+                    self.writer.close(ended=False)
+                raise
+        # a live mission never waits for the view; a recording-only run records every step
+        self.feed = ViewFeed(self.store, scenario.config, self.writer, drop_beliefs=live)
+
+    def post(self, view: StepView, planner: Any = None) -> None:
+        self.feed.post(view, planner)
+
+    def phase(self, text: str) -> None:
+        self.feed.phase(text)
+
+    def close(self) -> None:
+        """The mission is over: record what is pending and close the replay file (the server,
+        if any, keeps serving until ``stop``)."""
+        self.feed.close()
+
+    def stop(self) -> None:
+        if self.server is not None:
+            self.server.stop()
