@@ -7,10 +7,12 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
 from mavlink_bridge.signing import KEY_ENV, load_signing_key
 from mavlink_bridge.waypoint_export import export_all
+from mission_view.view_session import add_view_arguments
 from planner.errors import UserError
 from planner.metrics import format_summary
 from planner.scenario import load_scenario
@@ -103,6 +105,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", type=Path, default=Path("out/daemon"), help="output folder (default out/daemon)"
     )
+    add_view_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print only the result JSON")
 
 
@@ -185,7 +188,8 @@ def main(args: argparse.Namespace) -> int:
         else (lambda text: print(f"\n{text}" if text else "", file=sys.stderr)),
         on_step=None if quiet else print_step,
     )
-    report = MissionDaemon(scenario, options).fly()
+    daemon = MissionDaemon(scenario, options)
+    report = fly_with_view(daemon, args, out)
     result = report.result
     (out / "result.json").write_text(json.dumps(result, indent=2, default=float))
     files = export_all(result, out)
@@ -195,6 +199,35 @@ def main(args: argparse.Namespace) -> int:
     print(file=sys.stderr)
     print_summary(result, out, files)
     return 0
+
+
+def fly_with_view(daemon: MissionDaemon, args: argparse.Namespace, out: Path) -> Any:
+    """Fly the mission with the mission view (docs/view.md): the replay written to ``out``
+    and, unless ``--no-view``, the live view served (its URL said on stderr)."""
+    from mavlink_bridge.view_feed import DaemonViewFeed
+    from mission_view.view_session import ViewSession, view_options
+
+    view = ViewSession(
+        daemon.scenario, seed=args.seed, steps=daemon.steps, uav_count=daemon.n,
+        source="mavlink", truth=False, out_dir=out, options=view_options(args),
+    )  # fmt: skip
+    feed = DaemonViewFeed(daemon, view)
+    said = daemon.options.progress
+    daemon.options.step_listeners.append(feed.listener)
+
+    def progress(text: str) -> None:
+        if said is not None:
+            said(text)
+        feed.progress(text)
+
+    daemon.options.progress = progress
+    if view.url is not None:
+        print(f"daemon: live view at {view.url}", file=sys.stderr, flush=True)
+    try:
+        return daemon.fly()
+    finally:
+        view.close()
+        view.stop()
 
 
 def print_summary(result: dict, out: Path, files: list[Path]) -> None:

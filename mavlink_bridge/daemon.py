@@ -552,6 +552,12 @@ class MissionDaemon:
             engage=np.asarray(plan.decision.engage, dtype=bool).copy(),
             late=late,
             planner=state.planner,
+            engagements=tuple(
+                (e["uav"], e["target_id"], e["value"])
+                for e in state.recorder.engagements
+                if e["step"] == inputs.step
+            ),
+            modes=np.asarray(plan.decision.modes).copy(),
         )
         for listener in self.options.step_listeners:
             listener(record)

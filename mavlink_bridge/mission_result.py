@@ -52,6 +52,10 @@ class StepRecord:
     engage: np.ndarray  # (N,) bool: engagement requested this step
     late: bool  # paced time: this step's commands went out late
     planner: Any = None
+    #: engagements acknowledged this step: (UAV, target id, value); and the planner's mode of
+    #: each UAV (index into planner.hapf_aco.MODES), for the mission view's timeline and table
+    engagements: tuple[tuple[int, int, float], ...] = ()
+    modes: np.ndarray | None = None
 
 
 StepListener = Callable[[StepRecord], None]

@@ -37,7 +37,7 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--view-port",
-        type=_port,
+        type=port_number,
         default=0,
         help="port of the live view (default 0: a free one; the URL is printed at start)",
     )
@@ -47,7 +47,7 @@ def view_options(args: argparse.Namespace) -> ViewOptions:
     return ViewOptions(not args.no_view, args.view_host, args.view_port)
 
 
-def _port(text: str) -> int:
+def port_number(text: str) -> int:
     try:
         port = int(text)
     except ValueError:

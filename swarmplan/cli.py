@@ -25,6 +25,7 @@ SUBCOMMANDS = (
     ("daemon", "mavlink_bridge.cli"),
     ("export", "mavlink_bridge.export_command"),
     ("experiment", "swarmplan.experiment_command"),
+    ("view", "mission_view.view_command"),
 )
 
 

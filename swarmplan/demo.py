@@ -20,6 +20,8 @@ from tqdm import tqdm
 from mavlink_bridge.cli import add_leg_timing_arguments
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
 from mavlink_bridge.mission_result import StepRecord
+from mavlink_bridge.view_feed import DaemonViewFeed
+from mission_view.view_session import ViewSession, add_view_arguments, view_options
 from planner.errors import UserError
 from planner.metrics import format_summary
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
@@ -62,6 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="output folder (default runs/<scenario>-seed<S>-demo)",
     )
     add_leg_timing_arguments(parser)
+    add_view_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print only the result JSON on stdout")
 
 
@@ -175,9 +178,13 @@ def main(args: argparse.Namespace) -> int:
             f"coverage {status.coverage * 100:.1f}% engaged {status.engaged} active {status.active}"
         )
 
+    feeds: list[DaemonViewFeed] = []
+
     def say(text: str) -> None:
         if not quiet:
             bar.write(f"demo: {text}", file=sys.stderr)
+        for feed in feeds:
+            feed.progress(text)
 
     lockstep = args.speedup is None
     look_times = LookTimes()  # to join the simulator's ground truth to the daemon's steps
@@ -198,7 +205,20 @@ def main(args: argparse.Namespace) -> int:
         step_listeners=[look_times],
     )
     daemon = MissionDaemon(scenario, options)
-    link = daemon.connect()
+    view = ViewSession(
+        scenario, seed=args.seed, steps=steps, uav_count=scenario.uav_count, source="mavlink",
+        truth=False, out_dir=out, options=view_options(args),
+    )  # fmt: skip
+    feeds.append(DaemonViewFeed(daemon, view))
+    options.step_listeners.append(feeds[0].listener)
+    if view.url is not None:  # printed even with --json (on stderr): the way to open it
+        bar.write(f"demo: live view at {view.url}", file=sys.stderr)
+    try:
+        link = daemon.connect()
+    except BaseException:
+        view.close()
+        view.stop()
+        raise
     port = link.endpoints[0].port
     sim_log = out / "sim.log"
     truth_path = out / "target_truth.json"
@@ -222,6 +242,8 @@ def main(args: argparse.Namespace) -> int:
     finally:
         bar.close()
         stop_simulator(sim)
+        view.close()
+        view.stop()
     result = report.result
     result["wall_time_s"] = time.monotonic() - started
     join_target_account(result, truth_path, look_times.by_step, scenario.config.step_s, say)

@@ -14,6 +14,7 @@ const view = {
   layout: null, steps: [], events: [], current: -1, follow: true, ended: false,
   kind: "coverage", uav: 0, layerStep: null, layerKind: null, layerUav: null, layerCount: 0,
   map: null, ws: null, vehicles: [], heatCanvas: null,
+  renderedSteps: [],  // every step shown while following the mission live
 };
 window.missionView = view;  // read by the browser tests
 
@@ -139,6 +140,7 @@ function render(k) {
   const s = view.steps[k];
   if (!s) return;
   view.current = k;
+  if (view.follow) view.renderedSteps.push(s.step);
   document.body.dataset.step = String(s.step);
   const L_ = view.layout;
   s.vehicles.forEach((v, i) => {
@@ -245,7 +247,7 @@ function onMessage(ev) {
       sel.innerHTML = Array.from({ length: msg.uav_count }, (_, i) =>
         `<option value="${i}">UAV ${i + 1}</option>`).join("");
       $("title").textContent = `${msg.scenario}, seed ${msg.seed}, ` +
-        (msg.live ? `live (${msg.source === "mavlink" ? "over MAVLink" : msg.source})` : `replay of a ${msg.source} run`);
+        (msg.live ? `live (${msg.source === "mavlink" ? "over MAVLink" : msg.source})` : `replay of ${msg.source === "mavlink" ? "a MAVLink mission" : "an offline run"}`);
       $("follow").style.display = msg.live ? "" : "none";
       setFollow(msg.live);
       drawLegend();
