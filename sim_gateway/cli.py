@@ -78,6 +78,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--gcs-port", type=_port, default=14550, help="UDP port all vehicles send to"
     )
     parser.add_argument(
+        "--truth-port",
+        type=_port,
+        default=None,
+        help="send the true targets, one JSON datagram per decision period, to 127.0.0.1:PORT "
+        "(for a display: swarmplan demo's live view; never to the planner)",
+    )
+    parser.add_argument(
         "--per-vehicle-ports",
         type=_port,
         default=None,
@@ -145,6 +152,7 @@ def main(args: argparse.Namespace) -> int:
         tick_s=args.tick_s,
         gcs_host=args.gcs_host,
         gcs_port=args.gcs_port,
+        truth_port=args.truth_port,
         per_vehicle_port_base=args.per_vehicle_ports,
         bind_host=args.bind_host,
         bind_port_base=args.bind_base_port,

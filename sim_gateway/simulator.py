@@ -48,6 +48,7 @@ from sim_gateway.message_handlers import AUTOPILOT_ONLY, HANDLERS
 from sim_gateway.mission_protocol import retry_upload
 from sim_gateway.target_account import TargetAccount
 from sim_gateway.telemetry import BUILDERS, FleetSnapshot
+from sim_gateway.truth_feed import TruthFeed
 from sim_gateway.vehicle import Vehicle
 from sim_gateway.world import World
 
@@ -84,6 +85,7 @@ class SimOptions:
     signing_key: bytes | None = None  # MAVLink 2 signing (sim_gateway/signing.py); None: off
     lockstep: bool = False  # hold at the horizon the ground station grants (SYSTEM_TIME)
     lockstep_timeout_s: float = 10.0  # wall s of ground-station silence that end the lock
+    truth_port: int | None = None  # send the true targets to 127.0.0.1:PORT (truth_feed.py)
 
     def validate(self) -> None:
         if self.fast and self.lockstep:
@@ -114,6 +116,7 @@ class SimOptions:
             ("--gcs-port", self.gcs_port, 1),
             ("--per-vehicle-ports", self.per_vehicle_port_base, 1),
             ("--bind-base-port", self.bind_port_base, 0),
+            ("--truth-port", self.truth_port, 1),
         ):
             if port is not None and not low <= port <= 65535:
                 raise SimulatorError(f"{name} must be a UDP port in {low}..65535, got {port}")
@@ -143,6 +146,7 @@ class Simulator:
         self.origin: Origin = scenario.origin
         self.grid = Grid(self.config.grid_nx, self.config.grid_ny, self.config.cell_km)
         self.world = World(scenario, options.seed)
+        self.truth_feed = None if options.truth_port is None else TruthFeed(options.truth_port)
         self.target_account = TargetAccount(self.world)  # ground truth per target (never sent)
         self.stats = LinkStats()
         self.parser = DatagramParser(self.stats)
@@ -424,6 +428,8 @@ class Simulator:
         """One decision period: the world moves, every airborne vehicle takes one look."""
         self.world.step(self.config.step_s)
         self.decision_step += 1
+        if self.truth_feed is not None:
+            self.truth_feed.send(self.world, self.decision_step)
         flying = np.flatnonzero(self.fleet.airborne)
         if flying.size == 0:
             return
@@ -577,6 +583,8 @@ class Simulator:
             self.selector.close()
         for sock in self.sockets:
             sock.close()
+        if getattr(self, "truth_feed", None) is not None:
+            self.truth_feed.close()
 
     def __enter__(self) -> Simulator:
         return self

@@ -21,6 +21,7 @@ from mavlink_bridge.cli import add_leg_timing_arguments
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
 from mavlink_bridge.mission_result import StepRecord
 from mavlink_bridge.view_feed import DaemonViewFeed
+from mission_view.truth_receiver import TruthReceiver
 from mission_view.view_session import ViewSession, add_view_arguments, view_options
 from planner.errors import UserError
 from planner.metrics import format_summary
@@ -70,10 +71,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def start_simulator(
     scenario: str, seed: int, speedup: float | None, port: int, log: Path,
-    target_truth: Path | None = None,
+    target_truth: Path | None = None, truth_port: int | None = None,
 ) -> subprocess.Popen:  # fmt: skip
     """``python -m swarmplan sim`` sending to our port (``--lockstep`` when ``speedup`` is
-    None); its output goes to ``log``, its ground-truth target account to ``target_truth``."""
+    None); its output goes to ``log``, its ground-truth target account to ``target_truth``, its
+    true targets for the live view to UDP ``truth_port``."""
     pace = ["--lockstep", "--speedup", f"{RELEASED_SPEEDUP:g}"]
     if speedup is not None:
         pace = ["--speedup", f"{speedup:g}"]
@@ -93,6 +95,7 @@ def start_simulator(
         str(port),
         "--quiet",
         *([] if target_truth is None else ["--target-account", str(target_truth)]),
+        *([] if truth_port is None else ["--truth-port", str(truth_port)]),
     ]
     with open(log, "wb") as sink:
         return subprocess.Popen(
@@ -207,9 +210,10 @@ def main(args: argparse.Namespace) -> int:
     daemon = MissionDaemon(scenario, options)
     view = ViewSession(
         scenario, seed=args.seed, steps=steps, uav_count=scenario.uav_count, source="mavlink",
-        truth=False, out_dir=out, options=view_options(args),
+        truth=True, out_dir=out, options=view_options(args),
     )  # fmt: skip
-    feeds.append(DaemonViewFeed(daemon, view))
+    truth = TruthReceiver()  # the simulator's true targets, for the view only
+    feeds.append(DaemonViewFeed(daemon, view, truth.latest))
     options.step_listeners.append(feeds[0].listener)
     if view.url is not None:  # printed even with --json (on stderr): the way to open it
         bar.write(f"demo: live view at {view.url}", file=sys.stderr)
@@ -218,12 +222,15 @@ def main(args: argparse.Namespace) -> int:
     except BaseException:
         view.close()
         view.stop()
+        truth.close()
         raise
     port = link.endpoints[0].port
     sim_log = out / "sim.log"
     truth_path = out / "target_truth.json"
     truth_path.unlink(missing_ok=True)  # a file from an earlier run must not be joined
-    sim = start_simulator(args.scenario, args.seed, args.speedup, port, sim_log, truth_path)
+    sim = start_simulator(
+        args.scenario, args.seed, args.speedup, port, sim_log, truth_path, truth.port
+    )
     say(
         f"simulator started (pid {sim.pid}, {scenario.uav_count} vehicles, "
         f"{'lockstep' if lockstep else f'{args.speedup:g}x'}) "
@@ -244,6 +251,7 @@ def main(args: argparse.Namespace) -> int:
         stop_simulator(sim)
         view.close()
         view.stop()
+        truth.close()
     result = report.result
     result["wall_time_s"] = time.monotonic() - started
     join_target_account(result, truth_path, look_times.by_step, scenario.config.step_s, say)

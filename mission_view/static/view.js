@@ -40,7 +40,7 @@ const RAMPS = {
   coverage: ramp([[0, [0, 120, 110, 0]], [1, [0, 120, 110, 150]]]),
   tpm: ramp([[0, [20, 10, 60, 0]], [0.2, [60, 15, 110, 40]], [0.5, [180, 40, 90, 130]],
     [0.8, [245, 120, 30, 190]], [1, [252, 230, 60, 230]]]),
-  pheromone: ramp([[0, [255, 255, 255, 0]], [1, [40, 110, 30, 170]]]),
+  pheromone: ramp([[0, [255, 255, 255, 0]], [1, [40, 110, 30, 120]]]),
 };
 
 function drawLegend() {
@@ -111,7 +111,10 @@ function initMap(layout) {
     marker.bindTooltip(`UAV ${i + 1}`);
     view.vehicles.push({ trail, leg, target, marker });
   }
-  if (!layout.truth) $("show-truth").parentElement.style.display = "none";
+  if (!layout.truth) {
+    $("show-truth").parentElement.style.display = "none";
+    $("truth-legend").style.display = "none";
+  }
 }
 
 function drawHeat(msg) {
@@ -194,8 +197,10 @@ function drawEngaged(k) {
   for (const e of view.events) {
     if (e.step > view.steps[k].step) break;
     if (e.kind !== "engagement" || e.x_km === null) continue;
-    L.circleMarker(pt(e.x_km, e.y_km), { radius: 7, color: "#8a1c1c", weight: 2,
-      fillColor: "#e34a33", fillOpacity: 0.6 }).bindTooltip(e.text).addTo(layer);
+    const id = (e.text.match(/target (\d+)/) || [])[1] || "";
+    L.marker(pt(e.x_km, e.y_km), { icon: L.divIcon({ className: "engaged-icon", iconSize: [18, 18],
+      iconAnchor: [9, 9], html: `<span class="star">&#9733;</span><span class="engaged-label">${id}</span>` }) })
+      .bindTooltip(`step ${e.step}, UAV ${e.uav + 1}: ${e.text}`).addTo(layer);
   }
 }
 
@@ -204,8 +209,8 @@ function drawTruth(s) {
   layer.clearLayers();
   if (!s.truth || !$("show-truth").checked) return;
   for (const [id, x, y, alive] of s.truth) {
-    L.circleMarker(pt(x, y), { radius: 4, color: alive ? "#000" : "#888", weight: 1.5,
-      fill: false, dashArray: alive ? null : "2 2" })
+    L.circleMarker(pt(x, y), { radius: 5, color: alive ? "#000" : "#888", weight: 1.5,
+      fill: false, dashArray: alive ? null : "2 2", className: "truth" })
       .bindTooltip(`truth: target ${id}${alive ? "" : " (serviced)"} — ground truth, not known to the swarm`)
       .addTo(layer);
   }

@@ -70,6 +70,9 @@ def test_live_view_of_a_running_demo(chromium, demo_out):
         assert rendered == sorted(rendered) and len(set(rendered)) >= 3, rendered
         assert rendered[-1] == STEPS
         assert page.inner_text("#stepinfo") == f"step {STEPS} / {STEPS}"
+        # the simulator's true targets, drawn and marked as truth
+        assert page.evaluate("() => missionView.layout.truth")
+        assert len(page.query_selector_all("path.truth")) == 16  # the paper's targets
         rows = page.query_selector_all("#vehicles tbody tr")
         assert len(rows) == 2 and all("GUIDED" in r.inner_text() for r in rows)
         shot = demo_out / "live-view.png"
