@@ -16,6 +16,13 @@ from mission_view.view_session import add_view_arguments
 from planner.errors import UserError
 from planner.metrics import format_summary
 from planner.scenario import load_scenario
+from swarmplan.arguments import (
+    add_seed_argument,
+    non_negative_float,
+    positive_float,
+    positive_int,
+    writable_folder,
+)
 
 HELP = "fly MAVLink vehicles (SITL, hardware or the simulator) with the HAPF-ACO planner"
 
@@ -30,40 +37,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "default udpin:0.0.0.0:14550",
     )
     parser.add_argument("--scenario", default="paper-10uav", help="built-in name or TOML file")
-    parser.add_argument("--seed", type=int, default=0, help="planner seed (default 0)")
+    add_seed_argument(parser, "planner seed")
     parser.add_argument(
         "--expect",
-        type=int,
+        type=positive_int,
         help="vehicles to wait for: system ids 1..N (default: the scenario's UAV count)",
     )
-    parser.add_argument("--steps", type=int, help="decision steps (default: the scenario's)")
+    parser.add_argument(
+        "--steps", type=positive_int, help="decision steps (default: the scenario's)"
+    )
     parser.add_argument(
         "--timeout",
-        type=float,
+        type=positive_float,
         default=60.0,
         help="seconds to wait for every expected vehicle (default 60)",
     )
     parser.add_argument(
         "--ready-timeout",
-        type=float,
+        type=positive_float,
         default=120.0,
         help="seconds to wait for the autopilots to finish initialising (default 120)",
     )
     parser.add_argument(
         "--lost-after",
-        type=float,
+        type=positive_float,
         default=3.0,
         help="seconds of silence before a vehicle counts as lost (default 3)",
     )
     parser.add_argument(
         "--threat-margin-km",
-        type=float,
+        type=non_negative_float,
         default=1.0,
         help="safety envelope clearance from threat circles (default 1 km, a plane turn radius)",
     )
     parser.add_argument(
         "--time-scale",
-        type=float,
+        type=positive_float,
         default=1.0,
         help="speed of the vehicles' clock (SITL --speedup); paces steps only for "
         "vehicles that send no sensor looks (default 1)",
@@ -134,15 +143,7 @@ def airspeed_range(text: str) -> tuple[float, float]:
 
 
 def validate(args: argparse.Namespace) -> None:
-    for name in ("timeout", "ready_timeout", "lost_after", "time_scale"):
-        if getattr(args, name) <= 0:
-            raise UserError(f"--{name.replace('_', '-')} must be > 0, got {getattr(args, name)}")
-    if args.steps is not None and args.steps <= 0:
-        raise UserError(f"--steps must be a positive integer, got {args.steps}")
-    if args.expect is not None and args.expect <= 0:
-        raise UserError(f"--expect must be a positive integer, got {args.expect}")
-    if args.threat_margin_km < 0:
-        raise UserError("--threat-margin-km must be >= 0")
+    """What the argument types cannot check alone (each value is checked by its type)."""
     if args.resume and args.checkpoint is None:
         raise UserError("--resume needs --checkpoint PATH (the file to resume from)")
 
@@ -163,8 +164,7 @@ def print_step(status: StepStatus) -> None:
 def main(args: argparse.Namespace) -> int:
     validate(args)
     scenario = load_scenario(args.scenario)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    out: Path = writable_folder(args.out)
     quiet = args.json
     options = DaemonOptions(
         connect=args.connect or ["udpin:0.0.0.0:14550"],

@@ -19,6 +19,12 @@ class ConfigError(UserError, ValueError):
     """A configuration value is missing, of the wrong type or out of range."""
 
 
+#: Fields whose default is infinite, meaning "no limit": a mapping (a scenario file) leaves
+#: them out for that, and any value it gives must be finite (a typo such as ``1e400`` is infinity
+#: to TOML and would silently lift the limit). Name -> how to get no limit.
+UNBOUNDED = {"max_range_km": "leave max_range_km out for no range limit"}
+
+
 @dataclass(frozen=True)
 class PlannerConfig:
     """All parameters of the planner and the world it is evaluated in.
@@ -112,6 +118,8 @@ class PlannerConfig:
                 raise ConfigError(f"parameter {f.name!r} must be a number, got {value!r}")
             if isinstance(value, float) and math.isnan(value):
                 raise ConfigError(f"parameter {f.name!r} is NaN; give a number")
+            if isinstance(value, float) and math.isinf(value) and f.name not in UNBOUNDED:
+                raise ConfigError(f"parameter {f.name!r} is infinite; give a finite number")
         positive = [
             "grid_nx",
             "grid_ny",
@@ -192,12 +200,13 @@ class PlannerConfig:
                 and not isinstance(value, bool)
             ):
                 value = float(value)
-            if (
-                known[name].type == "float"
-                and isinstance(value, str)
-                and value.lower() in ("inf", "infinity")
-            ):
-                value = math.inf
+            if isinstance(value, float) and not math.isfinite(value):  # TOML inf, nan, 1e400
+                fix = UNBOUNDED.get(name, "give a finite number")
+                overflow = " (TOML reads inf, and numbers past 1.8e308, as infinity)"
+                raise ConfigError(
+                    f"parameter {name!r} must be finite, got {value!r}"
+                    f"{overflow if math.isinf(value) else ''}; {fix}"
+                )
             clean[name] = value
         return dataclasses.replace(base or cls(), **clean)
 

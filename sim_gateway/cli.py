@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import math
 import os
 import signal
 import sys
@@ -23,6 +22,13 @@ os.environ.setdefault("MAVLINK20", "1")
 from planner.errors import UserError  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 from sim_gateway.signing import load_signing_key  # noqa: E402
+from swarmplan.arguments import (  # noqa: E402
+    OneLineParser,
+    add_seed_argument,
+    non_negative_float,
+    positive_float,
+    positive_int,
+)
 
 if TYPE_CHECKING:
     from sim_gateway.simulator import Simulator
@@ -30,16 +36,6 @@ if TYPE_CHECKING:
 HELP = (
     "run N simulated fixed-wing autopilots (ArduPlane-like) over UDP MAVLink in front of the world"
 )
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
-    return value
 
 
 def _port(text: str) -> int:
@@ -56,20 +52,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--scenario", default="paper-10uav", help="built-in scenario name or TOML file"
     )
+    add_seed_argument(parser, "seed of the world and the random starts")
     parser.add_argument(
-        "--seed", type=int, default=0, help="seed of the world and the random starts"
+        "--vehicles",
+        type=positive_int,
+        default=None,
+        help="number of vehicles (default: the scenario's)",
     )
     parser.add_argument(
-        "--vehicles", type=int, default=None, help="number of vehicles (default: the scenario's)"
-    )
-    parser.add_argument(
-        "--speedup", type=_positive_float, default=1.0, help="simulated seconds per wall second"
+        "--speedup", type=positive_float, default=1.0, help="simulated seconds per wall second"
     )
     parser.add_argument(
         "--fast", action="store_true", help="run as fast as possible (deterministic ticks)"
     )
     parser.add_argument(
-        "--tick-s", type=_positive_float, default=0.1, help="physics tick, simulated s"
+        "--tick-s", type=positive_float, default=0.1, help="physics tick, simulated s"
     )
     parser.add_argument(
         "--gcs-host", default="127.0.0.1", help="where vehicles send (ground station / daemon)"
@@ -102,14 +99,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="vehicle i receives on BASE+i (default 0: any free port)",
     )
     parser.add_argument(
-        "--boot-s", type=float, default=20.0, help="simulated boot (pre-arm) phase, s"
+        "--boot-s", type=non_negative_float, default=20.0, help="simulated boot (pre-arm) phase, s"
     )
     parser.add_argument("--airborne", action="store_true", help="start armed and flying, in LOITER")
     parser.add_argument(
-        "--telemetry-hz", type=_positive_float, default=10.0, help="position/attitude rate (wall)"
+        "--telemetry-hz", type=positive_float, default=10.0, help="position/attitude rate (wall)"
     )
     parser.add_argument(
-        "--duration-s", type=_positive_float, default=None, help="stop after this simulated time"
+        "--duration-s", type=positive_float, default=None, help="stop after this simulated time"
     )
     parser.add_argument(
         "--lockstep",
@@ -119,7 +116,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--lockstep-timeout",
-        type=_positive_float,
+        type=positive_float,
         default=10.0,
         help="wall s of ground-station silence after which lockstep is released (default 10)",
     )
@@ -223,7 +220,7 @@ def _interrupt(signum: int, frame: object) -> None:
 
 def run_standalone(argv: list[str] | None = None) -> int:
     """``python -m sim_gateway.cli``: the same command without the swarmplan wrapper."""
-    parser = argparse.ArgumentParser(prog="sim_gateway", description=HELP)
+    parser = OneLineParser(prog="sim_gateway", description=HELP)
     add_arguments(parser)
     args = parser.parse_args(argv)
     try:

@@ -16,6 +16,7 @@ import sys
 os.environ.setdefault("MAVLINK20", "1")
 
 from planner.errors import UserError  # noqa: E402
+from swarmplan.arguments import OneLineParser  # noqa: E402
 
 #: (name, module) of every subcommand, in the order --help lists them.
 SUBCOMMANDS = (
@@ -30,11 +31,11 @@ SUBCOMMANDS = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="swarmplan",
         description="HAPF-ACO cooperative UAV-swarm search planner (offline, simulator, MAVLink).",
     )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
     for name, module_name in SUBCOMMANDS:
         try:
             module = importlib.import_module(module_name)

@@ -15,7 +15,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from mavlink_bridge.cli import add_leg_timing_arguments
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
@@ -27,7 +26,13 @@ from planner.errors import UserError
 from planner.metrics import format_summary
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
 from sim_gateway.target_account import account_of, align_steps, format_account
-from swarmplan.run_command import positive_int, seed_int, write_outputs
+from swarmplan.arguments import (
+    add_seed_argument,
+    positive_float,
+    positive_int,
+    writable_folder,
+)
+from swarmplan.run_command import progress_bar, write_outputs, written_line
 
 HELP = "fly a scenario end to end: the MAVLink simulator and the planner daemon on loopback UDP"
 
@@ -45,15 +50,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="paper-10uav",
         help=f"built-in ({', '.join(BUILTIN_SCENARIOS)}) or a TOML file (default paper-10uav)",
     )
-    parser.add_argument(
-        "--seed", type=seed_int, default=1, help="seed of the world and the planner (default 1)"
-    )
+    add_seed_argument(parser, "seed of the world and the planner")
     parser.add_argument(
         "--steps", type=positive_int, default=None, help="decision steps (default: the scenario's)"
     )
     parser.add_argument(
         "--speedup",
-        type=float,
+        type=positive_float,
         default=None,
         help="pace the simulator at this many simulated seconds per wall second instead of "
         "lockstep (default: lockstep, as fast as possible and repeatable for a seed)",
@@ -155,24 +158,11 @@ def join_target_account(
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.speedup is not None and not (0 < args.speedup < float("inf")):
-        raise UserError(f"--speedup must be a positive number, got {args.speedup}")
     scenario = load_scenario(args.scenario)
     steps = args.steps or scenario.steps
-    out: Path = args.out or Path("runs") / f"{scenario.name}-seed{args.seed}-demo"
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot create {out} ({exc.strerror}); choose another --out") from None
+    out = writable_folder(args.out or Path("runs") / f"{scenario.name}-seed{args.seed}-demo")
     quiet = args.json
-    bar = tqdm(
-        total=steps,
-        desc=f"{scenario.name} over MAVLink",
-        unit="step",
-        disable=quiet,
-        file=sys.stderr,
-        leave=False,
-    )
+    bar = progress_bar(steps, f"{scenario.name} over MAVLink", quiet)
 
     def on_step(status: StepStatus) -> None:
         if status.step > 0:  # step 0 is the start: the bar counts decision steps
@@ -265,8 +255,6 @@ def main(args: argparse.Namespace) -> int:
     lost = result.get("lost_uavs") or []
     if lost:
         print(f"lost vehicles   {', '.join(str(i + 1) for i in lost)} (system ids)")
-    print(
-        f"written: {out}/ (result.json, figures, waypoints/, plan/, mission.geojson, mission.kml, "
-        f"mission.tlog, sim.log; {len(written)} files)"
-    )
+    others = [p for p in (out / "mission.tlog", sim_log, truth_path) if p.exists()]
+    print(written_line(out, [*written, *others]))
     return 0

@@ -12,7 +12,6 @@ import json
 import os
 import re
 import shlex
-import sys
 import time
 from pathlib import Path
 
@@ -26,30 +25,7 @@ HELP = "reproduce an experiment of the paper (all algorithms, many seeds): CSV, 
 DASK_ADDRESS = re.compile(r"^(tcp|tls|ucx|ws|wss|inproc)://\S+$")
 
 
-def _one_line_error(parser: argparse.ArgumentParser):
-    def error(message: str):
-        print(f"{parser.prog}: error: {message}; see --help", file=sys.stderr)
-        sys.exit(2)
-
-    return error
-
-
-def _strict(parser: argparse.ArgumentParser):
-    """Report unknown arguments here, as one line, rather than with the top parser's usage."""
-    parse_known_args = parser.parse_known_args
-
-    def parse(args=None, namespace=None):
-        namespace, extras = parse_known_args(args, namespace)
-        if extras:
-            parser.error(f"unrecognized arguments: {' '.join(extras)}")
-        return namespace, extras
-
-    return parse
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.error = _one_line_error(parser)  # one line, exit 2, like every other input error
-    parser.parse_known_args = _strict(parser)
     parser.add_argument(
         "experiment", help=f"which experiment: {' or '.join(EXPERIMENTS)} (paper sections 4.2, 4.3)"
     )

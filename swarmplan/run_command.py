@@ -14,35 +14,16 @@ from planner.metrics import format_summary
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
 from sim_gateway.offline_runner import PLANNERS, run_offline
 from sim_gateway.target_account import format_account
+from swarmplan.arguments import add_seed_argument, positive_int, writable_folder
 
 HELP = "fly a scenario offline (no MAVLink) and write result.json and figures"
-
-
-def _whole_number(text: str, minimum: int, bound: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < minimum:
-        raise argparse.ArgumentTypeError(f"{text!r} must be {bound}")
-    return value
-
-
-def positive_int(text: str) -> int:
-    return _whole_number(text, 1, "at least 1")
-
-
-def seed_int(text: str) -> int:
-    return _whole_number(text, 0, "0 or more")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "scenario", help=f"a built-in scenario ({', '.join(BUILTIN_SCENARIOS)}) or a TOML file"
     )
-    parser.add_argument(
-        "--seed", type=seed_int, default=1, help="random seed of the run (default 1)"
-    )
+    add_seed_argument(parser, "random seed of the run")
     parser.add_argument(
         "--steps", type=positive_int, default=None, help="decision steps (default: the scenario's)"
     )
@@ -105,13 +86,40 @@ def record_replay(scenario, seed: int, steps: int, out_dir: Path) -> ReplayRecor
     return ReplayRecording(scenario, seed, steps, out_dir)
 
 
+def progress_bar(total: int, desc: str, quiet: bool) -> tqdm:
+    """A progress bar on stderr when stderr is a terminal; nothing when it is a pipe or a file
+    (tqdm's ``disable=None``: no ``\r`` redraws in logs) or with ``quiet`` (``--json``)."""
+    return tqdm(
+        total=total,
+        desc=desc,
+        unit="step",
+        disable=True if quiet else None,
+        file=sys.stderr,
+        leave=False,
+    )
+
+
+def written_line(out: Path, files: list[Path]) -> str:
+    """One line for the files a command wrote into ``out``: the folder, each file or subfolder
+    directly in it once, and how many files there are."""
+    names: list[str] = []
+    for file in files:
+        try:
+            parts = Path(file).relative_to(out).parts
+        except ValueError:  # written elsewhere (an explicit path)
+            parts = (str(file),)
+        name = parts[0] + ("/" if len(parts) > 1 else "")
+        if name not in names:
+            names.append(name)
+    return f"written: {out}/ ({', '.join(names)}; {len(files)} files)"
+
+
 def main(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     steps = args.steps or scenario.steps
-    out_dir = args.out or Path("runs") / f"{scenario.name}-seed{args.seed}"
+    out_dir = writable_folder(args.out or Path("runs") / f"{scenario.name}-seed{args.seed}")
     recording = record_replay(scenario, args.seed, steps, out_dir)
-    with tqdm(total=steps, desc=f"{scenario.name} seed {args.seed}", unit="step", disable=args.json,
-              file=sys.stderr, leave=False) as bar:  # fmt: skip
+    with progress_bar(steps, f"{scenario.name} seed {args.seed}", args.json) as bar:
         try:
             result = run_offline(
                 scenario, args.seed, steps, args.algorithm, progress=lambda k: bar.update(1),
@@ -126,5 +134,5 @@ def main(args: argparse.Namespace) -> int:
         print(format_summary(result))
         if result.get("target_account"):
             print(format_account(result["target_account"]))
-        print(f"written: {', '.join(str(p) for p in written)}")
+        print(written_line(out_dir, written))
     return 0

@@ -1,5 +1,9 @@
+import dataclasses
+import math
+
 import pytest
 
+from planner.config import ConfigError, PlannerConfig
 from planner.scenario import BUILTIN_SCENARIOS, ScenarioError, load_scenario, parse_scenario
 
 GOOD = """
@@ -86,3 +90,87 @@ def test_broken_scenarios_give_one_clear_line(change, message):
 def test_missing_file_names_the_builtins(tmp_path):
     with pytest.raises(ScenarioError, match="neither a built-in"):
         load_scenario(tmp_path / "nope.toml")
+
+
+#: A scenario giving every number a scenario file can hold outside [parameters]: key -> value.
+EVERY_NUMBER = {
+    "altitude_m": "500",
+    "origin.lat": "-35.3",
+    "origin.lon": "149.1",
+    "origin.alt_m": "584",
+    "uavs.start.x_km": "5",
+    "uavs.start.y_km": "5",
+    "uavs.start.heading_deg": "45",
+    "targets.x_km": "50",
+    "targets.y_km": "50",
+    "targets.value": "1",
+    "targets.speed_mps": "10",
+    "targets.heading_rad": "1",
+    "threats.x_km": "80",
+    "threats.y_km": "80",
+    "threats.radius_km": "3",
+}
+
+
+def every_number_scenario(key: str = "", token: str = "") -> str:
+    v = {**EVERY_NUMBER, **({key: token} if key else {})}
+    return f"""
+altitude_m = {v["altitude_m"]}
+origin = {{ lat = {v["origin.lat"]}, lon = {v["origin.lon"]}, alt_m = {v["origin.alt_m"]} }}
+[uavs]
+count = 1
+[[uavs.start]]
+x_km = {v["uavs.start.x_km"]}
+y_km = {v["uavs.start.y_km"]}
+heading_deg = {v["uavs.start.heading_deg"]}
+[[targets]]
+kind = "known_velocity"
+x_km = {v["targets.x_km"]}
+y_km = {v["targets.y_km"]}
+value = {v["targets.value"]}
+speed_mps = {v["targets.speed_mps"]}
+heading_rad = {v["targets.heading_rad"]}
+[[threats]]
+x_km = {v["threats.x_km"]}
+y_km = {v["threats.y_km"]}
+radius_km = {v["threats.radius_km"]}
+"""
+
+
+NON_FINITE = ("inf", "-inf", "nan", "1e400", "-1e400")
+
+
+@pytest.mark.parametrize("token", NON_FINITE)
+@pytest.mark.parametrize("key", sorted(EVERY_NUMBER))
+def test_every_number_of_a_scenario_must_be_finite(key, token):
+    parse_scenario(every_number_scenario(), "numbers.toml")  # the template itself is good
+    with pytest.raises(ScenarioError, match="finite") as info:
+        parse_scenario(every_number_scenario(key, token), "numbers.toml")
+    message = str(info.value)
+    assert "\n" not in message and "numbers.toml" in message and key.split(".")[-1] in message
+
+
+FLOAT_PARAMETERS = [f.name for f in dataclasses.fields(PlannerConfig) if f.type == "float"]
+
+
+def test_the_audit_covers_the_float_parameters():
+    assert len(FLOAT_PARAMETERS) > 40 and "max_range_km" in FLOAT_PARAMETERS
+
+
+@pytest.mark.parametrize("token", NON_FINITE)
+@pytest.mark.parametrize("name", FLOAT_PARAMETERS)
+def test_every_float_parameter_must_be_finite(name, token):
+    """``max_range_km = 1e400`` (infinity to TOML) used to lift the range limit silently."""
+    text = GOOD.replace("steps = 20", f"steps = 20\n[parameters]\n{name} = {token}")
+    with pytest.raises(ScenarioError, match=f"'{name}' must be finite") as info:
+        parse_scenario(text, "broken.toml")
+    assert "\n" not in str(info.value) and "broken.toml" in str(info.value)
+
+
+def test_no_range_limit_is_a_left_out_max_range_km():
+    assert math.isinf(parse_scenario(GOOD, "small.toml").config.max_range_km)
+    text = GOOD.replace("steps = 20", "steps = 20\n[parameters]\nmax_range_km = 1e400")
+    with pytest.raises(ScenarioError, match="leave max_range_km out for no range limit"):
+        parse_scenario(text, "broken.toml")
+    with pytest.raises(ConfigError, match="infinite"):
+        PlannerConfig(speed_mps=math.inf)

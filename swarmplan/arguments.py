@@ -1,0 +1,104 @@
+"""What every ``swarmplan`` subcommand shares on its command line: usage errors as one line, the
+value types (whole numbers, seeds, finite numbers), the one default seed, and the output folder
+checked before any work starts.
+
+An input error is one line naming the problem and the fix, exit status 2 (README), argparse's
+included: :class:`OneLineParser` replaces its usage block with a pointer to ``--help``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+from pathlib import Path
+from typing import NoReturn
+
+from planner.errors import UserError
+
+#: The seed of every command that takes one (run, demo, sim, daemon), so that ``swarmplan sim``
+#: and ``swarmplan daemon`` in two shells fly the same mission as ``swarmplan demo``.
+DEFAULT_SEED = 1
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line on stderr, exit status 2.
+
+    Arguments a subcommand does not know are reported by that subcommand's parser (naming it),
+    not by the top parser after the subcommand has parsed the rest."""
+
+    def error(self, message: str) -> NoReturn:
+        print(f"{self.prog}: error: {message}; see '{self.prog} --help'", file=sys.stderr)
+        sys.exit(2)
+
+    def parse_known_args(self, args=None, namespace=None):  # noqa: ANN001 (argparse's signature)
+        namespace, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)}")
+        return namespace, extras
+
+
+def _whole_number(text: str, minimum: int, bound: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"{text!r} must be {bound}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    return _whole_number(text, 1, "at least 1")
+
+
+def seed_int(text: str) -> int:
+    return _whole_number(text, 0, "0 or more")
+
+
+def finite_float(text: str) -> float:
+    """A number that is neither NaN nor infinite (``1e400`` overflows to infinity)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def positive_float(text: str) -> float:
+    value = finite_float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    value = finite_float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be 0 or more")
+    return value
+
+
+def add_seed_argument(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--seed S`` (default :data:`DEFAULT_SEED`); ``what`` says what it seeds."""
+    parser.add_argument(
+        "--seed", type=seed_int, default=DEFAULT_SEED, help=f"{what} (default {DEFAULT_SEED})"
+    )
+
+
+def writable_folder(out: Path, option: str = "--out") -> Path:
+    """``out``, created if missing and proven writable (a probe file is written and removed), so
+    that a run that cannot keep its results is refused before it starts, not after."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-check-"):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        raise UserError(
+            f"cannot write to {out} ({reason}); choose another {option} folder"
+        ) from None
+    return out
