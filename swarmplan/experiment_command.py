@@ -17,6 +17,7 @@ from pathlib import Path
 
 from planner.errors import UserError
 from sim_gateway.offline_runner import PLANNERS
+from swarmplan.arguments import writable_folder
 from swarmplan.experiment_runner import ALGORITHMS, EXPERIMENTS, RunTask, execute, plan_tasks
 
 HELP = "reproduce an experiment of the paper (all algorithms, many seeds): CSV, figures, report"
@@ -137,11 +138,7 @@ def run_experiment(opts: dict) -> dict:
     from swarmplan.experiment_figures import write_experiment_figures
     from swarmplan.experiment_stats import friedman_csv, report_markdown, runs_csv, summary_csv
 
-    out: Path = opts["out"]
-    try:
-        (out / "runs").mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot create {out} ({exc.strerror}); choose another --out") from None
+    out: Path = writable_folder(opts["out"])
     tasks = plan_tasks(
         opts["experiment"], opts["runs"], opts["seed_base"], opts["steps"], opts["algorithms"]
     )

@@ -108,3 +108,50 @@ def stop(proc: subprocess.Popen, timeout_s: float = 5.0, sig: int = signal.SIGTE
             proc.kill()
             proc.wait(timeout_s)
     return proc.returncode
+
+
+def run_swarmplan_on_terminal(args: list[str], timeout: float) -> tuple[int, str, str]:
+    """``python -m swarmplan ARGS`` with its stderr a terminal (a pty, as in a user's shell):
+    (exit status, stdout, everything written to the terminal). The terminal is read while the
+    process runs: what is left in it when the process closes it may be lost. The terminal is
+    24 x 100 (a terminal of width 0 gets no progress bar from tqdm)."""
+    import fcntl
+    import pty
+    import struct
+    import termios
+    import threading
+
+    controller, terminal = pty.openpty()
+    fcntl.ioctl(terminal, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))
+    shown: list[bytes] = []
+
+    def read() -> None:
+        while True:
+            try:
+                chunk = os.read(controller, 65536)
+            except OSError:  # the process closed the terminal
+                return
+            if not chunk:
+                return
+            shown.append(chunk)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "swarmplan", *args],
+        stdout=subprocess.PIPE,
+        stderr=terminal,
+        stdin=subprocess.DEVNULL,
+        env=env(),
+        cwd=REPO,
+    )
+    os.close(terminal)
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        reader.join(5)
+        os.close(controller)
+    return proc.returncode, out.decode(errors="replace"), b"".join(shown).decode(errors="replace")

@@ -1,6 +1,6 @@
 import json
 
-from loopback import run_swarmplan
+from loopback import run_swarmplan, run_swarmplan_on_terminal
 
 
 def test_run_writes_result_and_figures(tmp_path):
@@ -54,3 +54,25 @@ def test_demo_refuses_bad_seed_and_steps_before_starting_anything(tmp_path):
         assert "Traceback" not in done.stderr
         assert "error" in done.stderr.strip().splitlines()[-1]
         assert not out.exists(), args  # refused by argparse: no simulator, no output folder
+
+
+def test_progress_bar_only_on_a_terminal_and_one_summary_line(tmp_path):
+    """stderr a pipe: no ``\\r`` bar in it; stderr a terminal: the bar. stdout ends with one line
+    naming the folder and how many files are in it (not every path)."""
+    piped = tmp_path / "piped"
+    done = run_swarmplan(["run", "paper-2uav", "--steps", "20", "--out", str(piped)], timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "\r" not in done.stderr and "step" not in done.stderr, done.stderr
+    files = [p for p in piped.rglob("*") if p.is_file()]
+    last = done.stdout.strip().splitlines()[-1]
+    assert last.startswith(f"written: {piped}/ (result.json, ") and last.endswith(
+        f"; {len(files)} files)"
+    ), last
+    assert str(piped) not in last[len(f"written: {piped}") :], last  # the folder once
+    assert sum("written" in line for line in done.stdout.splitlines()) == 1
+
+    status, _, shown = run_swarmplan_on_terminal(
+        ["run", "paper-2uav", "--steps", "20", "--out", str(tmp_path / "tty")], timeout=120
+    )
+    assert status == 0
+    assert "\r" in shown and "paper-2uav seed 1" in shown, shown
