@@ -20,6 +20,7 @@ from mavlink_bridge.cli import add_leg_timing_arguments
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
 from mavlink_bridge.mission_result import StepRecord
 from mavlink_bridge.view_feed import DaemonViewFeed
+from mission_view.replay_file import replay_path
 from mission_view.truth_receiver import TruthReceiver
 from mission_view.view_session import ViewSession, add_view_arguments, view_options
 from planner.errors import UserError
@@ -255,6 +256,8 @@ def main(args: argparse.Namespace) -> int:
     lost = result.get("lost_uavs") or []
     if lost:
         print(f"lost vehicles   {', '.join(str(i + 1) for i in lost)} (system ids)")
-    others = [p for p in (out / "mission.tlog", sim_log, truth_path) if p.exists()]
+    others = [
+        p for p in (out / "mission.tlog", sim_log, truth_path, replay_path(out)) if p.exists()
+    ]
     print(written_line(out, [*written, *others]))
     return 0

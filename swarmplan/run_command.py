@@ -9,6 +9,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from mission_view.replay_file import replay_path
 from planner.errors import UserError
 from planner.metrics import format_summary
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
@@ -134,5 +135,6 @@ def main(args: argparse.Namespace) -> int:
         print(format_summary(result))
         if result.get("target_account"):
             print(format_account(result["target_account"]))
-        print(written_line(out_dir, written))
+        replay = replay_path(out_dir)
+        print(written_line(out_dir, [*written, *([replay] if replay.exists() else [])]))
     return 0

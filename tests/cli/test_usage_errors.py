@@ -46,6 +46,9 @@ CASES = [
     (["export", "somewhere", "--format", "pdf"], "--format"),
     (["experiment", "swarm", "--bogus"], "unrecognized arguments: --bogus"),
     (["experiment"], "required: experiment"),
+    (["view"], "required: result_dir"),
+    (["view", "somewhere", "--port", "x"], "--port"),
+    (["view", "somewhere", "--bogus"], "unrecognized arguments: --bogus"),
     (["nope"], "invalid choice: 'nope'"),
 ]
 
