@@ -6,8 +6,11 @@ Layer index: 0 the swarm's coverage; 1 .. N the TPM of UAV 0 .. N-1; N+1 .. 2N t
 Scales (fixed for a mission, so consecutive steps differ little and a replay compresses well):
 
 * coverage: the share of each block's cells searched (as any UAV knows it), 0..255;
-* TPM: existence probability of a target in the block, ``1 - prod (1 - p_mn)`` over its cells
-  (eq 16's p_mn), on a log scale from ``TPM_FLOOR`` (0) to 1 (255);
+* TPM: the probability of a target in the block, ``1 - prod_layers (1 - min(1, m_l))`` with
+  ``m_l`` the expected number of layer l's targets in the block (the sum of its cells, eq 16's
+  scale applied; exact for layers of one target, an upper bound otherwise), on a log scale from
+  ``TPM_FLOOR`` (0) to 1 (255). Summing the stored maps over blocks first makes this a quarter
+  of the work of combining the layers cell by cell;
 * pheromone: the block's mean tau, linear from tau_min (0) to tau_max (255) (eq 29).
 """
 
@@ -82,12 +85,14 @@ def quantise(snapshot: BeliefSnapshot, cfg: PlannerConfig) -> np.ndarray:
     covered = _block_reduce(snapshot.swarm_coverage()[None].astype(np.float32), b, 0.0, np.add)
     out[0] = _to_byte(covered[0] / (b * b))
     if snapshot.tpm_maps is not None and snapshot.tpm_scale is not None:
-        layers = snapshot.tpm_maps * snapshot.tpm_scale[:, :, None, None].astype(np.float32)
-        np.minimum(layers, 1.0, out=layers)  # (a negative rounding error only lowers p)
-        np.subtract(1.0, layers, out=layers)
-        absent = np.prod(layers, axis=0)  # (N, nx, ny): no target in the cell
-        block_absent = _block_reduce(absent, b, 1.0, np.multiply)
-        p = 1.0 - block_absent
+        # expected targets of each layer in each block (the layers are expected counts, so a
+        # block's is the sum of its cells'), scaled (eq 16), then combined across layers
+        m, *_ = snapshot.tpm_maps.shape
+        sums = _block_reduce(snapshot.tpm_maps.reshape(m * n, *snapshot.tpm_maps.shape[2:]),
+                             b, 0.0, np.add)  # fmt: skip
+        expected = sums.reshape(m, n, bx, by) * snapshot.tpm_scale[:, :, None, None]
+        np.minimum(expected, 1.0, out=expected)
+        p = 1.0 - np.prod(1.0 - expected, axis=0)
         log = (np.log10(np.maximum(p, TPM_FLOOR)) - math.log10(TPM_FLOOR)) / -math.log10(TPM_FLOOR)
         out[1 : n + 1] = _to_byte(log)
     if snapshot.pheromone is not None:

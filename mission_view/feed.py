@@ -40,7 +40,7 @@ class ViewFeed:
         self.writer = writer
         self.drop_beliefs = drop_beliefs
         self._cond = threading.Condition()
-        self._views: deque[dict[str, Any]] = deque()
+        self._views: deque[StepView] = deque()
         self._phases: deque[str] = deque()
         self._pending: BeliefSnapshot | None = None
         self._free: list[BeliefSnapshot | None] = [None] * BUFFERS
@@ -55,13 +55,14 @@ class ViewFeed:
     def post(self, view: StepView, planner: Any = None) -> None:
         """One decision step: its view, and the planner after it (read here, in the caller's
         thread, and never changed)."""
-        doc = view.to_json()
         slot: list[BeliefSnapshot | None] = []  # the buffer this step may copy into
         with self._cond:
-            self._views.append(doc)
+            self._views.append(view)  # turned into JSON in the feed's thread
             if planner is not None:
-                if not self._free and not self.drop_beliefs:
-                    self._cond.wait_for(lambda: bool(self._free) or self._closing)
+                if not self.drop_beliefs:  # recording every step: wait for the thread
+                    self._cond.wait_for(
+                        lambda: (self._free and self._pending is None) or self._closing
+                    )
                 if self._free:
                     slot.append(self._free.pop())
                 elif self._pending is not None:  # the thread is behind: newer beliefs win
@@ -78,6 +79,9 @@ class ViewFeed:
             if snapshot is None:
                 self._free.append(slot[0])
             else:
+                if self._pending is not None:  # not taken yet: the newer one replaces it
+                    self._free.append(self._pending)
+                    self.dropped_beliefs += 1
                 self._pending = snapshot
             self._cond.notify_all()
 
@@ -124,8 +128,9 @@ class ViewFeed:
                         self._cond.notify_all()
 
     def _process(
-        self, views: list[dict[str, Any]], phases: list[str], snapshot: BeliefSnapshot | None
+        self, step_views: list[StepView], phases: list[str], snapshot: BeliefSnapshot | None
     ) -> None:
+        views = [view.to_json() for view in step_views]
         for text in phases:
             self.store.set_phase(text)
             if self.writer is not None:
