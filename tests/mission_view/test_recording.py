@@ -47,7 +47,8 @@ def recorded(scenario, tmp_path_factory):
 
     def observe(record):
         session.post(views.view(record), record.planner)
-        expected[record.step] = quantise(belief_snapshot(record.planner, record.step), scenario.config)
+        snapshot = belief_snapshot(record.planner, record.step)
+        expected[record.step] = quantise(snapshot, scenario.config)
 
     result = run_offline(scenario, 3, STEPS, observer=observe)
     session.close()
