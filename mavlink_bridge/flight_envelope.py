@@ -76,6 +76,9 @@ class FlightEnvelope:
     threat_margin_km: float = 0.25
     separation_margin_km: float = 0.3
     leg_timing: bool = True  # airspeed per leg, so each leg takes one step (flight_prediction)
+    #: also keep clear the circle a plane would fly where it is (a failsafe or RC loss that
+    #: switches it to CIRCLE) at every predicted second of the coming decision period
+    failsafe_circle: bool = True
 
     @property
     def horizon_s(self) -> float:
@@ -155,6 +158,10 @@ class FlightEnvelope:
             ),
             self._loiter_clearance(aims, commanded),
         )
+        if self.failsafe_circle:
+            clearance = np.minimum(
+                clearance, self._failsafe_circle_clearance(paths, np.maximum(speeds_now, commanded))
+            )
         row_of = {key: r for r, key in enumerate(rows)}
         out_aims = grid.centre_km(proposed_cells)
         out_speeds = np.full(n, self.model.speed_mps)
@@ -289,6 +296,23 @@ class FlightEnvelope:
         return (d - env.threat_radius_km[None]).min(axis=1) - self.model.loiter_radius_km(
             speeds_mps
         )
+
+    def _failsafe_circle_clearance(self, paths: np.ndarray, speeds_mps: np.ndarray) -> np.ndarray:
+        """Distance (km) to the nearest threat edge of the circle each plane would fly if, at any
+        predicted second of the coming decision period (from 1 s on: where it is now no target
+        changes), it were switched to circle where it is (the simulator's CIRCLE / LOITER: the
+        vehicle's loiter radius around that point)."""
+        env = self.cells
+        if len(env.threat_radius_km) == 0:
+            return np.full(len(paths), np.inf)
+        last = int(min(paths.shape[1] - 1, max(1, round(self.step_s))))
+        ahead = paths[:, 1 : last + 1]  # (M, K, 2)
+        d = np.hypot(
+            ahead[:, :, None, 0] - env.threat_xy_km[None, None, :, 0],
+            ahead[:, :, None, 1] - env.threat_xy_km[None, None, :, 1],
+        )
+        edge = (d - env.threat_radius_km[None, None]).min(axis=(1, 2))
+        return edge - self.model.loiter_radius_km(speeds_mps)
 
     def _threat_clearance(
         self, paths: np.ndarray, decision_km: np.ndarray, elapsed_s: np.ndarray

@@ -41,6 +41,9 @@ class PlaneModel:
     bank_limit_deg: float = 45.0  # ROLL_LIMIT_DEG (ArduPlane's default)
     capture_radius_m: float = 90.0  # WP_RADIUS
     loiter_radius_factor: float = 1.05  # tightest loiter flown, in minimum turn radii
+    #: WP_LOITER_RAD: the loiter radius asked for (DO_REPOSITION param3 = 0 takes it); flown
+    #: unless the plane cannot turn that tight (the simulator's 60 m, ArduPlane SITL's 80 m)
+    wp_loiter_radius_m: float = 60.0
     loiter_gain: float = 2.0  # how hard the loiter path converges onto its circle
     #: slowest airspeed asked for when timing legs: cruise, since a slower plane turns more than
     #: phi_max in a step (with 75 m/s allowed, 14 turn breaches in one paper-10uav mission)
@@ -57,7 +60,10 @@ class PlaneModel:
         return GRAVITY_MPS2 * float(np.tan(np.radians(self.bank_limit_deg))) / np.maximum(v, 1.0)
 
     def loiter_radius_km(self, speed_mps: np.ndarray | float | None = None) -> np.ndarray:
-        return self.loiter_radius_factor * self.min_turn_radius_km(speed_mps)
+        """The circle a plane flies around a loiter point: WP_LOITER_RAD, or the tightest it
+        can fly at that airspeed when that is wider."""
+        tightest = self.loiter_radius_factor * self.min_turn_radius_km(speed_mps)
+        return np.maximum(tightest, abs(self.wp_loiter_radius_m) / 1000.0)
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:

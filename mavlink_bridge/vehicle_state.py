@@ -7,6 +7,7 @@ daemon has no use for are ignored.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -89,6 +90,8 @@ class VehicleState:
     mission_requests: deque[tuple[int, int]] = field(default_factory=deque)  # (seq, mission_type)
     mission_ack: tuple[int, int] | None = None  # (type, mission_type)
     lost: bool = False
+    #: parameters the vehicle reported (PARAM_VALUE), by name
+    params: dict[str, float] = field(default_factory=dict)
 
     # ------------------------------------------------------------------ derived
 
@@ -161,6 +164,15 @@ class VehicleState:
         if not _on_earth(msg.latitude, msg.longitude):
             return  # not a position: a corrupt or hostile frame must not become a UAV's start
         self.home = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+
+    def on_param_value(self, msg: mavlink.MAVLink_param_value_message) -> None:
+        """A parameter's current value (the answer to PARAM_SET / PARAM_REQUEST_READ)."""
+        if msg.get_srcComponent() != AUTOPILOT_COMPONENT_ID:
+            return
+        raw = msg.param_id
+        name = (raw if isinstance(raw, str) else raw.decode("ascii", "replace")).rstrip("\x00")
+        if math.isfinite(msg.param_value):
+            self.params[name] = float(msg.param_value)
 
     def on_statustext(self, msg: mavlink.MAVLink_statustext_message) -> None:
         text = msg.text if isinstance(msg.text, str) else msg.text.decode("utf-8", "replace")
@@ -245,6 +257,7 @@ def parse_look_offsets(text: str) -> list[tuple[int, int]]:
 
 
 _HANDLERS: dict[str, Callable[[VehicleState, mavlink.MAVLink_message], None]] = {
+    "PARAM_VALUE": VehicleState.on_param_value,
     "HEARTBEAT": VehicleState.on_heartbeat,
     "GLOBAL_POSITION_INT": VehicleState.on_global_position_int,
     "HOME_POSITION": VehicleState.on_home_position,

@@ -57,11 +57,13 @@ def default_specs(sysid: int, airspeed_mps: float, altitude_m: float) -> tuple[P
         p("RTL_RADIUS", INT16, 0, -32767, 32767, True, "RTL loiter radius, m (0: WP_LOITER_RAD)"),
         p("RTL_ALTITUDE", REAL32, altitude_m, -1, 32000, True, "sim: RTL altitude, m (-1: keep)"),
         p("TKOFF_ALT", REAL32, altitude_m, 0, 32000, True, "sim: take-off altitude, m"),
-        p("FS_GCS_ENABL", INT8, 1, 0, 2, True, "sim: GCS failsafe on (ArduPlane default 0)"),
-        p("FS_SHORT_TIMEOUT", REAL32, 3.0, 0.1, 100, True, "sim: s (wall clock) to loiter"),
-        p("FS_LONG_TIMEOUT", REAL32, 20.0, 0.1, 300, True, "sim: s (wall clock) to RTL"),
-        p("FS_SHORT_ACTN", INT8, 0, 0, 4, True, "0: CIRCLE unless in AUTO/RTL/LOITER"),
-        p("FS_LONG_ACTN", INT8, 0, 0, 4, True, "0: RTL"),
+        # GCS failsafe as ArduPlane (sim_gateway/failsafe.py), ArduPlane's defaults: off until a
+        # ground station turns it on (the planner daemon does, mavlink_bridge/gcs_failsafe.py)
+        p("FS_GCS_ENABL", INT8, 0, 0, 3, True, "0 off, 1 heartbeat, 2 hb+RSSI, 3 hb in AUTO"),
+        p("FS_SHORT_TIMEOUT", REAL32, 1.5, 1, 100, True, "s; RC failsafe only (no RC here)"),
+        p("FS_LONG_TIMEOUT", REAL32, 5.0, 1, 300, True, "s (wall clock) without GCS to act"),
+        p("FS_SHORT_ACTN", INT8, 0, 0, 4, True, "RC failsafe only (no RC here)"),
+        p("FS_LONG_ACTN", INT8, 0, 0, 5, True, "0 continue, 1 RTL, 2 glide, 4 AUTO"),
         p("FENCE_ENABLE", INT8, 1, 0, 1, True, "sim: fence enforced (ArduPlane default 0)"),
         p("FENCE_ACTION", INT8, 1, 0, 6, True, "breach action: 0 report only, 1 RTL, else loiter"),
         p("ARMING_CHECK", INT32, 1, 0, 2**31 - 1, True, "pre-arm checks (the boot phase)"),

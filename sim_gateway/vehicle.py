@@ -18,7 +18,7 @@ from planner.engagement import EngagementOutcome
 from planner.scenario import Origin
 from sim_gateway import flight_modes as modes
 from sim_gateway.camera import EngagementLog
-from sim_gateway.failsafe import FailsafeEvent, GcsFailsafe
+from sim_gateway.failsafe import FailsafeEvent, GcsFailsafe, long_failsafe_mode
 from sim_gateway.fixed_wing import FleetKinematics
 from sim_gateway.geofence import exclusion_circles
 from sim_gateway.mavlink_endpoint import (
@@ -476,27 +476,25 @@ class Vehicle:
 
     def on_gcs_heartbeat(self, now_wall_s: float) -> None:
         if self.failsafe.heard(now_wall_s) == FailsafeEvent.CLEARED:
-            self.statustext("GCS Failsafe Cleared")
-            if self.failsafe.mode_before is not None and self.mode == modes.CIRCLE:
-                self.set_mode(self.failsafe.mode_before)
-            self.failsafe.mode_before = None
+            self.statustext("GCS Failsafe Cleared")  # the mode stays what the failsafe made it
 
     def check_failsafe(self, now_wall_s: float) -> None:
+        """ArduPlane's GCS failsafe (sim_gateway/failsafe.py): after FS_LONG_TIMEOUT without a
+        ground-station heartbeat, FS_LONG_ACTN in the current mode."""
         p = self.params
         event = self.failsafe.check(
             now_wall_s,
-            bool(p["FS_GCS_ENABL"]),
+            int(p["FS_GCS_ENABL"]),
             self.armed and self.airborne,
-            p["FS_SHORT_TIMEOUT"],
+            self.mode,
             p["FS_LONG_TIMEOUT"],
         )
-        if event == FailsafeEvent.SHORT:
-            self.statustext("GCS Failsafe On: short", mavlink.MAV_SEVERITY_CRITICAL)
-            if self.mode not in (modes.AUTO, modes.RTL, modes.LOITER, modes.CIRCLE):
-                self.failsafe.mode_before = self.mode
-                self.set_mode(modes.CIRCLE)
-        elif event == FailsafeEvent.LONG:
-            self.statustext("GCS Failsafe On: long, RTL", mavlink.MAV_SEVERITY_CRITICAL)
-            self.failsafe.mode_before = None
-            if self.mode != modes.RTL:
-                self.set_mode(modes.RTL)
+        if event != FailsafeEvent.LONG:
+            return
+        new_mode = long_failsafe_mode(self.mode, int(p["FS_LONG_ACTN"]))
+        self.statustext(
+            f"GCS Failsafe On: {modes.mode_name(self.mode if new_mode is None else new_mode)}",
+            mavlink.MAV_SEVERITY_CRITICAL,
+        )
+        if new_mode is not None:
+            self.set_mode(new_mode)

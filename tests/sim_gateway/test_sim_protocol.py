@@ -157,7 +157,7 @@ def test_parameter_protocol(gcs, sim_factory):
         gcs.wait("PARAM_VALUE", 1, cond=lambda m: m.param_id == "ROLL_LIMIT_DEG").param_value == 45
     )
     gcs.mav.param_request_read_send(1, 1, b"FS_GCS_ENABL", -1)
-    assert gcs.wait("PARAM_VALUE", 1, cond=lambda m: m.param_id == "FS_GCS_ENABL").param_value == 1
+    assert gcs.wait("PARAM_VALUE", 1, cond=lambda m: m.param_id == "FS_GCS_ENABL").param_value == 0
 
 
 def _upload(gcs, sysid, items, mission_type=0):
@@ -242,19 +242,27 @@ def test_fence_exclusion_refuses_targets_and_breach_triggers_rtl(gcs, sim_factor
     assert gcs.wait("HEARTBEAT", 1, cond=lambda m: m.custom_mode == 11) is not None
 
 
-def test_gcs_failsafe_loiters_then_returns(gcs, sim_factory):
+def test_gcs_failsafe_acts_as_arduplane(gcs, sim_factory):
+    """ArduPlane's GCS failsafe: one stage after FS_LONG_TIMEOUT; in GUIDED, FS_LONG_ACTN 0 carries
+    on (the plane circles its guided target) and 1 returns home."""
     running = sim_factory(speedup=20.0)
     take_off(gcs)
-    for name, value in (("FS_SHORT_TIMEOUT", 0.5), ("FS_LONG_TIMEOUT", 2.0)):
+    for name, value in (("FS_GCS_ENABL", 1), ("FS_LONG_TIMEOUT", 1.0), ("FS_LONG_ACTN", 0)):
         gcs.mav.param_set_send(1, 1, name.encode(), value, ml.MAV_PARAM_TYPE_REAL32)
         assert (
             gcs.wait("PARAM_VALUE", 1, cond=lambda m, n=name: m.param_id == n).param_value == value
         )
     assert gcs.command_long(1, ml.MAV_CMD_DO_SET_MODE, 1, 15).result == 0
+    vehicle = running.sim.vehicles[0]
     # silence: no more heartbeats from the ground station
-    assert gcs.wait("HEARTBEAT", 1, timeout=5, cond=lambda m: m.custom_mode == 1) is not None
+    text = gcs.wait("STATUSTEXT", 1, timeout=5, cond=lambda m: "GCS Failsafe On" in m.text)
+    assert text is not None and "GUIDED" in text.text
+    assert vehicle.failsafe.stage == 2 and vehicle.mode == 15  # carried on in GUIDED
+    gcs.heartbeat()
+    assert gcs.wait("STATUSTEXT", 1, timeout=5, cond=lambda m: "Cleared" in m.text) is not None
+    gcs.mav.param_set_send(1, 1, b"FS_LONG_ACTN", 1, ml.MAV_PARAM_TYPE_REAL32)
     assert gcs.wait("HEARTBEAT", 1, timeout=5, cond=lambda m: m.custom_mode == 11) is not None
-    assert running.sim.vehicles[0].failsafe.stage == 2
+    assert vehicle.failsafe.stage == 2
 
 
 def test_sensor_looks_follow_the_documented_mapping(gcs, sim_factory):
