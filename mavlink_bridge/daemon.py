@@ -43,6 +43,11 @@ from mavlink_bridge.guided_commands import (
     send_commands,
     set_mode_command,
 )
+from mavlink_bridge.keeping_up import (
+    HoldWhenLate,
+    measure_step_wall_s,
+    refuse_unkeepable_time_scale,
+)
 from mavlink_bridge.lockstep_clock import LockstepClock
 from mavlink_bridge.mission_launch import LaunchPhase, launch_phases, run_launch
 from mavlink_bridge.mission_result import (
@@ -60,6 +65,7 @@ from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
 from mavlink_bridge.safety_envelope import SafetyEnvelope
 from mavlink_bridge.swarm_link import SwarmLink
 from mavlink_bridge.tlog import TlogWriter
+from mavlink_bridge.track_audit import TrackAudit, position_listener
 from mavlink_bridge.vehicle_state import VehicleState
 from planner.errors import UserError
 from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
@@ -122,6 +128,14 @@ class DaemonOptions:
     on_step: Callable[[StepStatus], None] | None = None
     #: called after every decision step with a read-only snapshot (mission_result.StepRecord)
     step_listeners: list[StepListener] = field(default_factory=list)
+    #: after RTL, keep listening (in lockstep: granting time) until every vehicle circles its
+    #: home, at most this many of the vehicles' seconds (None: the flight home of the farthest
+    #: plus two minutes; 0: not at all), so the flight home is in the continuous account too
+    rtl_watch_s: float | None = None
+    #: paced time: a step more than this many of the vehicles' seconds late sends no new
+    #: targets, the planes circle their last (safe) ones (keeping_up.py); None: one decision
+    #: period
+    late_bound_s: float | None = None
 
 
 def _import_planner() -> tuple[Any, Any]:
@@ -190,6 +204,26 @@ class MissionDaemon:
         self.launch: list[LaunchPhase] = launch_phases()
         self.phase = "connect"  # the phase the mission is in (launch phase names, "decisions")
         self.launched = False
+        self.step_wall_s: float | None = None  # paced time: a step's computation, calibrated
+        #: paced time: hold the planes at their last safe targets while late (keeping_up.py)
+        self.hold_policy = (
+            None
+            if options.lockstep
+            else HoldWhenLate(
+                cfg.step_s,
+                cfg.step_s if options.late_bound_s is None else options.late_bound_s,
+                self.say,
+            )
+        )
+        #: safety judged along every position report (track_audit.py), not only at decisions
+        self.audit = TrackAudit(
+            self.n,
+            self.envelope.threat_xy_km,
+            self.envelope.threat_radius_km,
+            cfg.min_separation_km,
+            max_gap_s=cfg.step_s,
+            project=lambda lat, lon: geodetic_to_local_km(lat, lon, scenario.origin),
+        )
 
     # ------------------------------------------------------------------ the daemon's counters
     # (attributes of the account; a checkpoint reads and restores them by these names)
@@ -294,6 +328,9 @@ class MissionDaemon:
         )
         if self.options.lockstep:
             self.clock = LockstepClock(self.link, self.scenario.config.step_s)
+        self.link.listeners.append(
+            position_listener(self.audit, None if self.options.lockstep else self.time_scale)
+        )
         return self.link
 
     def wait_sim(self, done: Callable[[], bool], timeout_s: float) -> bool:
@@ -336,11 +373,20 @@ class MissionDaemon:
             self.resume_from = load_for_mission(
                 self.options.checkpoint_path, self.fingerprint, HapfAcoPlanner
             )
+        if not self.options.lockstep:  # before any vehicle is touched
+            self.step_wall_s = measure_step_wall_s(
+                self.scenario, self.options.seed, HapfAcoPlanner, self.envelope,
+                self.flight_envelope,
+            )  # fmt: skip
+            refuse_unkeepable_time_scale(
+                self.time_scale, self.scenario.config.step_s, self.step_wall_s
+            )
         if self.link is None:
             self.connect()
         try:
             run_launch(self, self.launch)
             self.phase = "decisions"
+            self.audit.set_phase("mission")
             result = self.decision_loop(HapfAcoPlanner, MissionRecorder, started)
         except BaseException:
             failures = self.return_to_launch() if self.link is not None else []
@@ -350,17 +396,52 @@ class MissionDaemon:
             self.close()
             raise
         failures = self.return_to_launch()
-        self.release_clock()
         for line in failures:
             self.say(f"warning: {line}")
         self.say("mission over: RTL sent to every vehicle")
+        self.watch_rtl()
+        self.release_clock()
         self.close()
+        result["track_audit"] = self.audit.summary()
         return MissionReport(result, self.events)
+
+    @property
+    def time_scale(self) -> float:
+        return max(self.options.time_scale, 1e-6)
+
+    def watch_rtl(self) -> None:
+        """Listen on (in lockstep: grant time) until every vehicle still heard circles its home,
+        for the continuous account of the flight home (``rtl_watch_s``)."""
+        vehicles = [v for v in self.vehicles() if not v.lost and v.home is not None]
+        if not vehicles:
+            return
+        near_km = float(self.plane.loiter_radius_km()) + 0.5
+
+        def away_km(v: VehicleState) -> float:  # flat earth: ample within a mission area
+            assert v.home is not None
+            north = math.radians(v.lat_deg - v.home[0]) * 6371.0
+            east = math.radians(v.lon_deg - v.home[1]) * 6371.0 * math.cos(math.radians(v.lat_deg))
+            return math.hypot(north, east)
+
+        limit_s = self.options.rtl_watch_s
+        if limit_s is None:
+            limit_s = max(away_km(v) for v in vehicles) * 1e3 / self.plane.speed_mps + 120.0
+        if limit_s <= 0:
+            return
+
+        def home() -> bool:
+            return all(v.lost or not v.armed or away_km(v) <= near_km for v in vehicles)
+
+        if self.clock is not None:
+            self.wait_sim(home, limit_s)
+        else:
+            self.require_link().pump_until(home, limit_s / self.time_scale)
 
     def return_to_launch(self) -> list[str]:
         """RTL every vehicle still heard; returns one line per vehicle that did not accept."""
         if self.link is None:
             return []
+        self.audit.set_phase("rtl")
         self.end_leg_timing()  # home at cruise speed
         vehicles = [v for v in self.link.vehicles.values() if not v.lost]
         results = self.send([set_mode_command(v, PLANE_MODE_RTL) for v in vehicles])
@@ -496,8 +577,12 @@ class MissionDaemon:
             stages.record(state, inputs, plan, flight)
             batch = stages.command_batch(state, inputs, plan, flight)
             late = pacing.current.late(instant) if step > 0 else False
-            sent = self.send(batch.commands, deadline=instant.deadline)
-            stages.account(state, step, batch, sent, flight)
+            if self.holds(step, state, inputs.active):
+                self.audit.set_phase("hold")  # nothing new: the planes circle their last targets
+            else:
+                self.audit.set_phase("mission")
+                sent = self.send(batch.commands, deadline=instant.deadline)
+                stages.account(state, step, batch, sent, flight)
             self.tell_listeners(state, inputs, plan, flight, late)
             if self.checkpoints is not None:  # atomically, after every step
                 self.checkpoints.save(
@@ -515,9 +600,19 @@ class MissionDaemon:
         log = PursuitLog.of(state.planner)
         if log is not None:  # joined with a simulator's truth by swarmplan demo
             extra["planner_facts"] = log.facts()
+        if self.hold_policy is not None:
+            extra["held_steps"] = self.hold_policy.held_steps
+            extra["max_lateness_s"] = round(self.hold_policy.max_lateness_s, 2)
+            extra["calibrated_step_wall_s"] = self.step_wall_s
         return state.recorder.result(
             self.options.seed, ALGORITHM, time.monotonic() - started, extra=extra
         )
+
+    def holds(self, step: int, state: LoopState, active: np.ndarray) -> bool:
+        """Paced time: is this step too late to fly (``keeping_up.HoldWhenLate``)?"""
+        if self.hold_policy is None or step == 0:
+            return False
+        return self.hold_policy.hold(step, state.positions_ms, self.vehicles(), active)
 
     def tell_listeners(
         self, state: LoopState, inputs: Any, plan: Any, flight: Any, late: bool

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from mavlink_bridge.discovery import wait_for_vehicles, wait_until_ready
+from mavlink_bridge.gcs_failsafe import MISSION_FAILSAFE, set_gcs_failsafe
 from mavlink_bridge.guided_commands import (
     CommandRefusedError,
     arm_command,
@@ -79,6 +80,16 @@ def fence(daemon: MissionDaemon) -> None:
     )
     upload_fence(daemon.require_link(), daemon.vehicles(), circles)
     daemon.say(f"fence uploaded: {len(circles)} exclusion circles to each vehicle")
+
+
+def failsafe(daemon: MissionDaemon) -> None:
+    """Every vehicle's GCS failsafe: fly on to the last guided target (``gcs_failsafe.py``)."""
+    settings = MISSION_FAILSAFE
+    set_gcs_failsafe(daemon.require_link(), daemon.vehicles(), settings)
+    daemon.say(
+        f"GCS failsafe set: FS_GCS_ENABL {settings.enable}, FS_LONG_ACTN {settings.long_action} "
+        f"(continue: circle the last guided target), FS_LONG_TIMEOUT {settings.long_timeout_s:g} s"
+    )
 
 
 def arm(daemon: MissionDaemon, attempts: int = 3) -> None:
@@ -150,6 +161,7 @@ def launch_phases() -> list[LaunchPhase]:
         LaunchPhase("discover", discover),
         LaunchPhase("ready", ready),
         LaunchPhase("fence", fence),
+        LaunchPhase("failsafe", failsafe),
         LaunchPhase("arm", arm),
         LaunchPhase("take off", take_off),
         LaunchPhase("homes", request_homes),

@@ -57,6 +57,9 @@ class SwarmLink:
         for opener in self._openers:
             self._secure(opener)
         self.messages_received = 0
+        #: called with (vehicle, message) after the vehicle's state took each message in
+        #: (e.g. the continuous safety account, track_audit.py)
+        self.listeners: list[Callable[[VehicleState, mavlink.MAVLink_message], None]] = []
 
     @classmethod
     def open(
@@ -125,6 +128,8 @@ class SwarmLink:
         ):
             vehicle.link.moved(endpoint, address)
         vehicle.handle(msg, now)
+        for listen in self.listeners:
+            listen(vehicle, msg)
 
     def _secure(self, link: VehicleLink) -> VehicleLink:
         """Sign what ``link`` sends (link id = the vehicle's system id: one stream each)."""

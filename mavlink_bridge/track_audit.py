@@ -35,10 +35,14 @@ time says nothing).
 from __future__ import annotations
 
 import math
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from mavlink_bridge.protocol import PLANE_MODE_GUIDED, PLANE_MODE_TAKEOFF, mavlink
+from mavlink_bridge.vehicle_state import VehicleState
 from planner.constraints import segment_clearance
 
 #: phases in the order a segment shared by two of them is reported under (most telling first)
@@ -112,13 +116,17 @@ class TrackAudit:
         min_separation_km: float,
         max_gap_s: float = 10.0,
         shared_clock_tolerance_s: float = 1.0,
+        project: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
     ) -> None:
+        """``project``: the reports are (lat, lon) degrees, turned into the mission frame (km)
+        in one vectorised call when judged (a geodesic per report would cost ~3 ms each)."""
         self.n = n
         self.threat_xy = np.asarray(threat_xy_km, float).reshape(-1, 2)
         self.threat_r = np.asarray(threat_radius_km, float).reshape(-1)
         self.min_separation_km = float(min_separation_km)
         self.max_gap_s = float(max_gap_s)
         self.shared_clock_tolerance_s = float(shared_clock_tolerance_s)
+        self.project = project
         self.tracks = [_Track() for _ in range(n)]
         self.phase = "launch"
         self.reports = 0
@@ -173,7 +181,10 @@ class TrackAudit:
         t = np.asarray(tr.t_s, float) + offset_s
         order = np.argsort(t, kind="stable")
         t = t[order]
-        xy = np.stack([np.asarray(tr.x_km, float)[order], np.asarray(tr.y_km, float)[order]], 1)
+        a, b = np.asarray(tr.x_km, float)[order], np.asarray(tr.y_km, float)[order]
+        if self.project is not None and len(a):
+            a, b = self.project(a, b)
+        xy = np.stack([np.asarray(a, float), np.asarray(b, float)], 1)
         phase = np.asarray(tr.phase, np.int64)[order]
         keep = np.concatenate([[True], np.diff(t) > 0]) if len(t) else np.zeros(0, bool)
         return t[keep], xy[keep], phase[keep]
@@ -209,7 +220,7 @@ class TrackAudit:
                 self._judge_pair(i, j, tracks[i], tracks[j], figures, overall)
         out = {
             "source": "every position report (GLOBAL_POSITION_INT), tracks interpolated",
-            "reports": self.reports,
+            "reports": int(sum(len(t) for t, _, _ in tracks)),  # distinct instants
             "max_gap_s": self.max_gap_s,
             "unobserved_uav_s": round(unobserved, 1),
             "clock_offsets_s": [round(float(o), 3) for o in offsets],
@@ -287,16 +298,30 @@ class TrackAudit:
                 f.closest_at_s = float(t[m])
 
 
-def format_audit(audit: dict) -> str:
-    """One line per phase for a person (the summary's continuous-safety lines)."""
-    lines = []
-    for name, f in [("all", audit["all"]), *audit["phases"].items()]:
-        sep = f["min_separation_km"]
-        margin = f["min_threat_margin_km"]
-        lines.append(
-            f"  {name:<9} threat entries {f['threat_entries']}, separation breaches "
-            f"{f['separation_breaches']}, min separation "
-            f"{'n/a' if sep is None else f'{sep:.3f} km'}, min threat margin "
-            f"{'n/a' if margin is None else f'{margin:.3f} km'}"
+def position_listener(
+    audit: TrackAudit,
+    time_scale: float | None,
+) -> Callable[[VehicleState, mavlink.MAVLink_message], None]:
+    """A ``SwarmLink`` listener feeding ``audit`` (made with a ``project`` from degrees) every
+    GLOBAL_POSITION_INT a vehicle's state took in (not one dropped as stale or implausible)
+    while it flies (armed, 1 m above home). A vehicle out of GUIDED (TAKEOFF aside: its mode
+    as last heard may lag its first guided seconds) or reporting CRITICAL (a failsafe, a fence
+    breach) counts under ``failsafe`` during the mission. ``time_scale`` None: one shared clock
+    (lockstep)."""
+
+    def listen(v: VehicleState, msg: mavlink.MAVLink_message) -> None:
+        if msg.get_type() != "GLOBAL_POSITION_INT" or msg.get_srcComponent() != 1:
+            return
+        if not v.has_position or v.time_boot_ms != msg.time_boot_ms or v.lat_deg != msg.lat * 1e-7:
+            return
+        if not v.armed or v.relative_alt_m < 1.0:
+            return
+        failsafe = (
+            v.custom_mode not in (PLANE_MODE_GUIDED, PLANE_MODE_TAKEOFF)
+            or v.system_status == mavlink.MAV_STATE_CRITICAL
         )
-    return "\n".join(lines)
+        arrival = None if time_scale is None else time.monotonic() * time_scale
+        where = (v.lat_deg, v.lon_deg)  # the audit projects them all at once (``project``)
+        audit.add(v.system_id - 1, v.time_boot_ms / 1e3, where, arrival, failsafe)
+
+    return listen

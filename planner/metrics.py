@@ -183,6 +183,9 @@ class MissionRecorder:
             ],
             "returned_count": int(returned.sum()),
             "violations": dict(self.violations),
+            # C_t and C_c judged at decision instants and on the straight legs between them (the
+            # paper's grid); a MAVLink run adds the flown tracks' account ("track_audit")
+            "violations_measured_at": "decision steps",
             "wall_time_s": float(wall_time_s),
             "uav_count": self.n,
             "min_separation_limit_km": sc.config.min_separation_km,
@@ -235,6 +238,33 @@ def format_summary(result: dict) -> str:
         f"min separation  {'n/a' if sep is None else f'{sep:.2f} km'}",
         f"returned home   {result['returned_count']} of {result['uav_count']}",
         f"violations      threat {v['threat']}, separation {v['separation']}, turn {v['turn']},"
-        f" range {v['range']}",
+        f" range {v['range']} (at decision steps)",
+        *_continuous_lines(result),
         f"wall time       {result['wall_time_s']:.2f} s",
     ])  # fmt: skip
+
+
+def _continuous_lines(result: dict) -> list[str]:
+    """The safety account along every position report (``track_audit``, a MAVLink run) and the
+    simulator's own ground truth (``simulator_truth``), when the result has them."""
+
+    def km(value: float | None) -> str:
+        return "n/a" if value is None else f"{value:.2f} km"
+
+    lines = []
+    audit = result.get("track_audit")
+    if audit:
+        for name, f in [("all", audit["all"]), *audit["phases"].items()]:
+            lines.append(
+                f"  along tracks  {name}: threat entries {f['threat_entries']}, separation "
+                f"{f['separation_breaches']}, min separation {km(f['min_separation_km'])}, "
+                f"min threat margin {km(f['min_threat_margin_km'])}"
+            )
+    truth = result.get("simulator_truth")
+    if truth:
+        lines.append(
+            f"  simulator     threat entries {truth['threat_entries']}, separation "
+            f"{truth['separation_breaches']}, min separation {km(truth['min_separation_km'])}, "
+            f"min threat margin {km(truth['min_threat_margin_km'])}"
+        )
+    return lines

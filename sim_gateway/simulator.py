@@ -54,9 +54,9 @@ from sim_gateway.world import World
 
 MAX_VEHICLES = 200  # system ids 201-255 are left to ground stations (MAVSDK 245, MAVProxy 255)
 TELEMETRY_FRAME_S = 0.02  # telemetry is checked at most 50 times per wall second
-#: lockstep: GLOBAL_POSITION_INT of every vehicle once per this many simulated seconds, on top
-#: of the wall-clock stream (ticks run back to back, so a wall-clock rate alone would report a
-#: few positions per decision period: too few to judge the flight between decisions)
+#: lockstep: GLOBAL_POSITION_INT of every vehicle once per this many simulated seconds, instead
+#: of the wall-clock stream (ticks run back to back, so a wall-clock rate would report a few
+#: positions per decision period, at instants that differ from run to run)
 LOCKSTEP_POSITION_S = 1.0
 DUPLICATE_WINDOW_S = 2.0
 
@@ -475,8 +475,15 @@ class Simulator:
     def telemetry_frame(self, now_wall: float) -> None:
         """Send every stream that is due, check link failsafes and stalled uploads."""
         snapshot = None
+        gate = self.lockstep
+        ticking = gate.locked and gate.held_at_s != gate.horizon_s
         for v in self.vehicles:
             due = v.streams.due(now_wall)
+            if ticking and "GLOBAL_POSITION_INT" in due:
+                # lockstep on the way to a horizon: positions go by simulated time (tick), so
+                # the same seed gives the same reports; a wall-clock one would land at a
+                # different instant each run (while held, every report is of the held instant)
+                due.remove("GLOBAL_POSITION_INT")
             if due:
                 if snapshot is None:
                     snapshot = self.snapshot()

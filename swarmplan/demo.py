@@ -158,6 +158,21 @@ def join_target_account(
     )
 
 
+def simulator_summary(path: Path) -> dict | None:
+    """The simulator's JSON summary (the last JSON line of its log), if it wrote one."""
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return None
+    for line in reversed(lines):
+        if line.startswith("{"):
+            try:
+                return json.loads(line)
+            except ValueError:
+                return None
+    return None
+
+
 def main(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     steps = args.steps or scenario.steps
@@ -246,6 +261,9 @@ def main(args: argparse.Namespace) -> int:
     result = report.result
     result["wall_time_s"] = time.monotonic() - started
     join_target_account(result, truth_path, look_times.by_step, scenario.config.step_s, say)
+    summary = simulator_summary(sim_log)
+    if summary is not None and "safety" in summary:
+        result["simulator_truth"] = summary["safety"]  # what really flew, every physics tick
     written = write_outputs(result, out)
     if quiet:
         print(json.dumps(result))

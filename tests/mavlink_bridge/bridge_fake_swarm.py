@@ -1,9 +1,9 @@
 """A minimal stand-in swarm for the daemon's tests: N vehicles, each its own UDP socket sending
 to the daemon (like SITL's udpout), speaking just enough ArduPlane: heartbeats with an
-initialising phase, GLOBAL_POSITION_INT, fence upload, arm (refusable with a PreArm
-STATUSTEXT), mode changes, COMMAND_INT DO_REPOSITION (COMMAND_LONG answered UNSUPPORTED),
-DO_CHANGE_SPEED within 60..150 m/s, sensor looks and engagement captures from the camera
-component. Flies straight to each target at the commanded speed. For protocol tests only; the
+initialising phase, GLOBAL_POSITION_INT, fence upload, PARAM_SET (echoed), arm (refusable with
+a PreArm STATUSTEXT), mode changes, COMMAND_INT DO_REPOSITION (COMMAND_LONG answered
+UNSUPPORTED), DO_CHANGE_SPEED within 60..150 m/s, sensor looks and engagement captures from the
+camera component. Flies straight to each target at the commanded speed. For protocol tests only; the
 end-to-end tests use ``swarmplan sim``."""
 
 from __future__ import annotations
@@ -47,6 +47,7 @@ class FakeVehicle:
     commands: list = field(default_factory=list)
     speeds: list = field(default_factory=list)  # every accepted DO_CHANGE_SPEED, m/s
     airspeed: float = 150.0
+    params: dict = field(default_factory=dict)  # every PARAM_SET received, by name
 
     def __post_init__(self) -> None:
         self.sock.bind(("127.0.0.1", 0))
@@ -252,6 +253,10 @@ class FakeSwarm(threading.Thread):
                 self._ack(v, v.ap, msg.command, mavlink.MAV_RESULT_ACCEPTED)
             else:
                 self._ack(v, v.ap, msg.command, mavlink.MAV_RESULT_UNSUPPORTED)
+        elif kind == "PARAM_SET":  # every parameter is accepted and echoed (the GCS failsafe)
+            v.params[msg.param_id] = msg.param_value
+            v.send(v.ap, v.ap.param_value_encode(msg.param_id.encode(), msg.param_value,
+                                                 msg.param_type, 0, 0))  # fmt: skip
         elif kind == "MISSION_COUNT":
             items = v.fence_items if msg.mission_type == 1 else v.mission_items
             items.clear()

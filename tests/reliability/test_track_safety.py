@@ -1,0 +1,207 @@
+"""Safety of what really flew (issue 12, findings 1-3), with real processes over loopback UDP:
+the simulator and the daemon (``swarmplan demo`` or ``swarmplan sim`` + ``swarmplan daemon``).
+
+* a separation breach between two decision instants shows in result.json (the flown tracks'
+  account, ``track_audit``), as the simulator's own ground truth saw it;
+* a ground-station outage (the daemon stopped, then killed) near a threat takes no plane into it;
+* a daemon that falls behind the vehicles' clock holds them at safe points and says so;
+* a speedup the daemon cannot keep is refused at start, in one line.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+from loopback import free_udp_port, run_swarmplan, start_swarmplan, stop
+from reliability_harness import last_json
+
+from mavlink_bridge.checkpoint import CheckpointError, read_checkpoint
+
+#: two planes taking off towards each other 0.4 km abeam: they pass between decision instants
+HEAD_ON = """
+name = "head-on"
+steps = 3
+altitude_m = 500
+[uavs]
+count = 2
+[[uavs.start]]
+x_km = 10.5
+y_km = 10.5
+heading_deg = 0
+[[uavs.start]]
+x_km = 13.5
+y_km = 10.9
+heading_deg = 180
+[[targets]]
+id = 1
+kind = "unknown_position"
+x_km = 18
+y_km = 18
+value = 1
+"""
+
+#: one plane in a 20 km square around a threat it starts 3.5 km from, heading for it
+NEAR_THREAT = """
+name = "near-threat"
+steps = 200
+altitude_m = 500
+[parameters]
+grid_nx = 20
+grid_ny = 20
+[uavs]
+count = 1
+[[uavs.start]]
+x_km = 10.5
+y_km = 3.5
+heading_deg = 90
+[[targets]]
+id = 1
+kind = "unknown_position"
+x_km = 3
+y_km = 17
+value = 1
+[[threats]]
+x_km = 10.0
+y_km = 10.0
+radius_km = 3.0
+"""
+
+
+@pytest.mark.timeout(120)
+def test_a_breach_between_decision_instants_shows_in_the_result(tmp_path: Path):
+    scenario = tmp_path / "head-on.toml"
+    scenario.write_text(HEAD_ON)
+    out = tmp_path / "out"
+    done = run_swarmplan(["demo", str(scenario), "--out", str(out), "--json"], timeout=110)
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads((out / "result.json").read_text())
+    d_min = result["min_separation_limit_km"]
+    # at every decision instant the planes were d_min apart or more ...
+    assert result["violations"]["separation"] == 0 and result["min_separation_km"] >= d_min
+    assert result["violations_measured_at"] == "decision steps"
+    # ... but they passed closer in between, and the flown tracks say so
+    flown = result["track_audit"]["all"]
+    assert flown["separation_breaches"] >= 1 and flown["min_separation_km"] < d_min
+    truth = result["simulator_truth"]
+    assert truth["separation_breaches"] == flown["separation_breaches"]
+    assert abs(truth["min_separation_km"] - flown["min_separation_km"]) < 0.05
+    phases = result["track_audit"]["phases"]
+    assert min(p["min_separation_km"] for p in phases.values()) == flown["min_separation_km"]
+
+
+def _step(path: Path) -> int:
+    try:
+        return read_checkpoint(path).step
+    except CheckpointError:
+        return -1
+
+
+def _wait(predicate, timeout_s: float, procs: list[subprocess.Popen]) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        if any(p.poll() is not None for p in procs):
+            return predicate()
+        time.sleep(0.05)
+    return False
+
+
+@pytest.mark.timeout(150)
+def test_a_ground_station_outage_near_threats_enters_none(tmp_path: Path):
+    """The daemon is stopped (SIGSTOP) mid-mission among threats, then killed: the planes fly
+    their failsafe with nobody in command for 100 simulated seconds and more."""
+    scenario = tmp_path / "ring.toml"
+    scenario.write_text(NEAR_THREAT)
+    port = free_udp_port()
+    speedup = 20
+    sim_log, daemon_log = tmp_path / "sim.log", tmp_path / "daemon.log"
+    ckpt = tmp_path / "daemon.ckpt"
+    sim = start_swarmplan(
+        ["sim", "--scenario", str(scenario), "--speedup", str(speedup), "--gcs-port", str(port),
+         "--boot-s", "2", "--quiet"],
+        sim_log,
+    )  # fmt: skip
+    daemon = start_swarmplan(
+        ["daemon", "--connect", f"udpin:127.0.0.1:{port}", "--scenario", str(scenario),
+         "--time-scale", str(speedup), "--lost-after", "10", "--checkpoint", str(ckpt),
+         "--out", str(tmp_path / "out"), "--timeout", "30"],
+        daemon_log,
+    )  # fmt: skip
+    try:
+        assert _wait(lambda: _step(ckpt) >= 6, 90, [sim, daemon]), daemon_log.read_text()[-2000:]
+        daemon.send_signal(signal.SIGSTOP)  # the ground station freezes ...
+        time.sleep(3.0)
+        daemon.send_signal(signal.SIGKILL)  # ... and dies
+        daemon.wait(10)
+        time.sleep(5.0)  # 8 s of wall time without a ground station: 160 s of flight
+    finally:
+        stop(daemon, sig=signal.SIGKILL)
+        stop(sim)
+    summary = last_json(sim_log)
+    assert summary is not None, sim_log.read_text()[-2000:]
+    log = sim_log.read_text()
+    assert summary["fence_breaches"] == 0, log[-2000:]
+    assert summary["safety"]["threat_entries"] == 0
+    assert summary["safety"]["by_mode"]["failsafe"]["min_threat_margin_km"] is not None
+
+
+@pytest.mark.timeout(150)
+def test_a_daemon_late_beyond_the_bound_holds_and_says_so(tmp_path: Path):
+    """The daemon freezes for 3 s of wall time (60 s of the vehicles' clock at 20x), then
+    carries on: its next step is far too late to fly, so the planes keep circling their last
+    targets; it says so, counts the held step and flies on once caught up."""
+    scenario = tmp_path / "near.toml"
+    scenario.write_text(NEAR_THREAT.replace("steps = 200", "steps = 30"))
+    port = free_udp_port()
+    speedup = 20
+    sim_log, daemon_log = tmp_path / "sim.log", tmp_path / "daemon.log"
+    ckpt, out = tmp_path / "daemon.ckpt", tmp_path / "out"
+    sim = start_swarmplan(
+        ["sim", "--scenario", str(scenario), "--speedup", str(speedup), "--gcs-port", str(port),
+         "--boot-s", "2", "--quiet"],
+        sim_log,
+    )  # fmt: skip
+    daemon = start_swarmplan(
+        ["daemon", "--connect", f"udpin:127.0.0.1:{port}", "--scenario", str(scenario),
+         "--time-scale", str(speedup), "--lost-after", "10", "--checkpoint", str(ckpt),
+         "--out", str(out), "--timeout", "30"],
+        daemon_log,
+    )  # fmt: skip
+    try:
+        assert _wait(lambda: _step(ckpt) >= 5, 90, [sim, daemon]), daemon_log.read_text()[-2000:]
+        daemon.send_signal(signal.SIGSTOP)
+        time.sleep(3.0)
+        daemon.send_signal(signal.SIGCONT)
+        assert daemon.wait(90) == 0, daemon_log.read_text()[-2000:]
+    finally:
+        stop(daemon, sig=signal.SIGKILL)
+        stop(sim)
+    said = daemon_log.read_text()
+    assert "holding at step" in said and "late on the vehicles' clock" in said, said[-2000:]
+    assert "caught up at step" in said
+    result = json.loads((out / "result.json").read_text())
+    assert result["held_steps"] >= 1 and result["max_lateness_s"] > 10
+    assert result["track_audit"]["phases"]["hold"]["threat_entries"] == 0
+    # (the final RTL is a straight line home, which may cross the threat: counted under rtl)
+    truth = last_json(sim_log)["safety"]["by_mode"]
+    assert truth["guided"]["threat_entries"] == truth["failsafe"]["threat_entries"] == 0
+
+
+def test_an_unkeepable_speedup_is_refused_at_start_in_one_line(tmp_path: Path):
+    port = free_udp_port()
+    done = run_swarmplan(
+        ["daemon", "--connect", f"udpin:127.0.0.1:{port}", "--time-scale", "100000",
+         "--timeout", "5", "--out", str(tmp_path / "out")],
+        timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+    assert "--time-scale 100000" in lines[0] and "lockstep" in lines[0]
+    assert "or less" in lines[0]  # names the largest time scale that fits
