@@ -189,6 +189,7 @@ def main(args: argparse.Namespace) -> int:
         on_step=None if quiet else print_step,
     )
     daemon = MissionDaemon(scenario, options)
+    daemon.refuse_unkeepable_time_scale()  # a time scale it cannot keep: one line, now
     report = fly_with_view(daemon, args, out)
     result = report.result
     (out / "result.json").write_text(json.dumps(result, indent=2, default=float))

@@ -136,6 +136,9 @@ class DaemonOptions:
     #: targets, the planes circle their last (safe) ones (keeping_up.py); None: one decision
     #: period
     late_bound_s: float | None = None
+    #: paced time: refuse at start a time scale the calibration says this machine cannot keep
+    #: (keeping_up.py); off only for tests of other things that run deliberately too fast
+    check_time_scale: bool = True
 
 
 def _import_planner() -> tuple[Any, Any]:
@@ -373,14 +376,7 @@ class MissionDaemon:
             self.resume_from = load_for_mission(
                 self.options.checkpoint_path, self.fingerprint, HapfAcoPlanner
             )
-        if not self.options.lockstep:  # before any vehicle is touched
-            self.step_wall_s = measure_step_wall_s(
-                self.scenario, self.options.seed, HapfAcoPlanner, self.envelope,
-                self.flight_envelope,
-            )  # fmt: skip
-            refuse_unkeepable_time_scale(
-                self.time_scale, self.scenario.config.step_s, self.step_wall_s
-            )
+        self.refuse_unkeepable_time_scale()  # before any vehicle is touched
         if self.link is None:
             self.connect()
         try:
@@ -404,6 +400,20 @@ class MissionDaemon:
         self.close()
         result["track_audit"] = self.audit.summary()
         return MissionReport(result, self.events)
+
+    def refuse_unkeepable_time_scale(self) -> None:
+        """Paced time: calibrate a step's computation on this machine and refuse, in one line,
+        a time scale it cannot keep (``keeping_up.py``); once, before any vehicle is touched."""
+        if self.options.lockstep or self.step_wall_s is not None:
+            return
+        if not self.options.check_time_scale:
+            return
+        from planner.hapf_aco import HapfAcoPlanner
+
+        self.step_wall_s = measure_step_wall_s(
+            self.scenario, self.options.seed, HapfAcoPlanner, self.envelope, self.flight_envelope
+        )
+        refuse_unkeepable_time_scale(self.time_scale, self.scenario.config.step_s, self.step_wall_s)
 
     @property
     def time_scale(self) -> float:

@@ -214,6 +214,7 @@ def main(args: argparse.Namespace) -> int:
         step_listeners=[look_times],
     )
     daemon = MissionDaemon(scenario, options)
+    daemon.refuse_unkeepable_time_scale()  # paced: a speedup it cannot keep, before the sim
     view = ViewSession(
         scenario, seed=args.seed, steps=steps, uav_count=scenario.uav_count, source="mavlink",
         truth=True, out_dir=out, options=view_options(args),
