@@ -387,7 +387,11 @@ class Simulator:
             self.decision()
         if self.lockstep.locked:
             every = max(1, round(LOCKSTEP_POSITION_S / dt))
-            if self.ticks % every == 0:
+            # not at the horizon: there the hold marker reports the position, after the
+            # HEARTBEAT of that instant (a position stamped with the horizon tells the ground
+            # station the vehicle holds, so its state at the horizon must already be out)
+            at_horizon = not self.lockstep.allows((self.ticks + 1) * dt)
+            if self.ticks % every == 0 and not at_horizon:
                 snapshot = self.snapshot()
                 for v in self.vehicles:
                     v.send(BUILDERS["GLOBAL_POSITION_INT"](v, snapshot))

@@ -91,3 +91,27 @@ def test_fast_and_lockstep_together_is_one_line_exit_2():
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "--fast and --lockstep" in lines[0]
+
+
+def test_the_heartbeat_of_a_horizon_comes_before_any_position_stamped_with_it(gcs, sim_factory):
+    """A position stamped with the granted horizon tells the daemon the vehicle holds there; the
+    HEARTBEAT of that instant (its system_status) must be out before it. The once-per-simulated-
+    second positions used to go first, and a daemon waiting for STANDBY at the end of the boot
+    phase then granted one period more on some runs: the same seed flew different missions."""
+    sim_factory(lockstep=True, speedup=1.0, boot_s=10.0)
+    gcs.heartbeat()
+    gcs.mav.system_time_send(0, 10_000)  # the boot phase ends exactly at the horizon
+    previous = None
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:
+        m = gcs.wait(["HEARTBEAT", "GLOBAL_POSITION_INT"], 1, timeout=0.5)
+        if m is None or m.get_srcComponent() != 1:
+            continue
+        if m.get_type() == "GLOBAL_POSITION_INT" and m.time_boot_ms >= 10_000:
+            break
+        previous = m
+    else:
+        raise AssertionError("vehicle 1 never held at 10 s")
+    assert m.time_boot_ms == 10_000
+    assert previous is not None and previous.get_type() == "HEARTBEAT", previous
+    assert previous.system_status == 3  # MAV_STATE_STANDBY: booted, at the very horizon
