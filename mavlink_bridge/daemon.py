@@ -433,14 +433,28 @@ class MissionDaemon:
             east = math.radians(v.lon_deg - v.home[1]) * 6371.0 * math.cos(math.radians(v.lat_deg))
             return math.hypot(north, east)
 
+        # home = within a loiter circle (and a half kilometre) of it for a whole circle
+        circle_ms = 2e3 * math.pi * (near_km - 0.5) * 1e3 / self.plane.speed_mps
         limit_s = self.options.rtl_watch_s
         if limit_s is None:
-            limit_s = max(away_km(v) for v in vehicles) * 1e3 / self.plane.speed_mps + 120.0
+            farthest_km = max(away_km(v) for v in vehicles)
+            limit_s = farthest_km * 1e3 / self.plane.speed_mps + circle_ms / 1e3 + 120.0
         if limit_s <= 0:
             return
+        since_ms: dict[int, int] = {}
 
         def home() -> bool:
-            return all(v.lost or not v.armed or away_km(v) <= near_km for v in vehicles)
+            for v in vehicles:
+                if away_km(v) > near_km:
+                    since_ms.pop(v.system_id, None)
+                else:
+                    since_ms.setdefault(v.system_id, v.time_boot_ms)
+            return all(
+                v.lost
+                or not v.armed
+                or v.time_boot_ms - since_ms.get(v.system_id, v.time_boot_ms + 1) >= circle_ms
+                for v in vehicles
+            )
 
         if self.clock is not None:
             self.wait_sim(home, limit_s)
