@@ -211,6 +211,7 @@ def fly_with_view(daemon: MissionDaemon, args: argparse.Namespace, out: Path) ->
     view = ViewSession(
         daemon.scenario, seed=args.seed, steps=daemon.steps, uav_count=daemon.n,
         source="mavlink", truth=False, out_dir=out, options=view_options(args),
+        append=args.resume,
     )  # fmt: skip
     feed = DaemonViewFeed(daemon, view)
     said = daemon.options.progress

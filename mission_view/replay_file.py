@@ -6,11 +6,12 @@ view`` needs to show it again. One JSON object a line, gzip-compressed:
 * ``{"type": "beliefs", "step": k, "data": ...}``: the quantised belief layers of step k
   (``belief_layers``), as the byte-wise difference (mod 256) from the previous beliefs line,
   zlib-compressed, base64 (consecutive steps differ in few cells: ~2 MB for the paper's 10-UAV
-  mission of 250 steps);
+  mission of 250 steps); ``"key": true`` marks whole layers (a writer's first line);
 * ``{"type": "phase", "text": ...}`` and ``{"type": "end"}``.
 
 Lines are written as they come, so a mission cut short leaves a file that reads up to its last
-complete line.
+complete line. A daemon resumed from its checkpoint appends a gzip member of its own (layout,
+steps, beliefs from a key line); a step found twice is read from the later one.
 """
 
 from __future__ import annotations
@@ -31,11 +32,11 @@ REPLAY_NAME = "replay.jsonl.gz"
 
 
 class ReplayWriter:
-    def __init__(self, path: Path, layout: dict[str, Any]) -> None:
+    def __init__(self, path: Path, layout: dict[str, Any], append: bool = False) -> None:
         self.path = Path(path)
         try:
             self._file = gzip.open(  # noqa: SIM115 - open for the mission, closed by close()
-                self.path, "wt", compresslevel=1, encoding="utf-8"
+                self.path, "at" if append else "wt", compresslevel=1, encoding="utf-8"
             )
         except OSError as exc:
             raise UserError(
@@ -52,10 +53,12 @@ class ReplayWriter:
             self._write({"type": "step", **step})
 
     def write_beliefs(self, step: int, layers: np.ndarray) -> None:
-        delta = layers if self._previous is None else layers - self._previous
+        key = self._previous is None  # the first of this writer: whole layers, not a difference
+        delta = layers if key else layers - self._previous
         self._previous = layers
         data = base64.b64encode(zlib.compress(delta.tobytes(), 1)).decode("ascii")
-        self._write({"type": "beliefs", "step": step, "shape": list(layers.shape), "data": data})
+        doc = {"type": "beliefs", "step": step, "shape": list(layers.shape), "data": data}
+        self._write({**doc, "key": True} if key else doc)
 
     def write_phase(self, text: str) -> None:
         self._write({"type": "phase", "text": text})
@@ -85,7 +88,7 @@ def load_replay(result_dir: Path) -> MissionStore:
         )
     store: MissionStore | None = None
     previous: np.ndarray | None = None
-    steps: list[dict[str, Any]] = []
+    steps: dict[int, dict[str, Any]] = {}
     try:
         with gzip.open(path, "rt", encoding="utf-8") as lines:
             for number, line in enumerate(_complete_lines(lines), start=1):
@@ -95,12 +98,15 @@ def load_replay(result_dir: Path) -> MissionStore:
                     if kind != "mission":
                         raise ValueError("it does not start with the mission layout")
                     store = MissionStore({"type": "mission", **doc, "live": False})
+                elif kind == "mission":  # a resumed daemon appended its part: same mission
+                    continue
                 elif kind == "step":
-                    steps.append(doc)
+                    steps[int(doc["step"])] = doc  # a step flown again after a resume: the later
                 elif kind == "beliefs":
                     raw = zlib.decompress(base64.b64decode(doc["data"]))
                     delta = np.frombuffer(raw, dtype=np.uint8).reshape(doc["shape"])
-                    layers = delta.copy() if previous is None else previous + delta
+                    key = previous is None or doc.get("key", False)
+                    layers = delta.copy() if key else previous + delta
                     previous = layers
                     store.add_beliefs(int(doc["step"]), layers)
                 elif kind == "phase":
@@ -113,7 +119,7 @@ def load_replay(result_dir: Path) -> MissionStore:
         raise UserError(f"cannot read {path} ({exc}); the file is damaged") from None
     if store is None:
         raise UserError(f"{path} is empty; fly the mission again")
-    store.add_steps(steps)
+    store.add_steps([steps[k] for k in sorted(steps)])
     store.ended = True
     return store
 

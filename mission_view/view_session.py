@@ -73,14 +73,18 @@ class ViewSession:
         out_dir: Path | None,
         options: ViewOptions | None = None,
         live: bool = True,
+        append: bool = False,
     ) -> None:
+        """``append``: add to the replay already in ``out_dir`` (a resumed daemon)."""
         self.options = options or ViewOptions(serve=False)
         layout = mission_layout(
             scenario, seed=seed, steps=steps, uav_count=uav_count, source=source, live=live,
             truth=truth, layer_shape=layer_shape(scenario.config), layer_scales=LAYER_SCALES,
         )  # fmt: skip
         self.store = MissionStore(layout)
-        self.writer = None if out_dir is None else ReplayWriter(replay_path(out_dir), layout)
+        self.writer = (
+            None if out_dir is None else ReplayWriter(replay_path(out_dir), layout, append=append)
+        )
         self.server = None
         self.url: str | None = None
         if self.options.serve:

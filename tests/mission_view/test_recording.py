@@ -166,3 +166,25 @@ def test_a_port_in_use_is_one_clear_error():
         server = ViewServer(MissionStore({"type": "mission", "uav_count": 1}), "127.0.0.1", port)
         with pytest.raises(UserError, match=f"127.0.0.1:{port}.*--view-port"):
             server.start()
+
+
+def test_a_resumed_daemon_appends_to_the_replay(tmp_path):
+    """The first daemon's part, then the resumed one's (from a step the first had recorded):
+    one replay, each step once, the later part's layers read from its own key line."""
+    rng = np.random.default_rng(5)
+    layers = {k: rng.integers(0, 256, size=(3, 4, 4), dtype=np.uint8) for k in range(9)}
+    layout = {"type": "mission", "uav_count": 1, "steps": 8}
+    for part, (steps, append) in enumerate(((range(0, 6), False), (range(4, 9), True))):
+        writer = ReplayWriter(replay_path(tmp_path), layout, append=append)
+        for k in steps:
+            writer.write_steps([{"step": k, "part": part, "vehicles": [], "events": []}])
+            writer.write_beliefs(k, layers[k] if part else layers[k] // 2)
+        writer.close(ended=part == 1)
+    store = load_replay(tmp_path)
+    steps = store.steps_from(0)
+    assert [s["step"] for s in steps] == list(range(9))
+    assert [s["part"] for s in steps] == [0, 0, 0, 0, 1, 1, 1, 1, 1]
+    for k in range(9):
+        found, layer = store.layer(k, 2)
+        expected = layers[k] if k >= 4 else layers[k] // 2
+        assert found == k and np.array_equal(layer, expected[2]), k
