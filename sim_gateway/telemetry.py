@@ -119,6 +119,7 @@ def build_heartbeat(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
 SENSORS = (
     mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
     | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG
     | mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
     | mavlink.MAV_SYS_STATUS_SENSOR_GPS
     | mavlink.MAV_SYS_STATUS_SENSOR_DIFFERENTIAL_PRESSURE
@@ -139,6 +140,14 @@ def build_sys_status(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
         health &= ~(mavlink.MAV_SYS_STATUS_AHRS | mavlink.MAV_SYS_STATUS_SENSOR_GPS)
     if v.range_exhausted:
         health &= ~mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
+    # the pre-arm verdict, as ArduPilot's GCS::update_sensor_status_flags gives it: present
+    # always, enabled while arming checks are on (ARMING_CHECK), healthy when armed or when the
+    # checks pass (MAVSDK's health.is_armable reads this bit)
+    present |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    if v.params["ARMING_CHECK"]:
+        enabled |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        if v.armed or v.prearm_failure() is None:
+            health |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
     pct = s.range_remaining_pct[v.index]
     return mavlink.MAVLink_sys_status_message(
         present,

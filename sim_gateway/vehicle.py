@@ -186,12 +186,20 @@ class Vehicle:
 
     # ------------------------------------------------------------------ arming
 
+    def prearm_failure(self) -> str | None:
+        """Why the pre-arm checks fail now (ArduPlane's ``PreArm: ...``); None: it could arm.
+        Arming refuses with it, and SYS_STATUS reports it (the PREARM_CHECK health bit)."""
+        if self.booting and self.params["ARMING_CHECK"]:
+            return "PreArm: AHRS: waiting for home"
+        if self.range_exhausted:
+            return "PreArm: Battery 1 below minimum arming capacity"
+        return None
+
     def arm(self) -> tuple[int, str | None]:
         """Arm; returns (MAV_RESULT, reason refused)."""
-        if self.booting and self.params["ARMING_CHECK"]:
-            return mavlink.MAV_RESULT_FAILED, "PreArm: AHRS: waiting for home"
-        if self.range_exhausted:
-            return mavlink.MAV_RESULT_FAILED, "PreArm: Battery 1 below minimum arming capacity"
+        failure = self.prearm_failure()
+        if failure is not None:
+            return mavlink.MAV_RESULT_FAILED, failure
         if not self.armed:
             self.armed = True
             self.statustext("Arming motors")

@@ -159,3 +159,56 @@ def gcs_free_sim():
     )
     yield port, running.sim
     running.close()
+
+
+def test_mavsdk_health_says_armable_once_the_boot_phase_is_over():
+    """MAVSDK's ``health.is_armable`` is SYS_STATUS's PREARM_CHECK health bit: False while the
+    simulated autopilot initialises (arming refused), True once it could arm (it used to stay
+    False for ever although arming worked); the magnetometer is reported present and healthy."""
+    mavsdk = _require("mavsdk", "pip install -e .[test]")
+    assert mavsdk.__version__.startswith("4.")
+    from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+    from mavsdk.asyncio.plugins.action import ActionAsync
+    from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+    from sim_harness import RunningSim
+
+    from planner.scenario import load_scenario
+    from sim_gateway.simulator import SimOptions, Simulator
+
+    port = free_udp_port()
+    # the boot phase lasts until the test ends it (600 s simulated at real time)
+    options = SimOptions(gcs_port=port, boot_s=600.0, speedup=1.0)
+    running = RunningSim(Simulator(load_scenario("paper-2uav"), options))
+    sim = running.sim
+
+    async def session() -> tuple[bool, bool, bool]:
+        config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+        async with Mavsdk(config) as drone:
+            await drone.add_any_connection(f"udpin://127.0.0.1:{port}")
+            system = await drone.first_autopilot(timeout_s=10.0)
+            assert system is not None
+            telemetry = TelemetryAsync(system)
+            booting = None
+            async for health in telemetry.subscribe_health():
+                if sim.vehicles[0].booting:
+                    booting = health
+                    break
+            try:  # the verdict is the autopilot's: it refuses to arm while not armable
+                await ActionAsync(system).arm()
+                refused = False
+            except Exception:  # noqa: BLE001 (MAVSDK's ActionError)
+                refused = True
+            sim.boot_s = 0.0  # initialisation over
+            async for health in telemetry.subscribe_health():
+                if health.is_armable:
+                    break
+            await ActionAsync(system).arm()
+            return booting.is_armable, refused, health.is_magnetometer_calibration_ok
+
+    try:
+        armable_booting, refused_booting, mag_ok = asyncio.run(asyncio.wait_for(session(), 60))
+    finally:
+        running.close()
+    assert armable_booting is False and refused_booting
+    assert mag_ok
+    assert sim.vehicles[0].armed
