@@ -236,12 +236,23 @@ def format_summary(result: dict) -> str:
         f"  (slope over the first 50 steps {100 * result['coverage_slope_50']:.3f} %/step)",
         f"engaged         {result['engaged_count']} targets, value {result['engaged_value']:g}",
         f"min separation  {'n/a' if sep is None else f'{sep:.2f} km'}",
-        f"returned home   {result['returned_count']} of {result['uav_count']}",
+        _home_line(result),
         f"violations      threat {v['threat']}, separation {v['separation']}, turn {v['turn']},"
         f" range {v['range']} (at decision steps)",
         *_continuous_lines(result),
         f"wall time       {result['wall_time_s']:.2f} s",
     ])  # fmt: skip
+
+
+def _home_line(result: dict) -> str:
+    """UAVs at home (within a cell of their start) at the last decision step. Over MAVLink the
+    daemon sends RTL only after that step, so a low count there is the mission's end, not a
+    failed return."""
+    line = (
+        f"at home         {result['returned_count']} of {result['uav_count']} at the last "
+        f"decision step"
+    )
+    return line + ("; RTL sent after it" if result.get("source") == "mavlink" else "")
 
 
 def _continuous_lines(result: dict) -> list[str]:

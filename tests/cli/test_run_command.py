@@ -70,9 +70,29 @@ def test_progress_bar_only_on_a_terminal_and_one_summary_line(tmp_path):
     ), last
     assert str(piped) not in last[len(f"written: {piped}") :], last  # the folder once
     assert sum("written" in line for line in done.stdout.splitlines()) == 1
+    # the home count says when it was taken (not "returned home 0 of 2", read as a failure)
+    home = [line for line in done.stdout.splitlines() if line.startswith("at home ")]
+    assert len(home) == 1 and home[0].endswith(" of 2 at the last decision step"), home
+    assert "returned home" not in done.stdout
 
     status, _, shown = run_swarmplan_on_terminal(
         ["run", "paper-2uav", "--steps", "20", "--out", str(tmp_path / "tty")], timeout=120
     )
     assert status == 0
     assert "\r" in shown and "paper-2uav seed 1" in shown, shown
+
+
+def test_summary_of_a_mavlink_result_says_rtl_came_after_the_home_count():
+    """The daemon prints its summary right after "RTL sent to every vehicle": the home count is
+    the last decision step's, before that RTL, and the line says so."""
+    from planner.metrics import format_summary
+    from planner.scenario import load_scenario
+    from sim_gateway.offline_runner import run_offline
+
+    result = run_offline(load_scenario("paper-2uav"), 1, 3, "hapf-aco")
+    offline = format_summary(result).splitlines()
+    over_mavlink = format_summary({**result, "source": "mavlink"}).splitlines()
+    home = [line for line in over_mavlink if line.startswith("at home ")]
+    assert home == [f"at home         {result['returned_count']} of 2 at the last decision step; "
+                    "RTL sent after it"]  # fmt: skip
+    assert [line for line in offline if line.startswith("at home ")] == [home[0].split(";")[0]]
