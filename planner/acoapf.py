@@ -8,9 +8,13 @@ considering the dynamic updating of the TPM*". So this planner is HAPF-ACO
 pheromone eqs 28-34, transition rules eqs 35-37 with the N_t escape) with exactly two things
 taken out, and nothing else changed, so a comparison isolates what the paper claims they add:
 
-1. **No forecast update (eqs 19-22).** The TPM is initialised from the priors (eqs 9-16) and
-   updated by what the sensors see (eqs 17-18), but it is never propagated with the targets'
-   motion models: the swarm believes the targets stay where the prior put them.
+1. **The APF without the TPM's forecast update (eqs 19-22).** The map the potential field
+   (eqs 23-27) and the heuristic information read is initialised from the priors (eqs 9-16)
+   and updated by what the sensors see (eqs 17-18), but never propagated with the targets'
+   motion models: the field believes the targets stay where the prior or the last look put
+   them. Sensing, confirmation and engagement are not the APF: they read HAPF-ACO's own TPM
+   (with the forecast) through HAPF-ACO's code, so all three planners confirm and engage by
+   one rule (section 3.2.1) and differ only in how they move.
 2. **No range term (C_r in eqs 35 and 37).** The planner neither keeps a return slack nor flies
    home; it plans as if L_max were infinite.
 
@@ -57,8 +61,34 @@ def fuel_exhausted(distance_km: np.ndarray, max_range_km: float, cell_km: float)
     return np.asarray(distance_km) + math.sqrt(2.0) * cell_km > max_range_km + 1e-9
 
 
+class ApfBeliefs:
+    """HAPF-ACO's TPM (``full``: probe and forecast updates, read for sensing, confirmation and
+    engagement) with a twin for ACOAPF's potential field (``static``: the same probe updates,
+    renormalisation, decay and serviced targets, but no forecast). Every read goes to ``full``;
+    ``ApfBeliefs.UPDATES`` are applied to both; ``forecast`` to ``full`` only."""
+
+    UPDATES = ("apply_looks", "decay_unobserved", "renormalise", "remove_target")
+
+    def __init__(self, full: TargetProbabilityMaps, static: StaticTargetProbabilityMaps) -> None:
+        self.full = full
+        self.static = static
+
+    def __getattr__(self, name: str):
+        if name in ApfBeliefs.UPDATES:
+
+            def both(*args, **kwargs):
+                getattr(self.static, name)(*args, **kwargs)
+                return getattr(self.full, name)(*args, **kwargs)
+
+            return both
+        if name in ("full", "static"):  # not set yet (e.g. while unpickling)
+            raise AttributeError(name)
+        return getattr(self.full, name)
+
+
 class AcoApfPlanner(HapfAcoPlanner):
-    """ACOAPF (section 4.2, Algorithm 2): HAPF-ACO without the TPM forecast and the range term."""
+    """ACOAPF (section 4.2, Algorithm 2): HAPF-ACO without the TPM forecast in its potential
+    field and without the range term."""
 
     algorithm = "acoapf"
 
@@ -66,9 +96,17 @@ class AcoApfPlanner(HapfAcoPlanner):
         #: The airframe's real range (fuel), which the planner itself does not consider.
         self.fuel_range_km = scenario.config.max_range_km
         super().__init__(scenario.with_config(max_range_km=math.inf), starts, seed)
-        self.tpm = StaticTargetProbabilityMaps(scenario.targets, self.cfg, self.n)
+        self.tpm = ApfBeliefs(
+            self.tpm, StaticTargetProbabilityMaps(scenario.targets, self.cfg, self.n)
+        )
         self.flown_km = np.zeros(self.n)
         self.out_of_fuel = np.zeros(self.n, dtype=bool)
+
+    def _existence_window(self) -> np.ndarray:
+        """HAPF-ACO's window of existence probabilities for the potential field and the
+        heuristic information, read from the forecast-free map (``ApfBeliefs.static``)."""
+        around = self.cells[:, None, None, :] + self.window_offsets[None]
+        return self.tpm.static.existence_at(np.arange(self.n)[:, None, None], around)
 
     def step(
         self,

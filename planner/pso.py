@@ -152,7 +152,8 @@ class PsoPlanner(HapfAcoPlanner):
         modes[~flying] = MODES.index("hold")
         self._remember_plans(best_paths, next_cells, flying)
 
-        engage = self._engage_requests(engaging)
+        # HAPF-ACO's engagement rule, over the same UAVs (a returning one included)
+        engage = self._engage_requests((self.track[:, 0] >= 0) & flying)
         return StepDecision(next_cells, next_headings, engage, self.done.copy(), modes)
 
     def _remember_plans(

@@ -67,24 +67,58 @@ def test_fuel_rule_stops_within_one_diagonal_step_of_the_range():
     assert not fuel_exhausted(flown, np.inf, 1.0).any()
 
 
-def test_acoapf_tpm_has_no_forecast_but_hapf_aco_has():
+def test_acoapf_field_has_no_forecast_but_its_confirmation_beliefs_have():
+    """Algorithm 2: the APF without the TPM's forecast; sensing, confirmation and engagement
+    read HAPF-ACO's own TPM (forecast included), one rule for all three planners."""
     scenario = load_scenario("paper-2uav")
     starts = scenario.starts_for_seed(1)
-    planners = {
-        "acoapf": AcoApfPlanner(scenario, starts, 1),
-        "hapf-aco": HapfAcoPlanner(scenario, starts, 1),
-    }
-    assert isinstance(planners["acoapf"].tpm, StaticTargetProbabilityMaps)
-    moved = {}
-    for name, planner in planners.items():
-        before = planner.tpm.existence_map(1)
-        cells, headings = planner.cells.copy(), planner.headings.copy()
-        for _ in range(6):  # no looks reach the maps: only the forecast could change them
+    aco, hapf = AcoApfPlanner(scenario, starts, 1), HapfAcoPlanner(scenario, starts, 1)
+    assert isinstance(aco.tpm.static, StaticTargetProbabilityMaps)
+    field_before = aco.tpm.static.existence_map(1)
+    cells, headings = aco.cells.copy(), aco.headings.copy()
+    for _ in range(6):  # no looks reach the maps: only the forecast could change them
+        for planner in (aco, hapf):
             d = planner.step(cells, headings, [None, None], None)
-            cells, headings = d.next_cells, d.next_headings
-        moved[name] = np.abs(planner.tpm.existence_map(1) - before).max()
-    assert moved["acoapf"] == 0.0
-    assert moved["hapf-aco"] > 1e-6
+        cells, headings = d.next_cells, d.next_headings
+    assert np.abs(aco.tpm.static.existence_map(1) - field_before).max() == 0.0
+    # the beliefs that confirm and engage moved with the targets, exactly as HAPF-ACO's did
+    assert np.abs(aco.tpm.existence_map(1) - field_before).max() > 1e-6
+    np.testing.assert_array_equal(aco.tpm.existence_map(1), hapf.tpm.existence_map(1))
+    probe = np.array([[8, 15], [45, 50], [80, 70]])
+    rows = np.zeros(len(probe), dtype=np.int64)
+    np.testing.assert_array_equal(
+        aco.engage_probability(rows, probe), hapf.engage_probability(rows, probe)
+    )
+    # the potential field reads the forecast-free map
+    window = aco._existence_window()
+    around = aco.cells[:, None, None, :] + aco.window_offsets[None]
+    np.testing.assert_array_equal(
+        window, aco.tpm.static.existence_at(np.arange(aco.n)[:, None, None], around)
+    )
+
+
+def test_pso_asks_for_an_engagement_by_hapf_acos_rule_also_on_its_way_home():
+    """One engagement rule: a UAV whose track lies within the engage radius with probability
+    >= confirm_threshold asks, whatever mode it flies in (PSO used to skip returning UAVs)."""
+    scenario = load_scenario("paper-2uav")
+    starts = scenario.starts_for_seed(1)
+    decisions = {}
+    for cls in (PsoPlanner, HapfAcoPlanner):
+        planner = cls(scenario, starts, 1)
+        cell = planner.cells[0].copy()
+        for _ in range(8):  # eight detections at UAV 0's own cell: a confirmed target
+            planner.tpm.apply_looks(np.array([0]), [cell[None]], [np.array([True])], cell[None])
+        planner.tpm.renormalise()
+        assert planner.engage_probability(np.array([0]), cell[None])[0] >= 0.5
+        planner.track[0] = cell
+        planner.track_confirmed[0] = True
+        planner.returning[0] = True  # flying home (C_r)
+        planner._update_tracks = lambda *args: None  # keep the track as set
+        decisions[cls.algorithm] = planner.step(
+            planner.cells.copy(), planner.headings.copy(), [None, None], None
+        )
+    assert decisions["hapf-aco"].engage[0]
+    assert decisions["pso"].engage[0]
 
 
 def test_pso_fitness_counts_each_footprint_cell_of_a_path_once():
