@@ -58,18 +58,12 @@ class PursuitLog:
         step = int(planner.k)
         flying = np.flatnonzero(~np.asarray(planner.done, dtype=bool))
         if flying.size:
-            grid = planner.grid
-            cells = planner.cells[flying][:, None, :] + planner.footprint[None]  # (F, K, 2)
-            track = planner.track[flying]
-            cells = np.concatenate([cells, track[:, None, :]], axis=1)  # own track cell last
-            rows = np.repeat(flying, cells.shape[1])
-            flat_cells = cells.reshape(-1, 2)
-            keep = grid.inside(flat_cells)
-            rows, flat_cells = rows[keep], flat_cells[keep]
-            p = planner.engage_probability(rows, flat_cells)
+            rows, cells = self._candidates(planner, flying)
+            p = planner.engage_probability(rows, cells) if len(rows) else np.zeros(0)
             high = p >= self.floor
             if high.any():
-                keys = grid.flat(flat_cells[high])
+                grid = planner.grid
+                keys = grid.flat(cells[high])
                 order = np.lexsort((-p[high], keys))  # per cell, its highest belief first
                 keys, values = keys[order], p[high][order]
                 first = np.concatenate(([True], keys[1:] != keys[:-1]))
@@ -88,6 +82,37 @@ class PursuitLog:
         self.engage_requests.extend(
             [step, int(i)] for i in np.flatnonzero(np.asarray(decision.engage)).tolist()
         )
+
+    def _candidates(self, planner, flying: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(UAV, cell) pairs worth ``engage_probability``: each flying UAV's footprint cells and
+        track cell, less those whose bound ``sum_e p_(c+e) * fraction_e`` (>= the probability,
+        by the union bound) is under the floor. One read of the UAV's existence probabilities
+        on the square around it serves the bound of every footprint cell."""
+        grid = planner.grid
+        self._prepare(planner)
+        around = planner.cells[flying][:, None, :] + self._square[None]  # (F, S, 2)
+        window = planner.tpm.existence_at(flying[:, None], around)  # (F, S), 0 outside
+        bound = (window[:, self._gather] * planner.engage_fractions).sum(axis=2)  # (F, K)
+        uav, k = np.nonzero(bound >= self.floor)
+        rows = flying[uav]
+        cells = planner.cells[rows] + planner.footprint[k]
+        track = planner.track[flying]
+        tracked = grid.inside(track)
+        rows = np.concatenate([rows, flying[tracked]])
+        cells = np.concatenate([cells, track[tracked]]).reshape(-1, 2)
+        inside = grid.inside(cells)
+        return rows[inside], cells[inside]
+
+    def _prepare(self, planner) -> None:
+        """Set up, once, the square of cells around a UAV that holds every footprint cell's
+        engage disc, and where each (footprint cell, disc cell) pair sits in it."""
+        if getattr(self, "_square", None) is None:
+            reach = int(np.abs(planner.footprint).max() + np.abs(planner.engage_cells).max())
+            side = 2 * reach + 1
+            span = np.arange(-reach, reach + 1)
+            self._square = np.stack(np.meshgrid(span, span, indexing="ij"), -1).reshape(-1, 2)
+            pos = planner.footprint[:, None, :] + planner.engage_cells[None] + reach  # (K, E, 2)
+            self._gather = pos[..., 0] * side + pos[..., 1]
 
     def facts(self) -> dict:
         """The log as JSON-ready lists (the ``planner_facts`` of a result)."""

@@ -133,3 +133,38 @@ def test_pursuit_log_records_the_planners_own_belief_and_tracks():
     per_step = [sum(b[0] == s for b in facts["beliefs"]) for s in range(3)]
     assert min(per_step) >= len(planner.footprint)
     assert all(0.0 <= b[3] <= 1.0 for b in facts["beliefs"])
+
+
+def test_pursuit_log_skips_only_cells_whose_belief_is_under_its_floor():
+    """The log prunes footprint cells by a union bound before computing their belief; what it
+    keeps is exactly what computing every footprint and track cell would keep."""
+    scenario = load_scenario("paper-10uav")
+    planner = HapfAcoPlanner(scenario, scenario.starts_for_seed(3), 3)
+    log = PursuitLog().attach(planner)
+    every: list[list[float]] = []
+
+    def exhaustive(planner, decision):
+        flying = np.flatnonzero(~np.asarray(planner.done, dtype=bool))
+        cells = planner.cells[flying][:, None, :] + planner.footprint[None]
+        cells = np.concatenate([cells, planner.track[flying][:, None, :]], axis=1)
+        rows = np.repeat(flying, cells.shape[1])
+        cells = cells.reshape(-1, 2)
+        inside = planner.grid.inside(cells)
+        rows, cells = rows[inside], cells[inside]
+        p = planner.engage_probability(rows, cells)
+        best: dict[tuple[int, int], float] = {}
+        for (x, y), v in zip(cells.tolist(), p.tolist(), strict=True):
+            if v >= log.floor:
+                best[(x, y)] = max(v, best.get((x, y), 0.0))
+        every.extend([int(planner.k), x, y, round(v, 4)] for (x, y), v in sorted(best.items()))
+
+    planner.observers.append(exhaustive)
+    world = World(scenario, 3)
+    cells, headings = planner.cells.copy(), planner.headings.copy()
+    for _ in range(25):
+        decision = planner.step(cells, headings, world.sense(planner.grid.centre_km(cells)))
+        cells, headings = decision.next_cells, decision.next_headings
+        world.step()
+    logged = sorted(tuple(b) for b in log.facts()["beliefs"])
+    assert len(logged) > 0
+    assert logged == sorted(tuple(b) for b in every)
