@@ -18,6 +18,7 @@ the looks / telemetry, engagements from their acknowledged outcomes (``mission_r
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable
@@ -61,7 +62,7 @@ from mavlink_bridge.mission_result import (
     mavlink_extra,
 )
 from mavlink_bridge.pacing import STEP_DEADLINE_SHARE, DecisionInstant, PacingChoice, PacingContext
-from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
+from mavlink_bridge.protocol import PLANE_MODE_GUIDED, PLANE_MODE_RTL, mavlink, mode_name
 from mavlink_bridge.safety_envelope import SafetyEnvelope
 from mavlink_bridge.swarm_link import SwarmLink
 from mavlink_bridge.tlog import TlogWriter
@@ -141,6 +142,29 @@ class DaemonOptions:
     check_time_scale: bool = True
 
 
+class MissionInterrupted(KeyboardInterrupt):
+    """A signal ends the mission (raised by the command line's SIGTERM handler)."""
+
+    def __init__(self, signal_name: str) -> None:
+        super().__init__(signal_name)
+        self.signal_name = signal_name
+
+
+def ended_by(exc: BaseException) -> str:
+    """How an exception ended the mission, for the result (``ended``)."""
+    if isinstance(exc, MissionInterrupted):
+        return f"interrupted ({exc.signal_name})"
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted (Ctrl-C)"
+    if isinstance(exc, UserError):
+        return f"error: {exc}"
+    return f"error: {type(exc).__name__}: {exc}"
+
+
+def _ids(ids: list[int]) -> str:
+    return ", ".join(str(i) for i in ids)
+
+
 def _import_planner() -> tuple[Any, Any]:
     from planner.hapf_aco import HapfAcoPlanner
     from planner.metrics import MissionRecorder
@@ -206,7 +230,6 @@ class MissionDaemon:
         #: the launch, in order; a phase is added here (mission_launch.LaunchPhase), not in fly()
         self.launch: list[LaunchPhase] = launch_phases()
         self.phase = "connect"  # the phase the mission is in (launch phase names, "decisions")
-        self.launched = False
         self.step_wall_s: float | None = None  # paced time: a step's computation, calibrated
         #: paced time: hold the planes at their last safe targets while late (keeping_up.py)
         self.hold_policy = (
@@ -227,6 +250,11 @@ class MissionDaemon:
             max_gap_s=cfg.step_s,
             project=lambda lat, lon: geodetic_to_local_km(lat, lon, scenario.origin),
         )
+        self.state: LoopState | None = None  # the decision loop's, once it runs
+        self.report: MissionReport | None = None  # set on every way out of fly()
+        self.started = time.monotonic()
+        self.lost_reason: dict[int, str] = {}  # UAV -> why it is lost now
+        self._off_mission: dict[int, int] = {}  # UAV -> heartbeat count when first seen off
 
     # ------------------------------------------------------------------ the daemon's counters
     # (attributes of the account; a checkpoint reads and restores them by these names)
@@ -349,27 +377,61 @@ class MissionDaemon:
         if self.clock is not None and self.link is not None:
             self.clock.release(list(self.link.vehicles.values()))
 
+    def loss_reason(self, i: int, v: VehicleState, now: float) -> str | None:
+        """Why vehicle ``v`` (UAV ``i``) cannot take part in the mission now, or None: its link
+        went away, it has been silent for ``lost_after_s``, or (once the decision loop runs) it is
+        no longer armed or no longer in GUIDED (seen on two heartbeats in a row: one late
+        heartbeat from before the switch to GUIDED is not a mode change)."""
+        closed = v.link.endpoint.closed_reason
+        if closed is not None:
+            return f"link {v.link.endpoint.spec}: {closed}"
+        silent = v.silent_for(now)
+        if silent > self.options.lost_after_s:
+            return f"silent {silent:.1f} s"
+        if self.phase != "decisions":
+            return None
+        off = None
+        if not v.armed:
+            off = "disarmed"
+        elif v.custom_mode != PLANE_MODE_GUIDED:
+            off = f"left GUIDED (now {mode_name(v.custom_mode)})"
+        if off is None:
+            self._off_mission.pop(i, None)
+            return None
+        first = self._off_mission.setdefault(i, v.heartbeats)
+        return off if v.heartbeats - first >= 1 or v.lost else None
+
     def watch_links(self, step: int) -> None:
-        """Loss and return: a vehicle silent for ``lost_after_s`` is lost; heard again, it
-        rejoins."""
+        """Loss and return: a vehicle whose link went away, silent for ``lost_after_s``, disarmed
+        or out of GUIDED is lost (inactive to the planner, no commands; the others go on); once
+        it is heard again, armed and in GUIDED it rejoins."""
         now = time.monotonic()
+        back_within_s = min(1.0, self.options.lost_after_s / 2)
         for i, v in enumerate(self.vehicles()):
-            silent = v.silent_for(now)
-            if not v.lost and silent > self.options.lost_after_s:
+            why = self.loss_reason(i, v, now)
+            if not v.lost and why is not None:
                 v.lost = True
-                self.events.append(LinkEvent(step, i, "lost", now, "silent"))
-                self.say(f"vehicle {v.system_id} lost at step {step} (silent {silent:.1f} s)")
-            elif v.lost and silent < min(1.0, self.options.lost_after_s / 2):
+                self.lost_reason[i] = why
+                reason = "silent" if why.startswith("silent") else why
+                self.events.append(LinkEvent(step, i, "lost", now, reason))
+                self.say(f"vehicle {v.system_id} lost at step {step} ({why}); the others go on")
+            elif v.lost and why is None and v.silent_for(now) < back_within_s:
                 v.lost = False
+                self.lost_reason.pop(i, None)
                 self.events.append(LinkEvent(step, i, "rejoined", now))
                 self.say(f"vehicle {v.system_id} rejoined at step {step}")
 
     # ------------------------------------------------------------------ the mission
 
     def fly(self) -> MissionReport:
-        """Run the launch, the decision loop and RTL; return the result measured over MAVLink."""
+        """Run the launch, the decision loop and RTL; return the result measured over MAVLink.
+
+        Every way out (the end, an error, Ctrl-C, SIGTERM raised as :class:`MissionInterrupted`)
+        goes through :meth:`finish`: RTL to every airborne vehicle still reachable, said and
+        listed, and the result of what was flown (``self.report``, also when the exception is
+        re-raised: the caller writes it)."""
         HapfAcoPlanner, MissionRecorder = _import_planner()
-        started = time.monotonic()
+        self.started = time.monotonic()
         if self.options.resume:  # a bad checkpoint fails now, before any vehicle is touched
             if self.options.checkpoint_path is None:
                 raise UserError("--resume needs --checkpoint PATH (the file to resume from)")
@@ -383,23 +445,11 @@ class MissionDaemon:
             run_launch(self, self.launch)
             self.phase = "decisions"
             self.audit.set_phase("mission")
-            result = self.decision_loop(HapfAcoPlanner, MissionRecorder, started)
-        except BaseException:
-            failures = self.return_to_launch() if self.link is not None else []
-            for line in failures:
-                self.say(f"warning: {line}")
-            self.release_clock()
-            self.close()
+            self.decision_loop(HapfAcoPlanner, MissionRecorder)
+        except BaseException as exc:
+            self.finish(ended_by(exc))
             raise
-        failures = self.return_to_launch()
-        for line in failures:
-            self.say(f"warning: {line}")
-        self.say("mission over: RTL sent to every vehicle")
-        self.watch_rtl()
-        self.release_clock()
-        self.close()
-        result["track_audit"] = self.audit.summary()
-        return MissionReport(result, self.events)
+        return self.finish("completed")
 
     def refuse_unkeepable_time_scale(self) -> None:
         """Paced time: calibrate a step's computation on this machine and refuse, in one line,
@@ -461,29 +511,106 @@ class MissionDaemon:
         else:
             self.require_link().pump_until(home, limit_s / self.time_scale)
 
-    def return_to_launch(self) -> list[str]:
-        """RTL every vehicle still heard; returns one line per vehicle that did not accept."""
-        if self.link is None:
-            return []
+    def finish(self, ended: str) -> MissionReport:
+        """The one exit path: RTL to every airborne vehicle still reachable (never to a grounded,
+        disarmed one), say to whom, release a lockstep simulator, close the link and the tlog,
+        and keep the result of what was flown in ``self.report``. Never raises: a dead socket
+        or an unanswered command is a warning line."""
+        where = self.phase
+        self.phase = "rtl"
         self.audit.set_phase("rtl")
-        self.end_leg_timing()  # home at cruise speed
-        vehicles = [v for v in self.link.vehicles.values() if not v.lost]
-        results = self.send([set_mode_command(v, PLANE_MODE_RTL) for v in vehicles])
-        return [c.describe_failure() for c in results if not c.accepted]
+        sent_to: list[int] = []
+        skipped: dict[int, str] = {}
+        try:
+            sent_to, skipped = self.return_to_launch()
+            if ended == "completed":  # (an interrupted daemon does not stay to watch)
+                self.watch_rtl()
+        except Exception as exc:  # noqa: BLE001 - the cleanup goes on whatever happens
+            self.say(f"warning: RTL could not be sent to every vehicle ({exc})")
+        with contextlib.suppress(Exception):
+            self.release_clock()
+        try:
+            result = self.result_so_far(ended, where)
+        except Exception as exc:  # noqa: BLE001 - a result of what is known, whatever happens
+            self.state = None
+            result = self.result_so_far(f"{ended} (no flight result: {exc})", where)
+        result["rtl_sent_to"] = sent_to
+        result["rtl_not_sent"] = {str(k): why for k, why in sorted(skipped.items())}
+        result["track_audit"] = self.audit.summary()
+        self.close()
+        self.report = MissionReport(result, self.events)
+        return self.report
 
-    def end_leg_timing(self) -> None:
-        """Back to the scenario's speed for every vehicle still heard (best effort)."""
+    def return_to_launch(self) -> tuple[list[int], dict[int, str]]:
+        """RTL (at cruise speed) to every airborne vehicle still reachable. Returns the system ids
+        it was sent to and, for every other vehicle, why not; says both, and warns of every
+        vehicle that did not accept."""
+        if self.link is None:
+            return [], {}
+        skipped: dict[int, str] = {}
+        flying: list[VehicleState] = []
+        for sysid, v in sorted(self.link.vehicles.items()):
+            closed = v.link.endpoint.closed_reason
+            if closed is not None:
+                skipped[sysid] = f"unreachable: {closed}"
+            elif v.silent_for() > self.options.lost_after_s:
+                skipped[sysid] = f"unreachable: silent {v.silent_for():.0f} s"
+            elif not v.airborne:
+                skipped[sysid] = "on the ground, disarmed" if not v.armed else "on the ground"
+            else:
+                flying.append(v)
         if self.stages is not None:
-            self.stages.end_leg_timing()
-            self.options = replace(self.options, leg_timing=self.stages.leg_timing)
-            return
-        if not self.options.leg_timing or self.link is None:
-            return
-        self.options = replace(self.options, leg_timing=False)
-        cruise = self.plane.speed_mps
-        self.send(
-            [change_speed_command(v, cruise) for v in self.link.vehicles.values() if not v.lost]
+            self.stages.end_leg_timing(flying)  # home at cruise speed
+        elif self.options.leg_timing and flying:
+            cruise = self.plane.speed_mps
+            self.send([change_speed_command(v, cruise) for v in flying])
+        results = self.send([set_mode_command(v, PLANE_MODE_RTL) for v in flying])
+        for c in results:
+            if not c.accepted:
+                self.say(f"warning: {c.describe_failure()}")
+        sent = [c.vehicle.system_id for c in results]
+        accepted = [c.vehicle.system_id for c in results if c.accepted]
+        if sent:
+            line = f"RTL sent to vehicle{'s' if len(sent) > 1 else ''} {_ids(sent)}"
+            if accepted != sent:
+                line += f" (accepted by {_ids(accepted) or 'none'})"
+        else:
+            line = "RTL sent to no vehicle (none airborne and reachable)"
+        if skipped:
+            line += "; not to " + ", ".join(f"{k} ({why})" for k, why in skipped.items())
+        self.say(line)
+        return sent, skipped
+
+    def result_so_far(self, ended: str, phase: str) -> dict[str, Any]:
+        """The result of what was flown: the recorder's (every recorded step), with the MAVLink
+        fields, how the mission ended and in which phase. Before the first step there is no
+        recorder: only the MAVLink fields (``steps`` 0)."""
+        extra = mavlink_extra(
+            self.account,
+            self.require_link(),
+            str(self.options.tlog_path) if self.options.tlog_path else None,
+            None if self.resume_from is None else self.resume_from.step,
         )
+        extra["ended"] = ended
+        extra["ended_in_phase"] = phase
+        if self.hold_policy is not None:
+            extra["held_steps"] = self.hold_policy.held_steps
+            extra["max_lateness_s"] = round(self.hold_policy.max_lateness_s, 2)
+            extra["calibrated_step_wall_s"] = self.step_wall_s
+        wall_s = time.monotonic() - self.started
+        if self.state is None:
+            return {
+                "scenario": self.scenario.name,
+                "algorithm": ALGORITHM,
+                "seed": self.options.seed,
+                "steps": 0,
+                "wall_time_s": wall_s,
+                **extra,
+            }
+        log = PursuitLog.of(self.state.planner)
+        if log is not None:  # joined with a simulator's truth by swarmplan demo
+            extra["planner_facts"] = log.facts()
+        return self.state.recorder.result(self.options.seed, ALGORITHM, wall_s, extra=extra)
 
     def close(self) -> None:
         if self.link is not None:
@@ -579,17 +706,16 @@ class MissionDaemon:
         period_s = self.scenario.config.step_s / max(self.options.time_scale, 1e-6)
         return DecisionInstant(0, {}, time.monotonic() + STEP_DEADLINE_SHARE * period_s, "start")
 
-    def decision_loop(self, planner_cls: Any, recorder_cls: Any, started: float) -> dict[str, Any]:
+    def decision_loop(self, planner_cls: Any, recorder_cls: Any) -> None:
         """The decision steps, from the start (step 0) to ``steps``: wait for the decision
         instant, gather, plan, envelope, record, command batch, send, account, tell listeners,
         checkpoint."""
-        link = self.require_link()
-        state = self.start_state(planner_cls, recorder_cls)
+        state = self.state = self.start_state(planner_cls, recorder_cls)
         stages = self.stages = self.make_stages()
         pacing = self.pacing = self.make_pacing()
         first_step = 0
         if self.resume_from is not None:  # a restarted daemon: the state after its last step
-            state = LoopState.from_checkpoint(
+            state = self.state = LoopState.from_checkpoint(
                 resume_loop_state(self, self.resume_from, state.planner)
             )
             first_step = self.resume_from.step + 1
@@ -610,27 +736,11 @@ class MissionDaemon:
             self.tell_listeners(state, inputs, plan, flight, late)
             if self.checkpoints is not None:  # atomically, after every step
                 self.checkpoints.save(
-                    step, self, state.checkpoint_view(), time.monotonic() - started
+                    step, self, state.checkpoint_view(), time.monotonic() - self.started
                 )
             if plan.done.all():
                 break
         self.options = replace(self.options, leg_timing=stages.leg_timing)
-        extra = mavlink_extra(
-            self.account,
-            link,
-            str(self.options.tlog_path) if self.options.tlog_path else None,
-            None if self.resume_from is None else self.resume_from.step,
-        )
-        log = PursuitLog.of(state.planner)
-        if log is not None:  # joined with a simulator's truth by swarmplan demo
-            extra["planner_facts"] = log.facts()
-        if self.hold_policy is not None:
-            extra["held_steps"] = self.hold_policy.held_steps
-            extra["max_lateness_s"] = round(self.hold_policy.max_lateness_s, 2)
-            extra["calibrated_step_wall_s"] = self.step_wall_s
-        return state.recorder.result(
-            self.options.seed, ALGORITHM, time.monotonic() - started, extra=extra
-        )
 
     def holds(self, step: int, state: LoopState, active: np.ndarray) -> bool:
         """Paced time: is this step too late to fly (``keeping_up.HoldWhenLate``)?"""

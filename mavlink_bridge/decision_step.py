@@ -459,12 +459,15 @@ class DecisionStep:
         )
         self.end_leg_timing()
 
-    def end_leg_timing(self) -> list[Command]:
-        """Back to the scenario's speed for every vehicle still heard (best effort)."""
+    def end_leg_timing(self, vehicles: list[VehicleState] | None = None) -> list[Command]:
+        """Back to the scenario's speed for ``vehicles`` (default: every vehicle still heard),
+        best effort; no more leg timing in this run."""
         if not self.leg_timing:
             return []
         self.leg_timing = False
         if self.flight_envelope is not None:
             self.flight_envelope = replace(self.flight_envelope, leg_timing=False)
         cruise = self.plane.speed_mps
-        return self.send([change_speed_command(v, cruise) for v in self.vehicles if not v.lost])
+        if vehicles is None:
+            vehicles = [v for v in self.vehicles if not v.lost]
+        return self.send([change_speed_command(v, cruise) for v in vehicles])

@@ -49,8 +49,9 @@ class SwarmLink:
         self.accept_system_id = accept_system_id or (lambda sysid: 1 <= sysid < 250)
         self.vehicles: dict[int, VehicleState] = {}
         self._selector = selectors.DefaultSelector()
+        self._watched: dict[int, int] = {}  # id(endpoint) -> the file descriptor selected on
         for endpoint in endpoints:
-            self._selector.register(endpoint.fileno(), selectors.EVENT_READ, endpoint)
+            self._watch(endpoint)
         self._last_heartbeat_s = -1e9
         # udpout peers that wait for our first word get their own GCS link until a vehicle answers
         self._openers = [VehicleLink(0, e, None, tlog) for e in endpoints if e.needs_first_word]
@@ -86,8 +87,31 @@ class SwarmLink:
 
     # ------------------------------------------------------------------ receive
 
+    def _watch(self, endpoint: Endpoint) -> None:
+        fd = endpoint.fileno()
+        self._selector.register(fd, selectors.EVENT_READ, endpoint)
+        self._watched[id(endpoint)] = fd
+
+    def _unwatch(self, endpoint: Endpoint) -> None:
+        fd = self._watched.pop(id(endpoint), None)
+        if fd is not None:
+            self._selector.unregister(fd)
+
+    def _reconnect_due(self) -> None:
+        """Connections that went away (a TCP vehicle that closed) are tried again, with backoff."""
+        now = time.monotonic()
+        for endpoint in self.endpoints:
+            if endpoint.closed_reason is None:
+                continue
+            self._unwatch(endpoint)  # (it may have gone away while sending)
+            if endpoint.reconnect(now):
+                self._watch(endpoint)
+
     def pump(self, timeout_s: float = 0.0) -> int:
-        """Receive and dispatch whatever arrives within ``timeout_s``; returns the message count."""
+        """Receive and dispatch whatever arrives within ``timeout_s``; returns the message count.
+        An endpoint whose connection goes away stops being read (its vehicles fall silent) until
+        it is connected again."""
+        self._reconnect_due()
         self.send_heartbeat_if_due()
         count = 0
         for key, _ in self._selector.select(max(0.0, timeout_s)):
@@ -96,6 +120,8 @@ class SwarmLink:
             for msg, address in endpoint.receive():
                 self._dispatch(msg, endpoint, address, now)
                 count += 1
+            if endpoint.closed_reason is not None:
+                self._unwatch(endpoint)
         self.messages_received += count
         self.send_heartbeat_if_due()
         return count

@@ -7,7 +7,10 @@ Three kinds of endpoint, named the way MAVProxy and pymavlink name them:
   address each one sends from is remembered per vehicle, so replies go to the right socket.
 * ``udpout:HOST:PORT``: a UDP peer the daemon sends to first (e.g. PX4 SITL's offboard port
   14540 + i); the daemon's heartbeat opens the conversation.
-* ``tcp:HOST:PORT``: a TCP server to connect to (ArduPilot SITL instance i: 5760 + 10 i).
+* ``tcp:HOST:PORT``: a TCP server to connect to (ArduPilot SITL instance i: 5760 + 10 i). A
+  connection that closes or fails is not an error of the mission: the endpoint notes why
+  (``closed_reason``; the vehicles on it are then lost) and connects again with backoff
+  (0.5 s, doubling up to 8 s) until the vehicle is back.
 
 A UDP datagram is parsed on its own with a fresh parser, so a corrupt datagram can never swallow
 the frames of the next one; frames that parse as ``UNKNOWN_<id>`` (not CRC-checkable) and
@@ -19,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import socket
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,6 +37,11 @@ Address = tuple[str, int]
 #: Largest number of datagrams read from one socket in one pass, so one busy socket cannot
 #: starve the others.
 MAX_DATAGRAMS_PER_PASS = 2000
+#: TCP reconnect: first wait after a connection closed, and the longest (doubling in between)
+RECONNECT_FIRST_S = 0.5
+RECONNECT_MAX_S = 8.0
+#: a reconnect attempt waits at most this long for the server (the loop must not stall)
+RECONNECT_TIMEOUT_S = 0.3
 
 
 class EndpointError(UserError):
@@ -78,6 +87,8 @@ class Endpoint(ABC):
     #: with MAVLink signing on (mavlink_bridge/signing.py): frames it refuses are dropped
     signature_check: Any = None
     sock: socket.socket | None = None  # set by open()
+    #: why the connection is down (a TCP peer that went away), None while it works
+    closed_reason: str | None = None
 
     def admits(self, msg: mavlink.MAVLink_message) -> bool:
         """False for a frame the signature check refuses (unsigned, forged or replayed)."""
@@ -113,6 +124,10 @@ class Endpoint(ABC):
 
     def default_address(self) -> Address | None:
         return None
+
+    def reconnect(self, now: float) -> bool:
+        """Try to open a closed connection again (when due); True if it is open now."""
+        return False
 
     def close(self) -> None:
         if self.sock is not None:
@@ -156,6 +171,8 @@ class UdpInEndpoint(Endpoint):
                 break
             except ConnectionRefusedError:
                 continue  # an ICMP error from an earlier send to a vehicle that went away
+            except OSError:
+                break  # a socket error is a lost datagram, never the end of the mission
             out += [(msg, address) for msg in self.parse_datagram(data)]
         return out
 
@@ -163,7 +180,7 @@ class UdpInEndpoint(Endpoint):
         if address is None or self.sock is None:
             return
         # UDP: a lost datagram is what retries are for
-        with contextlib.suppress(BlockingIOError, ConnectionRefusedError):
+        with contextlib.suppress(OSError):
             self.sock.sendto(frame, address)
 
 
@@ -191,14 +208,24 @@ class UdpOutEndpoint(UdpInEndpoint):
 
 @dataclass
 class TcpEndpoint(Endpoint):
-    """A TCP server (ArduPilot SITL) the daemon connects to; one byte stream, one parser."""
+    """A TCP server (ArduPilot SITL) the daemon connects to; one byte stream, one parser. A
+    connection that closes is noted (``closed_reason``) and opened again with backoff."""
 
     parser: mavlink.MAVLink = field(default_factory=_fresh_parser)
     connect_timeout_s: float = 5.0
+    retry_at: float = 0.0  # monotonic instant of the next reconnect attempt
+    backoff_s: float = RECONNECT_FIRST_S
+    reconnects: int = 0
+
+    def _connect(self, timeout_s: float) -> socket.socket:
+        sock = socket.create_connection((self.host, self.port), timeout=timeout_s)
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return sock
 
     def open(self) -> TcpEndpoint:
         try:
-            sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
+            self.sock = self._connect(self.connect_timeout_s)
         except ConnectionRefusedError:
             raise EndpointError(
                 f"nothing listens on {self.spec} (connection refused); start the vehicle or SITL "
@@ -211,23 +238,48 @@ class TcpEndpoint(Endpoint):
             ) from None
         except OSError as exc:
             raise EndpointError(f"cannot connect to {self.spec}: {exc.strerror or exc}") from None
-        sock.setblocking(False)
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self.sock = sock
         return self
+
+    def went_away(self, why: str) -> None:
+        """The connection is gone: close it, note why, and plan the first reconnect."""
+        if self.sock is not None:
+            with contextlib.suppress(OSError):
+                self.sock.close()
+            self.sock = None
+        if self.closed_reason is None:
+            self.closed_reason = why
+            self.backoff_s = RECONNECT_FIRST_S
+            self.retry_at = time.monotonic() + self.backoff_s
+
+    def reconnect(self, now: float) -> bool:
+        if self.sock is not None:
+            return True
+        if now < self.retry_at:
+            return False
+        try:
+            self.sock = self._connect(RECONNECT_TIMEOUT_S)
+        except OSError:
+            self.backoff_s = min(2 * self.backoff_s, RECONNECT_MAX_S)
+            self.retry_at = time.monotonic() + self.backoff_s
+            return False
+        self.parser = _fresh_parser()  # a new stream: no half frame of the old one
+        self.closed_reason = None
+        self.reconnects += 1
+        return True
 
     def receive(self) -> list[tuple[mavlink.MAVLink_message, Address | None]]:
         out: list[tuple[mavlink.MAVLink_message, Address | None]] = []
-        assert self.sock is not None
-        while True:
+        while self.sock is not None:
             try:
                 data = self.sock.recv(65536)
             except (BlockingIOError, InterruptedError):
                 break
-            except OSError:
-                data = b""
+            except OSError as exc:
+                self.went_away(f"connection failed ({exc.strerror or exc})")
+                break
             if not data:
-                raise EndpointError(f"{self.spec} closed the connection; the vehicle went away")
+                self.went_away("connection closed by the vehicle")
+                break
             out += [(msg, None) for msg in self.kept(self.parser, data)]
         return out
 
@@ -239,7 +291,7 @@ class TcpEndpoint(Endpoint):
         except BlockingIOError:
             pass
         except OSError as exc:
-            raise EndpointError(f"{self.spec}: send failed ({exc.strerror or exc})") from None
+            self.went_away(f"send failed ({exc.strerror or exc})")
 
 
 def parse_endpoint(spec: str) -> Endpoint:

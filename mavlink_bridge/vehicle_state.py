@@ -20,6 +20,8 @@ from mavlink_bridge.vehicle_link import VehicleLink
 STALE_RUN_REBOOT = 3
 #: A look number this far beyond the newest one is refused (a real camera counts one by one).
 MAX_LOOK_JUMP = 10_000
+#: Without EXTENDED_SYS_STATE, an armed vehicle this high above home counts as airborne.
+AIRBORNE_MIN_ALT_M = 5.0
 
 
 @dataclass
@@ -72,6 +74,10 @@ class VehicleState:
     position_s: float = 0.0
     # home (HOME_POSITION)
     home: tuple[float, float, float] | None = None
+    #: EXTENDED_SYS_STATE landed_state (MAV_LANDED_STATE_*), UNDEFINED until heard
+    landed_state: int = mavlink.MAV_LANDED_STATE_UNDEFINED
+    #: SYSTEM_TIME time_boot_ms: the vehicle's clock, also between position reports
+    system_time_boot_ms: int = 0
     # status texts (STATUSTEXT), newest last
     statustexts: deque[tuple[float, int, str]] = field(default_factory=lambda: deque(maxlen=50))
     # command acks by (component, command)
@@ -103,6 +109,25 @@ class VehicleState:
     def standby_or_active(self) -> bool:
         """Initialisation finished: the autopilot is ready to upload and arm (or already flying)."""
         return self.system_status in (mavlink.MAV_STATE_STANDBY, mavlink.MAV_STATE_ACTIVE)
+
+    @property
+    def airborne(self) -> bool:
+        """Armed and flying: in the air by EXTENDED_SYS_STATE where the autopilot sends it, else
+        more than AIRBORNE_MIN_ALT_M above home. A grounded, disarmed vehicle is never airborne
+        (it must never be sent RTL)."""
+        if not self.armed:
+            return False
+        if self.landed_state != mavlink.MAV_LANDED_STATE_UNDEFINED:
+            return self.landed_state not in (
+                mavlink.MAV_LANDED_STATE_ON_GROUND,
+                mavlink.MAV_LANDED_STATE_UNDEFINED,
+            )
+        return self.has_position and self.relative_alt_m > AIRBORNE_MIN_ALT_M
+
+    @property
+    def clock_ms(self) -> int:
+        """The vehicle's own clock (time_boot_ms) as last reported, by position or SYSTEM_TIME."""
+        return max(self.time_boot_ms, self.system_time_boot_ms)
 
     def silent_for(self, now_s: float | None = None) -> float:
         return (time.monotonic() if now_s is None else now_s) - self.last_heard_s
@@ -173,6 +198,17 @@ class VehicleState:
         name = (raw if isinstance(raw, str) else raw.decode("ascii", "replace")).rstrip("\x00")
         if math.isfinite(msg.param_value):
             self.params[name] = float(msg.param_value)
+
+    def on_extended_sys_state(self, msg: mavlink.MAVLink_extended_sys_state_message) -> None:
+        if msg.get_srcComponent() == AUTOPILOT_COMPONENT_ID:
+            self.landed_state = msg.landed_state
+
+    def on_system_time(self, msg: mavlink.MAVLink_system_time_message) -> None:
+        if msg.get_srcComponent() != AUTOPILOT_COMPONENT_ID:
+            return
+        if msg.time_boot_ms < self.system_time_boot_ms - 60_000:
+            self.system_time_boot_ms = 0  # its clock restarted (a reboot)
+        self.system_time_boot_ms = max(self.system_time_boot_ms, msg.time_boot_ms)
 
     def on_statustext(self, msg: mavlink.MAVLink_statustext_message) -> None:
         text = msg.text if isinstance(msg.text, str) else msg.text.decode("utf-8", "replace")
@@ -262,6 +298,8 @@ _HANDLERS: dict[str, Callable[[VehicleState, mavlink.MAVLink_message], None]] = 
     "GLOBAL_POSITION_INT": VehicleState.on_global_position_int,
     "HOME_POSITION": VehicleState.on_home_position,
     "STATUSTEXT": VehicleState.on_statustext,
+    "EXTENDED_SYS_STATE": VehicleState.on_extended_sys_state,
+    "SYSTEM_TIME": VehicleState.on_system_time,
     "COMMAND_ACK": VehicleState.on_command_ack,
     "CAMERA_IMAGE_CAPTURED": VehicleState.on_camera_image_captured,
     "MISSION_REQUEST_INT": VehicleState.on_mission_request_int,
