@@ -1,27 +1,24 @@
-"""``swarmplan daemon``: fly a swarm of MAVLink vehicles (SITL, hardware or ``swarmplan sim``)
-with the HAPF-ACO planner; writes result.json, the .tlog and the waypoint files to --out."""
+"""``swarmplan daemon``'s arguments, the options they make, the mission view around the flight,
+and the progress and summary lines. The command itself (which also writes the figures, on every
+way out) is composed one layer up, in ``swarmplan/daemon_command.py``."""
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
 from mavlink_bridge.signing import KEY_ENV, load_signing_key
-from mavlink_bridge.waypoint_export import export_all
 from mission_view.view_session import add_view_arguments
 from planner.errors import UserError
 from planner.metrics import format_summary
-from planner.scenario import load_scenario
 from swarmplan.arguments import (
     add_seed_argument,
     non_negative_float,
     positive_float,
     positive_int,
-    writable_folder,
 )
 
 HELP = "fly MAVLink vehicles (SITL, hardware or the simulator) with the HAPF-ACO planner"
@@ -161,12 +158,10 @@ def print_step(status: StepStatus) -> None:
     )
 
 
-def main(args: argparse.Namespace) -> int:
-    validate(args)
-    scenario = load_scenario(args.scenario)
-    out: Path = writable_folder(args.out)
+def daemon_options(args: argparse.Namespace, out: Path) -> DaemonOptions:
+    """The daemon's options from the command line (``validate`` first)."""
     quiet = args.json
-    options = DaemonOptions(
+    return DaemonOptions(
         connect=args.connect or ["udpin:0.0.0.0:14550"],
         seed=args.seed,
         expect=args.expect,
@@ -188,18 +183,6 @@ def main(args: argparse.Namespace) -> int:
         else (lambda text: print(f"\n{text}" if text else "", file=sys.stderr)),
         on_step=None if quiet else print_step,
     )
-    daemon = MissionDaemon(scenario, options)
-    daemon.refuse_unkeepable_time_scale()  # a time scale it cannot keep: one line, now
-    report = fly_with_view(daemon, args, out)
-    result = report.result
-    (out / "result.json").write_text(json.dumps(result, indent=2, default=float))
-    files = export_all(result, out)
-    if quiet:
-        print(json.dumps(result, default=float))
-        return 0
-    print(file=sys.stderr)
-    print_summary(result, out, files)
-    return 0
 
 
 def fly_with_view(daemon: MissionDaemon, args: argparse.Namespace, out: Path) -> Any:
@@ -233,9 +216,16 @@ def fly_with_view(daemon: MissionDaemon, args: argparse.Namespace, out: Path) ->
 
 
 def print_summary(result: dict, out: Path, files: list[Path]) -> None:
-    """The metrics a person reads first, the lost vehicles, then where the files are."""
-    print(format_summary(result))
+    """The metrics a person reads first, the lost vehicles, how the mission ended, then where
+    the files are."""
+    if result.get("steps"):
+        print(format_summary(result))
     lost = result.get("lost_uavs") or []
     if lost:
         print(f"lost vehicles   {', '.join(str(i + 1) for i in lost)} (system ids)")
-    print(f"files in        {out}/ (result.json, mission.tlog, {len(files)} waypoint/map files)")
+    ended = result.get("ended", "completed")
+    if ended != "completed":
+        print(f"ended           {ended} (in phase {result.get('ended_in_phase', '?')})")
+    rtl = result.get("rtl_sent_to") or []
+    print(f"RTL sent to     {', '.join(str(i) for i in rtl) if rtl else 'no vehicle'}")
+    print(f"files in        {out}/ (result.json, mission.tlog; {len(files)} files written)")

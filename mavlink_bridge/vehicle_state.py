@@ -112,17 +112,16 @@ class VehicleState:
 
     @property
     def airborne(self) -> bool:
-        """Armed and flying: in the air by EXTENDED_SYS_STATE where the autopilot sends it, else
-        more than AIRBORNE_MIN_ALT_M above home. A grounded, disarmed vehicle is never airborne
-        (it must never be sent RTL)."""
+        """Armed and flying: more than AIRBORNE_MIN_ALT_M above home, or in the air by
+        EXTENDED_SYS_STATE (either says so: one of them may be stale, EXTENDED_SYS_STATE comes
+        rarely). A disarmed vehicle is never airborne (it must never be sent RTL)."""
         if not self.armed:
             return False
-        if self.landed_state != mavlink.MAV_LANDED_STATE_UNDEFINED:
-            return self.landed_state not in (
-                mavlink.MAV_LANDED_STATE_ON_GROUND,
-                mavlink.MAV_LANDED_STATE_UNDEFINED,
-            )
-        return self.has_position and self.relative_alt_m > AIRBORNE_MIN_ALT_M
+        in_air = self.landed_state not in (
+            mavlink.MAV_LANDED_STATE_ON_GROUND,
+            mavlink.MAV_LANDED_STATE_UNDEFINED,
+        )
+        return in_air or (self.has_position and self.relative_alt_m > AIRBORNE_MIN_ALT_M)
 
     @property
     def clock_ms(self) -> int:

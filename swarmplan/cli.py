@@ -23,7 +23,7 @@ SUBCOMMANDS = (
     ("run", "swarmplan.run_command"),
     ("demo", "swarmplan.demo"),
     ("sim", "sim_gateway.cli"),
-    ("daemon", "mavlink_bridge.cli"),
+    ("daemon", "swarmplan.daemon_command"),
     ("export", "mavlink_bridge.export_command"),
     ("experiment", "swarmplan.experiment_command"),
     ("view", "mission_view.view_command"),

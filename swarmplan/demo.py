@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from mavlink_bridge.cli import add_leg_timing_arguments
-from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
+from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, MissionInterrupted, StepStatus
 from mavlink_bridge.mission_result import StepRecord
 from mavlink_bridge.view_feed import DaemonViewFeed
 from mission_view.replay_file import replay_path
@@ -33,7 +33,9 @@ from swarmplan.arguments import (
     positive_int,
     writable_folder,
 )
-from swarmplan.run_command import progress_bar, write_outputs, written_line
+from swarmplan.daemon_command import write_mission_outputs
+from swarmplan.interrupts import MissionSignals
+from swarmplan.run_command import progress_bar, written_line
 
 HELP = "fly a scenario end to end: the MAVLink simulator and the planner daemon on loopback UDP"
 
@@ -244,8 +246,14 @@ def main(args: argparse.Namespace) -> int:
         f"-> udp {port}"
     )
     started = time.monotonic()
+    signals = MissionSignals()
     try:
-        report = daemon.fly()
+        with signals:
+            report = daemon.fly()
+    except MissionInterrupted:  # Ctrl-C / SIGTERM: RTL was sent; write what was flown
+        if daemon.report is None:
+            raise
+        report = daemon.report
     except UserError:
         if sim.poll() is not None:
             raise UserError(
@@ -265,11 +273,15 @@ def main(args: argparse.Namespace) -> int:
     summary = simulator_summary(sim_log)
     if summary is not None and "safety" in summary:
         result["simulator_truth"] = summary["safety"]  # what really flew, every physics tick
-    written = write_outputs(result, out)
+    written = write_mission_outputs(result, out)
+    status = signals.exit_status if signals.received else 0
     if quiet:
         print(json.dumps(result))
-        return 0
-    print(format_summary(result))
+        return status
+    if signals.received:
+        print(f"demo: interrupted ({signals.received}); what was flown is written", file=sys.stderr)
+    if result.get("steps"):
+        print(format_summary(result))
     if result.get("target_account"):
         print(format_account(result["target_account"]))
     lost = result.get("lost_uavs") or []
@@ -279,4 +291,4 @@ def main(args: argparse.Namespace) -> int:
         p for p in (out / "mission.tlog", sim_log, truth_path, replay_path(out)) if p.exists()
     ]
     print(written_line(out, [*written, *others]))
-    return 0
+    return status
