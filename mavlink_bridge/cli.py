@@ -71,8 +71,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--time-scale",
         type=positive_float,
         default=1.0,
-        help="speed of the vehicles' clock (SITL --speedup); paces steps only for "
-        "vehicles that send no sensor looks (default 1)",
+        help="speed of the vehicles' clock (SITL --speedup): the first steps' deadline until the "
+        "daemon has measured it; steps follow the vehicles' own clock (default 1)",
     )
     parser.add_argument(
         "--checkpoint",

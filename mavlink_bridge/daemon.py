@@ -112,7 +112,9 @@ class DaemonOptions:
     #: measured legs come from telemetry, not cell centres: a turn counts as a C_m violation only
     #: beyond phi_max plus this (the envelope itself never commands more than phi_max)
     turn_tolerance_deg: float = 15.0
-    time_scale: float = 1.0  # vehicles' clock speed; paces steps only when no looks arrive
+    #: vehicles' clock speed: the step deadline until it is measured; steps only by the wall
+    #: clock at this speed for vehicles that report no time at all (pacing.py)
+    time_scale: float = 1.0
     #: the vehicles are ``swarmplan sim --lockstep``: grant simulated time one decision period at
     #: a time (mavlink_bridge/lockstep_clock.py); the run is then repeatable for a seed
     lockstep: bool = False

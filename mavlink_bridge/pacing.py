@@ -6,8 +6,14 @@
 * :class:`LookPacing`: the vehicles' cameras report one sensor look per decision period of
   their own clock; a step runs when every active vehicle's new look is in, or, for stragglers,
   0.4 x the measured step interval after the first one.
-* :class:`WallClockPacing`: vehicles that send no looks: one step per ``step_s / time_scale``
-  wall seconds. It hands over to :class:`LookPacing` as soon as a look arrives.
+* :class:`VehicleClockPacing`: vehicles that send no looks (ArduPlane SITL or hardware without
+  a payload simulator) but report their own clock (``time_boot_ms`` of GLOBAL_POSITION_INT and
+  SYSTEM_TIME): a decision instant every ``step_s`` of each vehicle's clock, whatever the wall
+  clock does (a speedup that is not the one the daemon was told, a loaded machine).
+* :class:`WallClockPacing`: vehicles that report no time at all: one step per
+  ``step_s / time_scale`` wall seconds; never known to be late.
+
+The last two hand over to :class:`LookPacing` as soon as a look arrives.
 
 Every pacing answers the same three questions (:class:`Pacing`): wait for the next decision
 instant (and return the looks of it), by when must this step's commands be out (``deadline``),
@@ -211,6 +217,97 @@ class WallClockPacing:
         return False
 
 
+class VehicleClockPacing:
+    """A decision instant every ``step_s`` of each vehicle's own clock (``VehicleState.clock_ms``).
+
+    Each active vehicle's next instant is its last one plus a step (the first: its clock when
+    the loop started; a vehicle that rejoins: its clock then). The step runs when every active
+    vehicle's clock has reached its instant, or, for stragglers, 0.4 of a measured step interval
+    after the first one did. A step whose vehicles already flew more than half a step past
+    their instant as its commands go out is late, and so is one that skipped an instant (the
+    daemon stalled): both counted in ``late_steps``. Hands over (returns None) when a look
+    arrives."""
+
+    name = "vehicle clock"
+
+    def __init__(self, ctx: PacingContext) -> None:
+        self.ctx = ctx
+        self.last_ms: dict[int, int] = {}  # UAV -> its clock at the last decision instant
+        self.due_ms: dict[int, int] = {}  # UAV -> this step's instant on its clock
+        self.rates: list[float] = []  # measured vehicle-clock seconds per wall second
+        self._mark: tuple[float, int] | None = None
+
+    def start(self, vehicles: list[VehicleState]) -> None:
+        """Step 0 is now, on every vehicle's clock."""
+        self.last_ms = {i: v.clock_ms for i, v in enumerate(vehicles) if v.clock_ms > 0}
+
+    @property
+    def rate(self) -> float:
+        """The vehicles' clock speed (vehicle s per wall s): measured, else ``time_scale``."""
+        if self.rates:
+            return statistics.median(self.rates[-10:])
+        return self.ctx.time_scale
+
+    def wait(self, step: int, consumed: list[int]) -> DecisionInstant | None:
+        ctx = self.ctx
+        step_ms = round(1e3 * ctx.step_s)
+        start = time.monotonic()
+        first_due: float | None = None
+        limit = max(3 * ctx.step_s / max(self.rate, 1e-6), ctx.lost_after_s + 0.5)
+        while True:
+            ctx.link.pump(0.003)
+            ctx.watch(step)
+            if ctx.new_looks(consumed):
+                return None  # the cameras speak: pace by their looks
+            now = time.monotonic()
+            active = {i: v for i, v in enumerate(ctx.vehicles()) if not v.lost}
+            for i, v in active.items():
+                if i not in self.last_ms and v.clock_ms > 0:
+                    self.last_ms[i] = v.clock_ms - step_ms  # (re)joined: its instant is now
+            due = {i: self.last_ms[i] + step_ms for i in active if i in self.last_ms}
+            reached = [i for i in due if active[i].clock_ms >= due[i]]
+            if reached and first_due is None:
+                first_due = now
+            if due and len(reached) == len(due):
+                break
+            if first_due is not None and now - first_due > max(0.05, 0.4 * ctx.gap_s()):
+                break  # stragglers: their positions are a little older than the instant
+            if now - start > limit:
+                break
+        ctx.measure_gap()
+        self.due_ms = due
+        for i in due:
+            self.last_ms[i] = due[i]
+        for i in [i for i in self.last_ms if i not in active]:
+            del self.last_ms[i]  # lost: it starts afresh when it rejoins
+        self._measure_rate(active)
+        deadline = time.monotonic() + STEP_DEADLINE_SHARE * ctx.step_s / max(self.rate, 1e-6)
+        return DecisionInstant(step, {}, deadline, self.name)
+
+    def _measure_rate(self, active: dict[int, VehicleState]) -> None:
+        clocks = [v.clock_ms for v in active.values() if v.clock_ms > 0]
+        if not clocks:
+            return
+        now, clock = time.monotonic(), max(clocks)
+        if self._mark is not None and now > self._mark[0] and clock > self._mark[1]:
+            self.rates.append((clock - self._mark[1]) / 1e3 / (now - self._mark[0]))
+        self._mark = (now, clock)
+
+    def late(self, instant: DecisionInstant) -> bool:
+        """Late when the vehicles flew more than half a step past their instant before the
+        commands went out, or when an instant was skipped; a skipped instant moves the vehicle's
+        next instant on to the step it is in (the schedule keeps the vehicle's clock)."""
+        if not self.due_ms:
+            return False
+        step_ms = round(1e3 * self.ctx.step_s)
+        vehicles = self.ctx.vehicles()
+        behind = {i: vehicles[i].clock_ms - due for i, due in self.due_ms.items()}
+        for i, ms in behind.items():
+            if ms >= step_ms and i in self.last_ms:  # whole instants passed: skip them
+                self.last_ms[i] += (ms // step_ms) * step_ms
+        return note_late(self.ctx, instant.step, max(self.due_ms.values()), max(behind.values()))
+
+
 def note_late(ctx: PacingContext, step: int, instant_ms: int, behind_ms: int) -> bool:
     """Count a late step (``late_steps``) and say the first one with what to do about it."""
     step_ms = 1e3 * ctx.step_s
@@ -237,19 +334,26 @@ def note_late(ctx: PacingContext, step: int, instant_ms: int, behind_ms: int) ->
 
 class PacingChoice:
     """Picks the pacing of each step: lockstep when granted, else the looks once any vehicle
-    has sent one, else the wall clock (which hands over to the looks when they start)."""
+    has sent one, else the vehicles' own clock when they report it, else the wall clock (the
+    last two hand over to the looks when they start)."""
 
     def __init__(self, ctx: PacingContext, clock: LockstepClock | None) -> None:
         self.ctx = ctx
         self.lockstep = None if clock is None else LockstepPacing(ctx, clock)
         self.looks = LookPacing(ctx)
+        self.vehicle_clock = VehicleClockPacing(ctx)
         self.wall = WallClockPacing(ctx)
         self.current: Pacing = self.lockstep or self.wall
+        self.vehicle_clock.start(ctx.vehicles())
 
     def choose(self) -> Pacing:
         if self.lockstep is not None:
             return self.lockstep
-        return self.looks if self.ctx.any_looks() else self.wall
+        if self.ctx.any_looks():
+            return self.looks
+        if any(v.clock_ms > 0 for v in self.ctx.vehicles() if not v.lost):
+            return self.vehicle_clock
+        return self.wall
 
     def wait(self, step: int, consumed: list[int]) -> DecisionInstant:
         while True:

@@ -75,10 +75,12 @@ class FakeSwarm(threading.Thread):
         lat0: float = -35.36,
         lon0: float = 149.17,
         speedup: float = 50.0,
+        camera: bool = True,  # False: no sensor looks (an autopilot without a payload)
         **vehicle_kwargs: object,
     ) -> None:
         super().__init__(daemon=True)
         self.speedup = speedup
+        self.camera = camera
         self.vehicles = [
             FakeVehicle(
                 i + 1,
@@ -116,7 +118,7 @@ class FakeSwarm(threading.Thread):
                 next_hb = now + 0.05
                 for v in self.vehicles:
                     self._telemetry(v)
-            if self.sim_s >= next_look:
+            if self.camera and self.sim_s >= next_look:
                 next_look += 10.0
                 for v in self.vehicles:
                     if v.armed:

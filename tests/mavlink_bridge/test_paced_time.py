@@ -73,3 +73,29 @@ def test_measured_chord_from_the_decision_instant_is_judged(paper10):
     before = centre + [-1.0, -(radius + 0.5)]
     late = envelope._threat_clearance(path, before[None], np.array([5.0]))
     assert late[0] < 0
+
+
+def test_without_looks_steps_keep_the_vehicles_clock_and_lateness_is_counted(
+    paper10, udp_port, fake_swarm_factory
+):
+    """Vehicles without a camera whose clock runs at 50x while the daemon is told 25x: decision
+    instants come every decision period of the vehicles' own clock (their time_boot_ms), never
+    earlier, and every step that came later than 1.5 periods after the last is counted in
+    late_steps. (Paced by the wall clock at the speedup it was told, the daemon decided every
+    20 s of vehicle time and said 0 late steps.)"""
+    fake_swarm_factory(2, udp_port, camera=False)
+    instants: list[int] = []
+    daemon = MissionDaemon(paper10, options(udp_port, expect=2, steps=10, time_scale=25.0))
+    daemon.options.step_listeners.append(
+        lambda record: instants.append(int(record.positions_ms.max()))
+    )
+    result = daemon.fly().result
+    assert result["steps"] == 10 and result["looks_missed"] > 0  # no camera indeed
+    step_ms = 1e3 * paper10.config.step_s
+    gaps = np.diff(instants[1:])  # decision step 1 on (step 0 is the start)
+    assert len(gaps) == 9
+    # never before its instant on the vehicles' clock (positions come every 2.5 s of it)
+    schedule = instants[0] + step_ms * np.arange(len(instants))
+    assert (np.array(instants) >= schedule - 2500).all(), (instants, schedule)
+    assert result["late_steps"] >= int((gaps > 1.5 * step_ms).sum()), (gaps, result["late_steps"])
+    assert daemon.pacing is not None and daemon.pacing.current.name == "vehicle clock"
