@@ -425,6 +425,20 @@ class MissionDaemon:
 
     # ------------------------------------------------------------------ the mission
 
+    def prepare(self) -> SwarmLink:
+        """What can fail before any vehicle is touched: the checkpoint to resume from, a time
+        scale this machine cannot keep, then the endpoints. Called by :meth:`fly`; a caller may call it first to fail before it shows
+        anything else (each failure is one ``UserError`` line)."""
+        if self.options.resume and self.resume_from is None:
+            if self.options.checkpoint_path is None:
+                raise UserError("--resume needs --checkpoint PATH (the file to resume from)")
+            HapfAcoPlanner, _ = _import_planner()
+            self.resume_from = load_for_mission(
+                self.options.checkpoint_path, self.fingerprint, HapfAcoPlanner
+            )
+        self.refuse_unkeepable_time_scale()
+        return self.link if self.link is not None else self.connect()
+
     def fly(self) -> MissionReport:
         """Run the launch, the decision loop and RTL; return the result measured over MAVLink.
 
@@ -434,15 +448,7 @@ class MissionDaemon:
         re-raised: the caller writes it)."""
         HapfAcoPlanner, MissionRecorder = _import_planner()
         self.started = time.monotonic()
-        if self.options.resume:  # a bad checkpoint fails now, before any vehicle is touched
-            if self.options.checkpoint_path is None:
-                raise UserError("--resume needs --checkpoint PATH (the file to resume from)")
-            self.resume_from = load_for_mission(
-                self.options.checkpoint_path, self.fingerprint, HapfAcoPlanner
-            )
-        self.refuse_unkeepable_time_scale()  # before any vehicle is touched
-        if self.link is None:
-            self.connect()
+        self.prepare()
         try:
             run_launch(self, self.launch)
             self.phase = "decisions"

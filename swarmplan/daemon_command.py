@@ -49,7 +49,7 @@ def main(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     out: Path = writable_folder(args.out)
     daemon = MissionDaemon(scenario, daemon_options(args, out))
-    daemon.refuse_unkeepable_time_scale()  # a time scale it cannot keep: one line, now
+    daemon.prepare()  # a bad checkpoint, time scale or endpoint: one line, before the view
     with MissionSignals() as signals:
         try:
             fly_with_view(daemon, args, out)
