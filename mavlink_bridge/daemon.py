@@ -427,8 +427,8 @@ class MissionDaemon:
 
     def prepare(self) -> SwarmLink:
         """What can fail before any vehicle is touched: the checkpoint to resume from, a time
-        scale this machine cannot keep, then the endpoints. Called by :meth:`fly`; a caller may call it first to fail before it shows
-        anything else (each failure is one ``UserError`` line)."""
+        scale this machine cannot keep, then the endpoints. Called by :meth:`fly`; a caller may
+        call it first, to fail before it shows anything else (each failure is one line)."""
         if self.options.resume and self.resume_from is None:
             if self.options.checkpoint_path is None:
                 raise UserError("--resume needs --checkpoint PATH (the file to resume from)")
