@@ -353,9 +353,13 @@ class MissionDaemon:
         if self.options.tlog_path is not None:
             self.tlog = TlogWriter(self.options.tlog_path, append=self.options.resume)
         expected = set(self.system_ids)
+        # our heartbeat at 1 Hz of the vehicles' clock (at 10x, every 0.1 s of wall time): an
+        # autopilot's GCS failsafe counts its own seconds without one
+        beat_s = 1.0 if self.options.lockstep else max(0.05, 1.0 / self.options.time_scale)
         self.link = SwarmLink.open(
             self.options.connect,
             self.tlog,
+            heartbeat_period_s=min(1.0, beat_s),
             accept_system_id=lambda s: s in expected,
             signing_key=self.options.signing_key,
         )
