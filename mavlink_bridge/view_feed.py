@@ -36,6 +36,7 @@ class DaemonViewFeed:
         self.truth = truth
         self.pending: list[tuple[str, str]] = []  # (kind, text) said since the last step
         self.overrides: dict[str, int] = {}
+        self.started: float | None = None  # wall clock of the first step
 
     def progress(self, text: str) -> None:
         """A line the daemon says (its ``progress`` callback)."""
@@ -52,6 +53,8 @@ class DaemonViewFeed:
         """A ``StepListener``: one ``StepView`` per decision step."""
         daemon, step = self.daemon, record.status.step
         now = time.monotonic()
+        if self.started is None:
+            self.started = now
         link = daemon.link
         signed = None if link is None else link.signature_check is not None
         events = [TimelineEvent(step, kind, text) for kind, text in self.pending]
@@ -95,7 +98,7 @@ class DaemonViewFeed:
         view = StepView(
             step, vehicles, coverage=status.coverage, engaged=status.engaged,
             engaged_value=status.engaged_value, late=record.late,
-            late_steps=daemon.account.late_steps,
+            late_steps=daemon.account.late_steps, wall_s=now - self.started,
             truth=None if self.truth is None else self.truth(), events=events,
         )  # fmt: skip
         self.session.post(view, record.planner)

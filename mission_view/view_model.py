@@ -63,7 +63,7 @@ class StepView:
     engaged_value: float = 0.0
     late: bool = False
     late_steps: int = 0
-    wall_s: float = 0.0  # since the mission started
+    wall_s: float = 0.0  # wall clock since the first decision step
     #: true targets (the simulator's or the offline world's), [id, x_km, y_km, alive]; None where
     #: the truth is not known (a real autopilot)
     truth: list[list[float]] | None = None
@@ -71,6 +71,7 @@ class StepView:
 
     def to_json(self) -> dict[str, Any]:
         doc = asdict(self)
+        doc["wall_s"] = round(doc["wall_s"], 4)
         for v in doc["vehicles"]:
             v["x_km"], v["y_km"] = round(v["x_km"], 4), round(v["y_km"], 4)
             v["heading_deg"] = round(v["heading_deg"], 1)
