@@ -1,6 +1,7 @@
 """The mission view in a real browser (headless Chromium through Playwright): the live page of a
-running lockstep demo, then the replay of that demo with ``swarmplan view``. Slow-ish (one short
-2-UAV demo, ~20 s, and two page loads); skipped where no Chromium is installed."""
+running lockstep demo (30 steps of paper-2uav), then the replay of that demo with ``swarmplan
+view``. Slow-ish (one short demo and two page loads, ~30 s); skipped, saying why, where no
+Chromium is installed."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from browser import (
 )
 from loopback import start_swarmplan, stop
 
-STEPS = 15
+STEPS = 30
 
 
 @pytest.fixture(scope="module")
