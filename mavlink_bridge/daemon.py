@@ -65,6 +65,7 @@ from mavlink_bridge.pacing import STEP_DEADLINE_SHARE, DecisionInstant, PacingCh
 from mavlink_bridge.protocol import PLANE_MODE_GUIDED, PLANE_MODE_RTL, mavlink, mode_name
 from mavlink_bridge.safety_envelope import SafetyEnvelope
 from mavlink_bridge.swarm_link import SwarmLink
+from mavlink_bridge.telemetry_plausibility import PlausibilityFilter, PlausibilityLimits
 from mavlink_bridge.tlog import TlogWriter
 from mavlink_bridge.track_audit import TrackAudit, position_listener
 from mavlink_bridge.vehicle_state import VehicleState
@@ -356,12 +357,17 @@ class MissionDaemon:
         # our heartbeat at 1 Hz of the vehicles' clock (at 10x, every 0.1 s of wall time): an
         # autopilot's GCS failsafe counts its own seconds without one
         beat_s = 1.0 if self.options.lockstep else max(0.05, 1.0 / self.options.time_scale)
+        limits = PlausibilityLimits(
+            max_ground_speed_mps=2.0 * self.plane.max_speed_mps,
+            time_scale=self.time_scale,
+        )
         self.link = SwarmLink.open(
             self.options.connect,
             self.tlog,
             heartbeat_period_s=min(1.0, beat_s),
             accept_system_id=lambda s: s in expected,
             signing_key=self.options.signing_key,
+            plausibility=PlausibilityFilter(limits),
         )
         if self.options.lockstep:
             self.clock = LockstepClock(self.link, self.scenario.config.step_s)
@@ -410,7 +416,11 @@ class MissionDaemon:
     def watch_links(self, step: int) -> None:
         """Loss and return: a vehicle whose link went away, silent for ``lost_after_s``, disarmed
         or out of GUIDED is lost (inactive to the planner, no commands; the others go on); once
-        it is heard again, armed and in GUIDED it rejoins."""
+        it is heard again, armed and in GUIDED it rejoins. Lines the plausibility filter has to
+        say (a clock restarted, an address moved) are said here."""
+        notices = self.require_link().plausibility.notices
+        while notices:
+            self.say(f"warning: {notices.pop(0)}")
         now = time.monotonic()
         back_within_s = min(1.0, self.options.lost_after_s / 2)
         for i, v in enumerate(self.vehicles()):

@@ -45,7 +45,17 @@ class LockstepClock:
         self.time_ms = max([self.time_ms, *times])
 
     def grant(self, vehicles: Sequence[VehicleState], until_ms: int) -> None:
-        """SYSTEM_TIME(time_unix_usec=0, time_boot_ms=until_ms) to every vehicle still heard."""
+        """SYSTEM_TIME(time_unix_usec=0, time_boot_ms=until_ms) to every vehicle still heard.
+
+        ``until_ms`` comes from the vehicles' own clocks (``sync``): a horizon a uint32 cannot
+        hold, or one that would read as the release, is refused with one line, never packed."""
+        if until_ms != RELEASE_MS and not 0 <= until_ms < RELEASE_MS:
+            raise LockstepError(
+                f"cannot grant simulated time {until_ms / 1000:g} s: beyond what SYSTEM_TIME "
+                f"holds (49.7 days); restart the simulator (its clock is where it should not be)"
+            )
+        if until_ms != RELEASE_MS:
+            self.link.plausibility.granted_ms = until_ms
         for v in vehicles:
             if not v.lost:
                 v.link.mav.system_time_send(0, until_ms)

@@ -93,6 +93,15 @@ def sign_outgoing(mav: mavlink.MAVLink, key: bytes, link_id: int) -> None:
     mav.signing.sign_outgoing = True
 
 
+def is_signed(frame: bytes | bytearray) -> bool:
+    """A MAVLink 2 frame carrying a signature block (checked or not: see SignatureCheck)."""
+    return bool(
+        len(frame) > SIGNATURE_BLOCK
+        and frame[0] == mavlink.PROTOCOL_MARKER_V2
+        and (frame[2] & mavlink.MAVLINK_IFLAG_SIGNED)
+    )
+
+
 @dataclass
 class SignatureCheck:
     """Accepts correctly signed, fresh frames (and RADIO_STATUS unsigned); counts the rest."""
@@ -106,12 +115,7 @@ class SignatureCheck:
 
     def accept(self, frame: bytes | bytearray, msg_id: int) -> bool:
         frame = bytes(frame)
-        signed = (
-            len(frame) > SIGNATURE_BLOCK
-            and frame[0] == mavlink.PROTOCOL_MARKER_V2
-            and (frame[2] & mavlink.MAVLINK_IFLAG_SIGNED)
-        )
-        if not signed:
+        if not is_signed(frame):
             if msg_id in UNSIGNED_ALLOWED:
                 return True
             self.unsigned_refused += 1

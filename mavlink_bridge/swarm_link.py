@@ -3,6 +3,11 @@
 ``SwarmLink.pump(timeout)`` waits for datagrams on every endpoint, parses them, logs every frame
 to the .tlog, routes each message to the ``VehicleState`` of its system id (a new vehicle is
 registered by its autopilot's HEARTBEAT), and sends the daemon's own GCS heartbeat at 1 Hz.
+
+Only what is authentic or plausible changes a vehicle's state (``_dispatch``): with signing on,
+an unsigned frame (RADIO_STATUS / RADIO, which pass the signature check unsigned) changes
+nothing; every other frame must come from the address its vehicle component is bound to and
+pass the plausibility rules (``telemetry_plausibility.py``). What fails is logged and counted.
 """
 
 from __future__ import annotations
@@ -12,7 +17,8 @@ import time
 from collections.abc import Callable, Iterable
 
 from mavlink_bridge.protocol import AUTOPILOT_COMPONENT_ID, mavlink
-from mavlink_bridge.signing import SignatureCheck, sign_outgoing
+from mavlink_bridge.signing import SignatureCheck, is_signed, sign_outgoing
+from mavlink_bridge.telemetry_plausibility import PlausibilityFilter
 from mavlink_bridge.tlog import TlogWriter
 from mavlink_bridge.vehicle_link import Address, Endpoint, VehicleLink, open_endpoint
 from mavlink_bridge.vehicle_state import VehicleState
@@ -37,8 +43,10 @@ class SwarmLink:
         heartbeat_period_s: float = 1.0,
         accept_system_id: Callable[[int], bool] | None = None,
         signing_key: bytes | None = None,
+        plausibility: PlausibilityFilter | None = None,
     ) -> None:
         self.endpoints = endpoints
+        self.plausibility = plausibility or PlausibilityFilter()
         # MAVLink 2 signing: every frame we send is signed, every frame we hear is checked
         self.signing_key = signing_key
         self.signature_check = SignatureCheck(signing_key) if signing_key is not None else None
@@ -141,18 +149,25 @@ class SwarmLink:
     ) -> None:
         if self.tlog is not None:
             self.tlog.write(msg.get_msgbuf())
-        sysid = msg.get_srcSystem()
+        trust = self.plausibility
+        if self.signature_check is not None and not is_signed(msg.get_msgbuf()):
+            trust.counts.unsigned_ignored += 1  # authentic frames are signed: believe nothing
+            return
+        sysid, compid = msg.get_srcSystem(), msg.get_srcComponent()
         vehicle = self.vehicles.get(sysid)
         if vehicle is None:
-            if not self._is_new_vehicle(msg):
+            if not self._is_new_vehicle(msg) or not trust.admit(sysid, msg, now):
                 return
             link = self._secure(VehicleLink(sysid, endpoint, address, self.tlog))
             vehicle = VehicleState(sysid, link)
             self.vehicles[sysid] = vehicle
-        elif address is not None and (
-            vehicle.link.endpoint is not endpoint or vehicle.link.address != address
-        ):
-            vehicle.link.moved(endpoint, address)
+            trust.admit_address(sysid, compid, (id(endpoint), address), now)
+        else:
+            verdict = trust.admit_address(sysid, compid, (id(endpoint), address), now)
+            if verdict == "refused" or not trust.admit(sysid, msg, now):
+                return
+            if verdict == "moved" and compid == AUTOPILOT_COMPONENT_ID:
+                vehicle.link.moved(endpoint, address)  # a reboot, a new socket: replies follow
         vehicle.handle(msg, now)
         for listen in self.listeners:
             listen(vehicle, msg)

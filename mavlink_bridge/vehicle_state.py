@@ -14,10 +14,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from mavlink_bridge.protocol import AUTOPILOT_COMPONENT_ID, CAMERA_COMPONENT_ID, mavlink
+from mavlink_bridge.telemetry_plausibility import on_earth
 from mavlink_bridge.vehicle_link import VehicleLink
 
-#: Consecutive older-than-newest positions that mean a reboot rather than reordering.
-STALE_RUN_REBOOT = 3
 #: A look number this far beyond the newest one is refused (a real camera counts one by one).
 MAX_LOOK_JUMP = 10_000
 #: Without EXTENDED_SYS_STATE, an armed vehicle this high above home counts as airborne.
@@ -85,10 +84,6 @@ class VehicleState:
     ack_serial: int = 0
     #: the newest acks in arrival order: a waiter finds its own among late and duplicated ones
     ack_log: deque[CommandAck] = field(default_factory=lambda: deque(maxlen=64))
-    #: GLOBAL_POSITION_INT frames dropped as older than the newest one (reordered / delayed),
-    #: and how many came in a row (a run of them means the vehicle rebooted: its clock restarted)
-    stale_positions: int = 0
-    _stale_run: int = 0
     # sensor looks by image index
     looks: dict[int, Look] = field(default_factory=dict)
     latest_look: int = -1
@@ -164,15 +159,9 @@ class VehicleState:
         self.system_status = msg.system_status
 
     def on_global_position_int(self, msg: mavlink.MAVLink_global_position_int_message) -> None:
-        if self.has_position and msg.time_boot_ms < self.time_boot_ms:
-            # older than what we have: delayed or reordered on the way. Three in a row: the
-            # autopilot's clock restarted (a reboot), so its new clock is the one to follow.
-            self._stale_run += 1
-            if self._stale_run < STALE_RUN_REBOOT:
-                self.stale_positions += 1
-                return
-        self._stale_run = 0
-        if not _on_earth(msg.lat, msg.lon):
+        """A position fix. Whether it is believed at all (time order, speed, fields, a clock
+        restarted by a reboot) is decided before, by telemetry_plausibility.py."""
+        if not on_earth(msg.lat, msg.lon):
             return  # not a position (a corrupt or hostile frame)
         self.has_position = True
         self.lat_deg = msg.lat * 1e-7
@@ -185,7 +174,7 @@ class VehicleState:
         self.position_s = self.last_heard_s
 
     def on_home_position(self, msg: mavlink.MAVLink_home_position_message) -> None:
-        if not _on_earth(msg.latitude, msg.longitude):
+        if not on_earth(msg.latitude, msg.longitude):
             return  # not a position: a corrupt or hostile frame must not become a UAV's start
         self.home = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
 
@@ -243,7 +232,7 @@ class VehicleState:
         if not first and not url.startswith("look+:"):
             return  # an ordinary photo, not a sensor look
         index = msg.image_index
-        if not _on_earth(msg.lat, msg.lon):
+        if not on_earth(msg.lat, msg.lon):
             return  # not a position: a corrupt or hostile frame
         if self.latest_look >= 0 and index > self.latest_look + MAX_LOOK_JUMP:
             return  # a look number far ahead of any plausible one would stall every later look
@@ -268,11 +257,6 @@ class VehicleState:
 
     def on_mission_ack(self, msg: mavlink.MAVLink_mission_ack_message) -> None:
         self.mission_ack = (msg.type, msg.mission_type)
-
-
-def _on_earth(lat_e7: int, lon_e7: int) -> bool:
-    """A latitude / longitude pair (degrees * 1e7) that can be a place."""
-    return -90e7 <= lat_e7 <= 90e7 and -180e7 <= lon_e7 <= 180e7
 
 
 def parse_look_offsets(text: str) -> list[tuple[int, int]]:

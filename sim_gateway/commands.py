@@ -20,6 +20,8 @@ from sim_gateway.telemetry import BUILDERS, MESSAGE_IDS, NAMES_BY_ID, build_auto
 from sim_gateway.vehicle import GuidedTarget, Vehicle
 
 FORCE_DISARM_MAGIC = 21196
+#: a DO_SET_HOME farther than this from the vehicle is refused (ArduPilot: 50 km from EKF origin)
+MAX_HOME_DISTANCE_M = 50_000.0
 AMSL_FRAMES = (mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_INT)
 
 
@@ -218,7 +220,14 @@ def command_do_set_home(v: Vehicle, c: CommandArgs) -> Result:
     if not (math.isfinite(lat) and math.isfinite(lon) and -90 <= lat <= 90 and -180 <= lon <= 180):
         v.host.stats.rejected_commands += 1
         return mavlink.MAV_RESULT_DENIED
-    v.home_x_m, v.home_y_m = v.host.geodetic_to_local(lat, lon)
+    x_m, y_m = v.host.geodetic_to_local(lat, lon)
+    here_x, here_y = float(v.fleet.x_m[v.index]), float(v.fleet.y_m[v.index])
+    if math.hypot(x_m - here_x, y_m - here_y) > MAX_HOME_DISTANCE_M:
+        # as ArduPilot ("far from EKF origin"): a home this far is a corrupt or hostile command,
+        # and its coordinates would not even fit HOME_POSITION's int32 fields
+        v.host.stats.rejected_commands += 1
+        return mavlink.MAV_RESULT_DENIED
+    v.home_x_m, v.home_y_m = x_m, y_m
     return mavlink.MAV_RESULT_ACCEPTED
 
 

@@ -20,6 +20,7 @@ from udp_fault_relay import FaultProfile, FaultRelay  # noqa: E402
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
 from mavlink_bridge.guided_commands import engagement_command  # noqa: E402
+from mavlink_bridge.telemetry_plausibility import PlausibilityFilter  # noqa: E402
 from mavlink_bridge.vehicle_state import CommandAck, VehicleState  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 from sim_gateway.simulator import SimOptions, Simulator  # noqa: E402
@@ -151,16 +152,29 @@ def _position(time_boot_ms: int, lat: float) -> ml.MAVLink_message:
 
 
 def test_stale_positions_are_dropped_and_a_reboot_is_followed():
+    trust = PlausibilityFilter()
     v = VehicleState(1, _Link())
-    v.handle(_position(5000, -35.0))
-    v.handle(_position(4000, -35.5))  # delayed: older than what we have
+
+    def hear(time_boot_ms: int, lat: float, wall_s: float) -> None:
+        msg = _position(time_boot_ms, lat)
+        if trust.admit(1, msg, wall_s):
+            v.handle(msg, wall_s)
+
+    hear(5000, -35.0, 0.0)
+    hear(4000, -35.0005, 0.1)  # delayed: older than what we have
     assert (v.time_boot_ms, v.lat_deg) == (5000, pytest.approx(-35.0))
-    assert v.stale_positions == 1
-    v.handle(_position(6000, -35.1))
-    assert v.lat_deg == pytest.approx(-35.1)
-    for t in (100, 200, 300):  # the clock restarted: a reboot, not reordering
-        v.handle(_position(t, -35.2))
-    assert (v.time_boot_ms, v.lat_deg) == (300, pytest.approx(-35.2))
+    assert trust.counts.stale_positions == 1
+    hear(6000, -35.001, 0.2)
+    assert v.lat_deg == pytest.approx(-35.001)
+    # the clock restarted (a reboot): followed only once the old clock is silent and the new
+    # one has run on for a while, never on a few frames interleaved with the live clock
+    hear(100, -35.001, 0.3)
+    hear(7000, -35.002, 0.4)  # the old clock is alive: the candidate is dropped
+    for k, t in enumerate((200, 300, 400, 500, 600)):
+        hear(t, -35.002, 0.5 + 0.3 * k)
+    assert (v.time_boot_ms, trust.counts.clock_rebases) == (600, 1)
+    hear(700, -35.002, 2.0)
+    assert v.time_boot_ms == 700
 
 
 def _look(index: int, url: str) -> ml.MAVLink_message:

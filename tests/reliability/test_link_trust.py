@@ -1,0 +1,163 @@
+"""Believing only what is authentic (issue 12, findings 5-7): a real simulator and a real daemon
+over loopback UDP, and a stranger's socket sending as the vehicles. With signing on, nothing
+unsigned changes anything (no reply address moves, no vehicle is kept alive, no time or position
+is taken); without signing, frames of a vehicle heard from a second address, implausible frames
+and frames with extreme values are dropped and counted, never believed, and nothing crashes."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MAVLINK20", "1")
+
+import json  # noqa: E402
+import socket  # noqa: E402
+import threading  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+from loopback import env, free_udp_port, start_swarmplan, stop  # noqa: E402
+from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
+from reliability_harness import KEY_HEX, last_json  # noqa: E402
+
+SCENARIO = "paper-10uav"
+STEPS = 8
+NO_VIOLATIONS = {"threat": 0, "separation": 0, "turn": 0, "range": 0}
+
+
+class Spoofer(threading.Thread):
+    """A stranger on its own UDP socket: sends ``make(k)`` (one datagram, or None to skip) to the
+    daemon's port every ``period_s`` until stopped, and counts every datagram sent back to it."""
+
+    def __init__(self, port: int, make: Callable[[int], bytes | None], period_s: float) -> None:
+        super().__init__(daemon=True, name="spoofer")
+        self.target = ("127.0.0.1", port)
+        self.make = make
+        self.period_s = period_s
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.setblocking(False)
+        self.sent = 0
+        self.received = 0
+        self.received_types: dict[str, int] = {}
+        self._halt = threading.Event()
+
+    def run(self) -> None:
+        k = 0
+        while not self._halt.is_set():
+            data = self.make(k)
+            k += 1
+            if data is not None:
+                try:
+                    self.sock.sendto(data, self.target)
+                    self.sent += 1
+                except OSError:
+                    pass
+            while True:
+                try:
+                    reply = self.sock.recv(65535)
+                except (BlockingIOError, ConnectionRefusedError):
+                    break
+                self.received += 1
+                for msg in ml.MAVLink(None).parse_buffer(reply) or ():
+                    kind = msg.get_type()
+                    self.received_types[kind] = self.received_types.get(kind, 0) + 1
+            self._halt.wait(self.period_s)
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join(5)
+        self.sock.close()
+
+
+def pack(msg: ml.MAVLink_message, sysid: int, compid: int = 1, seq: int = 0) -> bytes:
+    mav = ml.MAVLink(None, sysid, compid)
+    mav.seq = seq % 256
+    return bytes(msg.pack(mav))
+
+
+def fly_with_spoofer(
+    tmp_path: Path,
+    make: Callable[[int], bytes | None],
+    *,
+    signed: bool,
+    period_s: float = 0.0005,
+    steps: int = STEPS,
+    seed: int = 3,
+) -> tuple[dict, dict | None, Spoofer, str]:
+    """A lockstep mission of ``steps`` steps (simulator and daemon as processes) while a spoofer
+    sends ``make(k)`` to the daemon's port; returns the daemon's result, the simulator's summary,
+    the spoofer and the daemon's log."""
+    port = free_udp_port()
+    key_file = tmp_path / "mission.key"
+    key_file.write_text(KEY_HEX + "\n")
+    sim_log, daemon_log = tmp_path / "sim.log", tmp_path / "daemon.log"
+    sim_env = env(SWARMPLAN_SIGNING_KEY=KEY_HEX) if signed else env()
+    sim = start_swarmplan(
+        ["sim", "--scenario", SCENARIO, "--seed", str(seed), "--lockstep", "--speedup", "100",
+         "--gcs-port", str(port), "--quiet"],
+        sim_log,
+        sim_env,
+    )  # fmt: skip
+    args = [
+        "daemon", "--connect", f"udpin:127.0.0.1:{port}", "--scenario", SCENARIO,
+        "--seed", str(seed), "--steps", str(steps), "--lockstep", "--timeout", "30",
+        "--out", str(tmp_path / "out"), "--json",
+    ]  # fmt: skip
+    if signed:
+        args += ["--signing-key-file", str(key_file)]
+    daemon = start_swarmplan(args, daemon_log, stdout_pipe=True)
+    spoofer = Spoofer(port, make, period_s)
+    spoofer.start()
+    try:
+        stdout, _ = daemon.communicate(timeout=150)
+    finally:
+        spoofer.stop()
+        stop(daemon)
+        stop(sim)
+    log = daemon_log.read_text(errors="replace")
+    assert "Traceback" not in log, log[-3000:]
+    assert daemon.returncode == 0, log[-3000:]
+    return json.loads(stdout), last_json(sim_log), spoofer, log
+
+
+@pytest.mark.timeout(200)
+def test_unsigned_radio_status_changes_nothing_when_signing_is_on(tmp_path: Path):
+    """Finding 5: unsigned RADIO_STATUS (accepted unsigned, as ArduPilot does) from system 3
+    diverted the daemon's signed commands for vehicle 3 to the sender."""
+    radio = ml.MAVLink_radio_status_message(200, 190, 50, 10, 10, 0, 0)
+    frames = [pack(radio, 3, 1, k) for k in range(256)]
+    result, summary, spoofer, _ = fly_with_spoofer(
+        tmp_path, lambda k: frames[k % 256], signed=True
+    )
+    assert spoofer.sent > 2000
+    assert spoofer.received == 0, spoofer.received_types  # no frame for vehicle 3 diverted
+    assert result["steps"] == STEPS and result["lost_uavs"] == []
+    assert result["violations"] == NO_VIOLATIONS
+    trust = result["plausibility"]
+    # counted while the mission ran (the spoofer starts before it and ends after its result)
+    assert 1000 < trust["unsigned_ignored"] <= spoofer.sent
+    assert trust["second_address"] == 0  # not even looked at: unsigned never reaches the rules
+    assert summary is not None and summary["fence_breaches"] == 0
+
+
+@pytest.mark.timeout(200)
+def test_a_position_with_time_boot_ms_0xffffffff_does_not_crash_the_daemon(tmp_path: Path):
+    """Finding 6: GLOBAL_POSITION_INT of system 1 stamped 0xFFFFFFFF during boot and take-off
+    ended a lockstep daemon with struct.error in the SYSTEM_TIME grant."""
+
+    def make(k: int) -> bytes | None:
+        sysid = 1 + k % 3
+        pos = ml.MAVLink_global_position_int_message(
+            0xFFFFFFFF, -353632620, 1491652370, 600000, 500000, 10000, 0, 0, 9000
+        )
+        return pack(pos, sysid, 1, k)
+
+    result, summary, spoofer, _ = fly_with_spoofer(tmp_path, make, signed=False, period_s=0.002)
+    assert spoofer.sent > 100
+    assert spoofer.received == 0  # no vehicle followed to the spoofer's address
+    assert result["steps"] == STEPS
+    assert result["violations"] == NO_VIOLATIONS
+    assert 50 < result["plausibility"]["second_address"] <= spoofer.sent
+    assert summary is not None and summary["fence_breaches"] == 0
