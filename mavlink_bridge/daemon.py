@@ -359,7 +359,9 @@ class MissionDaemon:
         beat_s = 1.0 if self.options.lockstep else max(0.05, 1.0 / self.options.time_scale)
         limits = PlausibilityLimits(
             max_ground_speed_mps=2.0 * self.plane.max_speed_mps,
+            move_after_s=self.options.lost_after_s,
             time_scale=self.time_scale,
+            lockstep=self.options.lockstep,
         )
         self.link = SwarmLink.open(
             self.options.connect,

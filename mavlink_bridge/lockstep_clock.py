@@ -29,6 +29,10 @@ class LockstepError(UserError):
     """The simulator did not reach the granted time."""
 
 
+class LockstepReleasedError(LockstepError):
+    """The vehicles' clock runs past the granted time: their simulator does not hold."""
+
+
 class LockstepClock:
     """Grants simulated time to the vehicles and waits until they hold at it."""
 
@@ -54,8 +58,8 @@ class LockstepClock:
                 f"cannot grant simulated time {until_ms / 1000:g} s: beyond what SYSTEM_TIME "
                 f"holds (49.7 days); restart the simulator (its clock is where it should not be)"
             )
-        if until_ms != RELEASE_MS:
-            self.link.plausibility.granted_ms = until_ms
+        # what the vehicles' clocks may reach (telemetry_plausibility.py); released: anything
+        self.link.plausibility.granted_ms = None if until_ms == RELEASE_MS else until_ms
         for v in vehicles:
             if not v.lost:
                 v.link.mav.system_time_send(0, until_ms)
@@ -78,6 +82,7 @@ class LockstepClock:
                 on_pump()
             if all(v.lost or v.time_boot_ms >= target for v in vehicles):
                 break
+            self._check_held(vehicles, target)
             now = time.monotonic()
             if now - started > self.wall_timeout_s:
                 behind = [
@@ -93,6 +98,22 @@ class LockstepClock:
                 last_grant = now
         self.time_ms = target
         return target
+
+    def _check_held(self, vehicles: Sequence[VehicleState], target: int) -> None:
+        """A vehicle whose clock runs past the grant (its positions, dropped, say so): the
+        simulator does not hold any more (it released lockstep after a silence of the ground
+        station, or it was started without --lockstep). Decisions would no longer take effect
+        at the instants they were made for: stop, in one line."""
+        trust = self.link.plausibility
+        free = [v.system_id for v in vehicles if not v.lost and trust.running_free(v.system_id)]
+        if free:
+            raise LockstepReleasedError(
+                f"vehicle {', '.join(map(str, free))} runs past the granted simulated time "
+                f"{target / 1000:g} s: its simulator is not in lockstep (released after the "
+                f"ground station was silent, or started without --lockstep); no decision is "
+                f"made against a free-running clock: restart the simulator with --lockstep, or "
+                f"run the daemon paced (--time-scale, no --lockstep)"
+            )
 
     def run_until(
         self,

@@ -28,9 +28,11 @@ authentic"):
 A real reboot restarts ``time_boot_ms``, a teleported (reset) simulator vehicle jumps: both are
 **a new time base**, accepted explicitly only when it is the only one left: ``rebase_frames``
 frames failing rules 4-5 that agree with each other (time increasing, speed plausible between
-them), over at least ``move_after_s`` wall seconds, with no frame of the old base believed
+them), over at least ``rebase_after_s`` wall seconds, with no frame of the old base believed
 meanwhile (``clock_rebases``, said as a warning). A replay or a spoofer interleaved with the
-live vehicle never gets there: each frame of the live base resets the candidate.
+live vehicle never gets there: each frame of the live base resets the candidate. In lockstep a
+position stamped past the granted horizon is never believed nor a new base: the simulator holds
+there, so such a clock runs free (lockstep released), which ``LockstepClock`` says and stops at.
 """
 
 from __future__ import annotations
@@ -55,10 +57,15 @@ class PlausibilityLimits:
     #: GPS noise and the rounding of degE7 / decimetre fields, on top of the speed bound
     position_slack_m: float = 150.0
     altitude_range_m: tuple[float, float] = (-1_000.0, 20_000.0)
-    #: wall seconds a bound address must be silent before a vehicle may move to another one,
-    #: and the least a new time base must last before it replaces the old one
-    move_after_s: float = 1.0
+    #: wall seconds a bound address must be silent before a vehicle may move to another one
+    #: (the daemon's ``lost_after_s``: only a vehicle that counts as lost moves; a loaded
+    #: machine can hold a simulator silent for a second, and a spoofer must not step in then)
+    move_after_s: float = 3.0
+    #: the least a new time base must last (wall seconds, frames) before it replaces the old one
+    rebase_after_s: float = 1.0
     rebase_frames: int = 3
+    #: lockstep: the vehicles' clock cannot pass the horizon granted to them (``granted_ms``)
+    lockstep: bool = False
     #: the vehicles' clock speed (SITL --speedup, the daemon's --time-scale); a clock may run
     #: this many times faster than declared, plus this much, before a jump counts as implausible
     time_scale: float = 1.0
@@ -114,6 +121,8 @@ class VehicleTrust:
     bindings: dict[int, _Binding] = field(default_factory=dict)  # by component id
     fix: _Fix | None = None
     candidates: list[_Fix] = field(default_factory=list)
+    #: lockstep: positions in a row stamped past the granted horizon
+    past_grant: int = 0
 
 
 def ground_distance_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
@@ -206,6 +215,10 @@ class PlausibilityFilter:
         if speed > lim.max_ground_speed_mps:
             return self._reject("out_of_range")
         new = _Fix(int(msg.time_boot_ms), msg.lat * 1e-7, msg.lon * 1e-7, now_s)
+        if self._past_grant(new):
+            trust.past_grant += 1  # lockstep: a clock that runs free (LockstepClock says so)
+            return self._reject("time_jump")
+        trust.past_grant = 0
         fix = trust.fix
         if fix is None:
             trust.fix = new
@@ -221,8 +234,9 @@ class PlausibilityFilter:
         first = trust.candidates[0]
         if (
             len(trust.candidates) >= lim.rebase_frames
-            and now_s - first.wall_s >= lim.move_after_s
-            and now_s - fix.wall_s >= lim.move_after_s
+            and now_s - first.wall_s >= lim.rebase_after_s
+            and now_s - fix.wall_s >= lim.rebase_after_s
+            and not self._past_grant(new)
         ):
             self.counts.clock_rebases += 1
             self.notices.append(
@@ -245,10 +259,25 @@ class PlausibilityFilter:
             return "too_fast"
         return None
 
+    def _past_grant(self, fix: _Fix) -> bool:
+        """Lockstep: stamped after the horizon granted to the vehicles (impossible when the
+        simulator holds there; before the first grant nothing is known)."""
+        return (
+            self.limits.lockstep and self.granted_ms is not None and fix.time_ms > self.granted_ms
+        )
+
+    def running_free(self, sysid: int) -> bool:
+        """Lockstep: vehicle ``sysid`` has reported ``rebase_frames`` positions in a row past the
+        granted horizon, from its own address: its simulator does not hold (lockstep released)."""
+        trust = self.vehicles.get(sysid)
+        return trust is not None and trust.past_grant >= self.limits.rebase_frames
+
     def _clock_allowance_ms(self, old: _Fix, now_s: float) -> float:
         """How far the vehicle's clock can have run since ``old`` was believed: in lockstep to
         the granted horizon, else ``time_scale`` x the wall time since (with slack)."""
         lim = self.limits
+        if lim.lockstep and self.granted_ms is not None:
+            return self.granted_ms - old.time_ms
         allowed = (
             max(0.0, now_s - old.wall_s) * max(lim.time_scale, 1.0) * lim.clock_slack * 1e3
             + lim.clock_slack_ms
