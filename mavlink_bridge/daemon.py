@@ -54,6 +54,7 @@ from mavlink_bridge.mission_launch import LaunchPhase, launch_phases, run_launch
 from mavlink_bridge.mission_result import (
     ALGORITHM,
     LinkEvent,
+    LookTimes,
     MissionAccount,
     MissionReport,
     StepListener,
@@ -192,6 +193,8 @@ class MissionDaemon:
             scenario, options.threat_margin_km, options.separation_margin_km
         )
         self.account = MissionAccount()
+        #: each step's look time stamps, to join a simulator's truth (the per-target account)
+        self.look_times = LookTimes()
         self.tlog: TlogWriter | None = None
         self.link: SwarmLink | None = None
         slowest, fastest = options.airspeed_range_mps or (cfg.speed_mps, 1.5 * cfg.speed_mps)
@@ -632,8 +635,9 @@ class MissionDaemon:
                 **extra,
             }
         log = PursuitLog.of(self.state.planner)
-        if log is not None:  # joined with a simulator's truth by swarmplan demo
+        if log is not None:  # joined with a simulator's truth by swarmplan demo / account
             extra["planner_facts"] = log.facts()
+        extra["look_times_ms"] = self.look_times.rows()
         return self.state.recorder.result(self.options.seed, ALGORITHM, wall_s, extra=extra)
 
     def close(self) -> None:
@@ -757,6 +761,7 @@ class MissionDaemon:
                 self.audit.set_phase("mission")
                 sent = self.send(batch.commands, deadline=instant.deadline)
                 stages.account(state, step, batch, sent, flight)
+            self.look_times.note(step, state.positions_ms, inputs.active)
             self.tell_listeners(state, inputs, plan, flight, late)
             if self.checkpoints is not None:  # atomically, after every step
                 self.checkpoints.save(

@@ -61,6 +61,26 @@ class StepRecord:
 StepListener = Callable[[StepRecord], None]
 
 
+class LookTimes:
+    """Per decision step, the vehicles' clock (``time_boot_ms``) at the looks it used: the most
+    common stamp over the active vehicles. It joins a simulator's ground truth, whose steps
+    count from the simulator's boot, to the daemon's steps, which count from the take-off
+    (``sim_gateway.target_account.align_steps``); the result keeps it as ``look_times_ms``."""
+
+    def __init__(self) -> None:
+        self.by_step: dict[int, int] = {}
+
+    def note(self, step: int, positions_ms: np.ndarray, active: np.ndarray) -> None:
+        stamps = positions_ms[active & (positions_ms > 0)]
+        if stamps.size:
+            values, counts = np.unique(stamps.astype(np.int64), return_counts=True)
+            self.by_step[int(step)] = int(values[np.argmax(counts)])
+
+    def rows(self) -> list[list[int]]:
+        """``[[step, time_boot_ms], ...]`` in step order (JSON-ready)."""
+        return [[s, ms] for s, ms in sorted(self.by_step.items())]
+
+
 @dataclass
 class LinkEvent:
     step: int

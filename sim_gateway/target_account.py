@@ -171,6 +171,17 @@ def align_steps(truth: dict, step_times_ms: dict[int, int], tolerance_ms: float)
     return aligned
 
 
+def account_of_ground_station(truth: dict, result: dict, step_s: float) -> dict:
+    """The per-target account of a ground station's ``result`` (the daemon's: its
+    ``planner_facts`` and ``look_times_ms``) against a simulator's ``truth``: the truth
+    renumbered into the result's steps by the looks' time stamps (``align_steps``, within half a
+    decision period of ``step_s``), joined with the planner facts, cut at the mission's last
+    step. ``swarmplan demo`` and ``swarmplan account`` both join this way."""
+    look_times = {int(step): int(ms) for step, ms in result.get("look_times_ms") or []}
+    aligned = align_steps(truth, look_times, tolerance_ms=500.0 * step_s)
+    return account_of(aligned, result.get("planner_facts"), last_step=result["steps"])
+
+
 def _join_beliefs(beliefs: np.ndarray, at: np.ndarray, live: np.ndarray, truth_xy: np.ndarray,
                   cell_km: float, radius_km: float) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Per target, the highest belief entry within ``radius_km`` of its true position at the

@@ -25,6 +25,7 @@ SUBCOMMANDS = (
     ("sim", "sim_gateway.cli"),
     ("daemon", "swarmplan.daemon_command"),
     ("export", "mavlink_bridge.export_command"),
+    ("account", "swarmplan.account_command"),
     ("experiment", "swarmplan.experiment_command"),
     ("view", "mission_view.view_command"),
 )

@@ -14,11 +14,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
 from mavlink_bridge.cli import add_leg_timing_arguments
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, MissionInterrupted, StepStatus
-from mavlink_bridge.mission_result import StepRecord
 from mavlink_bridge.view_feed import DaemonViewFeed
 from mission_view.replay_file import replay_path
 from mission_view.truth_receiver import TruthReceiver
@@ -26,7 +23,7 @@ from mission_view.view_session import ViewSession, add_view_arguments, view_opti
 from planner.errors import UserError
 from planner.metrics import format_summary
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
-from sim_gateway.target_account import account_of, align_steps, format_account
+from sim_gateway.target_account import account_of_ground_station, format_account
 from swarmplan.arguments import (
     add_seed_argument,
     positive_float,
@@ -127,37 +124,17 @@ def last_line(path: Path) -> str:
     return lines[-1] if lines else ""
 
 
-class LookTimes:
-    """A daemon step listener: the time stamp (the simulator's ``time_boot_ms``) of the looks
-    each decision step used, to find the simulator's step of each daemon step."""
-
-    def __init__(self) -> None:
-        self.by_step: dict[int, int] = {}
-
-    def __call__(self, record: StepRecord) -> None:
-        stamps = record.positions_ms[record.active & (record.positions_ms > 0)]
-        if stamps.size:
-            values, counts = np.unique(stamps.astype(np.int64), return_counts=True)
-            self.by_step[record.status.step] = int(values[np.argmax(counts)])
-
-
 def join_target_account(
-    result: dict, truth_path: Path, look_times: dict[int, int], step_s: float,
-    say: Callable[[str], None],
-) -> None:  # fmt: skip
+    result: dict, truth_path: Path, step_s: float, say: Callable[[str], None]
+) -> None:
     """The per-target account of a demo: the simulator's ground truth (``truth_path``, written
-    when it stopped) renumbered into the daemon's steps by the looks' time stamps, joined with
-    the daemon's planner facts by step and position (``sim_gateway.target_account``), cut at
-    the mission's last step."""
+    when it stopped) joined with the daemon's result (``account_of_ground_station``)."""
     try:
         truth = json.loads(truth_path.read_text())
     except (OSError, ValueError) as exc:
         say(f"warning: no target account: the simulator's truth is unreadable ({exc})")
         return
-    aligned = align_steps(truth, look_times, tolerance_ms=500 * step_s)
-    result["target_account"] = account_of(
-        aligned, result.get("planner_facts"), last_step=result["steps"]
-    )
+    result["target_account"] = account_of_ground_station(truth, result, step_s)
 
 
 def simulator_summary(path: Path) -> dict | None:
@@ -198,7 +175,6 @@ def main(args: argparse.Namespace) -> int:
             feed.progress(text)
 
     lockstep = args.speedup is None
-    look_times = LookTimes()  # to join the simulator's ground truth to the daemon's steps
     options = DaemonOptions(
         connect=["udpin:127.0.0.1:0"],
         seed=args.seed,
@@ -213,7 +189,6 @@ def main(args: argparse.Namespace) -> int:
         tlog_path=out / "mission.tlog",
         progress=say,
         on_step=on_step,
-        step_listeners=[look_times],
     )
     daemon = MissionDaemon(scenario, options)
     daemon.refuse_unkeepable_time_scale()  # paced: a speedup it cannot keep, before the sim
@@ -269,7 +244,7 @@ def main(args: argparse.Namespace) -> int:
         truth.close()
     result = report.result
     result["wall_time_s"] = time.monotonic() - started
-    join_target_account(result, truth_path, look_times.by_step, scenario.config.step_s, say)
+    join_target_account(result, truth_path, scenario.config.step_s, say)
     summary = simulator_summary(sim_log)
     if summary is not None and "safety" in summary:
         result["simulator_truth"] = summary["safety"]  # what really flew, every physics tick

@@ -416,6 +416,7 @@ def report_markdown(
         "steps; conversion is engaged / seen; the funnel figure splits the stages by target "
         "kind (`target_account` of each run, docs/experiments.md).",
         "",
+        *(f"![Target funnel by kind]({f})\n" for f in figures if f.endswith("targets_funnel.png")),
         "## Friedman test across algorithms (seeds as blocks)",
         "",
         friedman_table(results),

@@ -1,6 +1,8 @@
 """The two-shell example of docs/daemon.md (``swarmplan sim --lockstep & swarmplan daemon
 --lockstep``, with their default scenario and seed) flies the very mission ``swarmplan demo``
-flies: ``sim`` and ``daemon`` once defaulted to seed 0 while ``run`` and ``demo`` used 1."""
+flies: ``sim`` and ``daemon`` once defaulted to seed 0 while ``run`` and ``demo`` used 1; and
+``swarmplan account`` joins the simulator's ground truth to the daemon's result into the very
+per-target account the demo gives."""
 
 from __future__ import annotations
 
@@ -11,19 +13,26 @@ from pathlib import Path
 import pytest
 from loopback import free_udp_port, run_swarmplan, start_swarmplan, stop
 
+from sim_gateway.target_account import align_steps
 from swarmplan.arguments import DEFAULT_SEED
 
 STEPS = 12
 
 #: The run's own bookkeeping (and what only the demo joins in), not the mission flown.
-VOLATILE = {"wall_time_s", "endpoints", "frames_received", "tlog", "target_account"}
+VOLATILE = {"wall_time_s", "endpoints", "frames_received", "tlog"}
+VOLATILE |= {"target_account", "simulator_truth"}
+#: The simulator's ground truth, written when it stops (``swarmplan sim --target-account``).
+TRUTH = "target_truth.json"
 
 
 def two_shells(out: Path) -> dict:
     """``swarmplan sim --lockstep`` in the background, then ``swarmplan daemon --lockstep``, both
     with their defaults but for a free port (the docs use 14550) and a short mission."""
     port = free_udp_port()
-    sim = start_swarmplan(["sim", "--lockstep", "--gcs-port", str(port)], out.parent / "sim.log")
+    sim = start_swarmplan(
+        ["sim", "--lockstep", "--gcs-port", str(port), "--target-account", str(out.parent / TRUTH)],
+        out.parent / "sim.log",
+    )
     try:
         proc = run_swarmplan(
             ["daemon", "--lockstep", "--connect", f"udpin:127.0.0.1:{port}",
@@ -57,6 +66,24 @@ def test_the_docs_two_shell_example_reproduces_the_demo(tmp_path):
     assert a["coverage_curve"] == b["coverage_curve"] and a["engagements"] == b["engagements"]
     keys = (set(a) | set(b)) - VOLATILE
     assert {k: a.get(k) for k in keys} == {k: b.get(k) for k in keys}
+    # the daemon alone has no truth; `swarmplan account` joins the simulator's, as the demo does
+    out = tmp_path / "shells" / "out"
+    assert "target_account" not in json.loads((out / "result.json").read_text())
+    joined = run_swarmplan(["account", str(out), "--truth", str(out.parent / TRUTH)], timeout=60)
+    assert joined.returncode == 0, joined.stderr[-2000:]
+    assert "conversion" in joined.stdout and (out / "targets.png").stat().st_size > 0
+    account = json.loads((out / "result.json").read_text())["target_account"]
+    assert account == b["target_account"] and account["totals"]["pursued"] is not None
+    # every daemon step found its simulator step by the looks' time stamps
+    result = json.loads((out / "result.json").read_text())
+    truth = json.loads((out.parent / TRUTH).read_text())
+    aligned = align_steps(truth, dict(result["look_times_ms"]), tolerance_ms=500.0)
+    assert aligned["steps"] == list(range(STEPS + 1))
+    # bad input: one line naming the problem and the fix, exit 2
+    for bad in (["--truth", str(out / "result.json")], ["--truth", str(tmp_path / "none.json")]):
+        proc = run_swarmplan(["account", str(out), *bad], timeout=60)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
 
 
 def test_every_command_defaults_to_one_seed():

@@ -68,6 +68,9 @@ def test_writes_every_output(local_run):
     assert sum(name.startswith("fig03_paths_") for name in figures) == 3
     report = (local_run / "report.md").read_text()
     assert "wall time" in report and "Friedman" in report and "5.5" in report  # the paper's number
+    # the target funnel by kind: a figure, shown in the report
+    assert "targets_funnel.png" in figures
+    assert "![Target funnel by kind](figures/targets_funnel.png)" in report
 
 
 def test_statistics_match_a_hand_computation_from_the_run_files(local_run):
