@@ -91,8 +91,16 @@ class VehicleState:
     mission_requests: deque[tuple[int, int]] = field(default_factory=deque)  # (seq, mission_type)
     mission_ack: tuple[int, int] | None = None  # (type, mission_type)
     lost: bool = False
-    #: parameters the vehicle reported (PARAM_VALUE), by name
+    # readiness (mavlink_bridge/readiness.py): SYS_STATUS sensor bits, GPS_RAW_INT fix type
+    sensors_present: int = 0
+    sensors_enabled: int = 0
+    sensors_health: int = 0
+    has_sys_status: bool = False
+    gps_fix_type: int = -1  # -1: no GPS_RAW_INT heard
+    #: parameters the vehicle reported (PARAM_VALUE), by name (gcs_failsafe.py, airframe.py)
     params: dict[str, float] = field(default_factory=dict)
+    # components other than the autopilot heard by HEARTBEAT (100: a camera), by component id
+    components: dict[int, int] = field(default_factory=dict)
 
     # ------------------------------------------------------------------ derived
 
@@ -150,7 +158,10 @@ class VehicleState:
 
     def on_heartbeat(self, msg: mavlink.MAVLink_heartbeat_message) -> None:
         if msg.get_srcComponent() != AUTOPILOT_COMPONENT_ID:
-            return  # the camera's (or another component's) heartbeat says nothing of the vehicle
+            # the camera's (or another component's) heartbeat says nothing of the vehicle, only
+            # that the component is there (its MAV_TYPE)
+            self.components[msg.get_srcComponent()] = msg.type
+            return
         self.heartbeats += 1
         self.vehicle_type = msg.type
         self.autopilot = msg.autopilot
@@ -249,6 +260,18 @@ class VehicleState:
             for old in [k for k in self.looks if k < index - 20]:
                 del self.looks[old]
 
+    def on_sys_status(self, msg: mavlink.MAVLink_sys_status_message) -> None:
+        if msg.get_srcComponent() != AUTOPILOT_COMPONENT_ID:
+            return
+        self.has_sys_status = True
+        self.sensors_present = msg.onboard_control_sensors_present
+        self.sensors_enabled = msg.onboard_control_sensors_enabled
+        self.sensors_health = msg.onboard_control_sensors_health
+
+    def on_gps_raw_int(self, msg: mavlink.MAVLink_gps_raw_int_message) -> None:
+        if msg.get_srcComponent() == AUTOPILOT_COMPONENT_ID:
+            self.gps_fix_type = msg.fix_type
+
     def on_mission_request_int(self, msg: mavlink.MAVLink_mission_request_int_message) -> None:
         self.mission_requests.append((msg.seq, msg.mission_type))
 
@@ -288,4 +311,6 @@ _HANDLERS: dict[str, Callable[[VehicleState, mavlink.MAVLink_message], None]] = 
     "MISSION_REQUEST_INT": VehicleState.on_mission_request_int,
     "MISSION_REQUEST": VehicleState.on_mission_request,
     "MISSION_ACK": VehicleState.on_mission_ack,
+    "SYS_STATUS": VehicleState.on_sys_status,
+    "GPS_RAW_INT": VehicleState.on_gps_raw_int,
 }

@@ -9,8 +9,10 @@ a list longer than the 205-character field continues in further messages of the 
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import math
+from collections.abc import Callable, Iterable
 
+from mavlink_bridge.protocol import mavlink
 from mavlink_bridge.vehicle_state import parse_look_offsets
 from planner.engagement import EngagementOutcome
 
@@ -45,6 +47,52 @@ def parse_look_url(url: str) -> list[tuple[int, int]]:
     raise ValueError(f"not a look url: {url!r}")
 
 
+def look_messages(
+    offsets: Iterable[tuple[int, int]],
+    index: int,
+    time_boot_ms: int,
+    time_utc_us: int,
+    lat_e7: int,
+    lon_e7: int,
+    alt_amsl_mm: int,
+    relative_alt_mm: int,
+) -> list[mavlink.MAVLink_camera_image_captured_message]:
+    """The CAMERA_IMAGE_CAPTURED messages of one look (docs/mavlink.md, "Sensor looks"): look
+    number ``index``, taken at the given position and time, detected cells as ``offsets`` from
+    the look cell."""
+    return [
+        mavlink.MAVLink_camera_image_captured_message(
+            time_boot_ms,
+            time_utc_us,
+            0,
+            lat_e7,
+            lon_e7,
+            alt_amsl_mm,
+            relative_alt_mm,
+            [1.0, 0.0, 0.0, 0.0],
+            index,
+            1,
+            url.encode(),
+        )
+        for url in look_urls(offsets)
+    ]
+
+
+def engagement_sequence(p2: float, p3: float, p4: float) -> int | None:
+    """The engagement sequence number of a MAV_CMD_IMAGE_START_CAPTURE (p2 = 0 interval, p3 = 1
+    image, p4 = an integer >= 0), or None for any other form (answered DENIED)."""
+    if p2 != 0 or p3 != 1 or not (math.isfinite(p4) and p4 >= 0 and p4 == int(p4)):
+        return None
+    return int(p4)
+
+
+def engagement_text(sequence: int, outcome: EngagementOutcome) -> str:
+    """The camera's STATUSTEXT for people, after a new engagement."""
+    if outcome.success:
+        return f"Engagement {sequence}: target {outcome.target_id} serviced"
+    return f"Engagement {sequence}: no target in range"
+
+
 class EngagementLog:
     """Outcomes by engagement sequence number, so a repeated request replays, never re-engages."""
 
@@ -56,6 +104,18 @@ class EngagementLog:
 
     def record(self, sequence: int, outcome: EngagementOutcome) -> None:
         self._by_sequence[sequence] = outcome
+
+    def resolve(
+        self, sequence: int, engage: Callable[[], EngagementOutcome]
+    ) -> tuple[EngagementOutcome, bool]:
+        """The outcome of request ``sequence`` and whether it is a replay: a new number calls
+        ``engage()`` (ground truth) once, a repeated one returns its first outcome."""
+        outcome = self._by_sequence.get(sequence)
+        if outcome is not None:
+            return outcome, True
+        outcome = engage()
+        self._by_sequence[sequence] = outcome
+        return outcome, False
 
     def __len__(self) -> int:
         return len(self._by_sequence)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_gateway import flight_modes as modes
+from sim_gateway.camera import engagement_sequence, engagement_text
 from sim_gateway.geofence import point_excluded
 from sim_gateway.mission_store import RELATIVE_FRAMES
 from sim_gateway.telemetry import BUILDERS, MESSAGE_IDS, NAMES_BY_ID, build_autopilot_version
@@ -250,15 +251,11 @@ COMMANDS: dict[int, CommandHandler] = {
 def command_image_start_capture(v: Vehicle, c: CommandArgs) -> Result:
     """Engagement request (docs/mavlink.md): resolved against ground truth at the vehicle's
     position; param4 is the engagement sequence number, a repeat replays its first outcome."""
-    if not (math.isfinite(c.p4) and c.p4 >= 0 and c.p4 == int(c.p4)) or c.p2 != 0 or c.p3 != 1:
+    sequence = engagement_sequence(c.p2, c.p3, c.p4)
+    if sequence is None:
         v.host.stats.rejected_commands += 1
         return mavlink.MAV_RESULT_DENIED
-    sequence = int(c.p4)
-    outcome = v.engagements.get(sequence)
-    replay = outcome is not None
-    if outcome is None:
-        outcome = v.host.engage(v.index)
-        v.engagements.record(sequence, outcome)
+    outcome, replay = v.engagements.resolve(sequence, lambda: v.host.engage(v.index))
     v.ack(
         c.command,
         mavlink.MAV_RESULT_ACCEPTED,
@@ -268,13 +265,10 @@ def command_image_start_capture(v: Vehicle, c: CommandArgs) -> Result:
         from_camera=True,
     )
     if not replay:
-        text = (
-            f"Engagement {sequence}: target {outcome.target_id} serviced"
-            if outcome.success
-            else f"Engagement {sequence}: no target in range"
-        )
         v.send_from_camera(
-            mavlink.MAVLink_statustext_message(mavlink.MAV_SEVERITY_INFO, text.encode())
+            mavlink.MAVLink_statustext_message(
+                mavlink.MAV_SEVERITY_INFO, engagement_text(sequence, outcome).encode()
+            )
         )
     return -1
 

@@ -38,7 +38,7 @@ from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
 from planner.grid import Grid
 from planner.scenario import Origin, Scenario
 from sim_gateway import flight_modes as modes
-from sim_gateway.camera import look_urls
+from sim_gateway.camera import look_messages
 from sim_gateway.fixed_wing import FleetKinematics
 from sim_gateway.geofence import FleetFence
 from sim_gateway.ground_truth import GROUPS, GroundTruthSafety
@@ -455,22 +455,17 @@ class Simulator:
             v = self.vehicles[i]
             detected = reports[k].cells[reports[k].detected] - look_cells[k]
             rel_mm = round(float(self.fleet.alt_m[i]) * 1000)
-            for url in look_urls((int(dx), int(dy)) for dx, dy in detected):
-                v.send_from_camera(
-                    mavlink.MAVLink_camera_image_captured_message(
-                        boot_ms,
-                        utc_us,
-                        0,
-                        int(lat_e7[k]),
-                        int(lon_e7[k]),
-                        round(home_amsl * 1000) + rel_mm,
-                        rel_mm,
-                        [1.0, 0.0, 0.0, 0.0],
-                        v.look_index,
-                        1,
-                        url.encode(),
-                    )
-                )
+            for message in look_messages(
+                ((int(dx), int(dy)) for dx, dy in detected),
+                v.look_index,
+                boot_ms,
+                utc_us,
+                int(lat_e7[k]),
+                int(lon_e7[k]),
+                round(home_amsl * 1000) + rel_mm,
+                rel_mm,
+            ):
+                v.send_from_camera(message)
             v.look_index += 1
             self.looks_sent += 1
 

@@ -23,6 +23,7 @@ SUBCOMMANDS = (
     ("run", "swarmplan.run_command"),
     ("demo", "swarmplan.demo"),
     ("sim", "sim_gateway.cli"),
+    ("payload", "sim_gateway.payload_command"),
     ("daemon", "swarmplan.daemon_command"),
     ("export", "mavlink_bridge.export_command"),
     ("account", "swarmplan.account_command"),
