@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from mavlink_bridge.airframe import Airframe, fleet_plane_model
 from mavlink_bridge.checkpoint import (
     Checkpoint,
     CheckpointWriter,
@@ -101,7 +102,9 @@ class DaemonOptions:
     prediction_horizon_steps: float = 3.0
     predicted_threat_margin_km: float = 0.25
     predicted_separation_margin_km: float = 0.3
-    bank_limit_deg: float = 45.0  # ArduPlane ROLL_LIMIT_DEG: sets the predicted turn radius
+    #: bank limit of the predicted turns; None: each airframe's own (ROLL_LIMIT_DEG / FW_R_LIM,
+    #: read at launch by mavlink_bridge/airframe.py; 45 deg until then)
+    bank_limit_deg: float | None = None
     #: fly each leg in one decision step, as the paper's grid does (a diagonal cell at sqrt(2) v):
     #: an airspeed per leg (MAV_CMD_DO_CHANGE_SPEED) within ``airspeed_range_mps``; off, every
     #: plane flies the scenario's speed and falls behind the grid on diagonal legs
@@ -205,7 +208,7 @@ class MissionDaemon:
             )
         self.plane = PlaneModel(
             speed_mps=cfg.speed_mps,
-            bank_limit_deg=options.bank_limit_deg,
+            bank_limit_deg=options.bank_limit_deg or 45.0,
             min_speed_mps=slowest,
             max_speed_mps=fastest,
         )
@@ -350,6 +353,19 @@ class MissionDaemon:
         return send_commands(
             self.require_link(), commands, opts.command_retry_s, attempts, deadline
         )
+
+    def use_airframes(self, airframes: list[Airframe]) -> None:
+        """Fly the airframes read at launch: the plane model of the flight prediction and the
+        leg timing (turn radius from their bank limit, airspeed range, loiter radius);
+        ``--airspeed-range`` and ``bank_limit_deg`` given by the user still win."""
+        self.plane = fleet_plane_model(
+            airframes,
+            self.scenario.config,
+            self.options.airspeed_range_mps,
+            self.options.bank_limit_deg,
+        )
+        if self.flight_envelope is not None:
+            self.flight_envelope = replace(self.flight_envelope, model=self.plane)
 
     # ------------------------------------------------------------------ link and clock
 

@@ -38,6 +38,12 @@ from mavlink_bridge.guided_commands import (
     reposition_command,
 )
 from mavlink_bridge.mission_result import MissionAccount
+from mavlink_bridge.protocol import (
+    AUTOPILOT_COMPONENT_ID,
+    CAMERA_COMPONENT_ID,
+    command_name,
+    result_name,
+)
 from mavlink_bridge.safety_envelope import SafetyEnvelope
 from mavlink_bridge.sensor_looks import look_report
 from mavlink_bridge.vehicle_state import Look, VehicleState
@@ -46,6 +52,16 @@ from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
 from planner.grid import Grid, heading_of_angle
 from planner.scenario import Scenario, UavStart
 from planner.sensor_model import SensorReport
+
+
+def has_camera(vehicle: VehicleState) -> bool:
+    """Whether a camera (component 100) of the vehicle was ever heard: a heartbeat, a look or
+    an acknowledgement of its own."""
+    return (
+        CAMERA_COMPONENT_ID in vehicle.components
+        or vehicle.latest_look >= 0
+        or any(ack.component == CAMERA_COMPONENT_ID for ack in vehicle.ack_log)
+    )
 
 
 def course_heading(v: VehicleState) -> int | None:
@@ -363,7 +379,9 @@ class DecisionStep:
         requests = [
             (i, engagement_command(v, state.pending_engage[i] or state.engage_seq[i] + 1))
             for i, v in enumerate(self.vehicles)
-            if active[i] and (bool(plan.decision.engage[i]) or state.pending_engage[i])
+            if active[i]
+            and (bool(plan.decision.engage[i]) or state.pending_engage[i])
+            and i not in self.counters.cameraless
         ]
         for i, cmd in requests:
             state.engage_seq[i] = max(state.engage_seq[i], int(cmd.params[3]))
@@ -379,6 +397,30 @@ class DecisionStep:
             cmd = reposition_command(v, float(lat[i]), float(lon[i]), self.scenario.altitude_m)
             moves.append((i, aim, cmd))
         return CommandBatch(requests, moves, self.speed_commands(flight.speeds_mps, active))
+
+    def without_camera(self, uav: int, request: Command) -> bool:
+        """Whether an unanswered engagement request shows that the vehicle has no camera: its
+        autopilot answered the capture meant for component 100 itself (ArduPilot does, when no
+        component 100 is on any of its links), or no camera was ever heard from it (no
+        heartbeat, look or answer of component 100) through every try. Such a vehicle gets one
+        warning and no more engagement requests (never a retry every step)."""
+        v = self.vehicles[uav]
+        own = v.acks.get((AUTOPILOT_COMPONENT_ID, request.command))
+        if own is not None and own.serial > request.serial_before:
+            why = (
+                f"its autopilot answered {command_name(request.command)} for component "
+                f"{CAMERA_COMPONENT_ID} with {result_name(own.result)}"
+            )
+        elif request.attempts >= 3 and not has_camera(v):
+            why = f"component {CAMERA_COMPONENT_ID} never heard"
+        else:
+            return False
+        self.counters.cameraless.append(uav)
+        self.say(
+            f"warning: vehicle {v.system_id} has no camera ({why}): its engagements are off "
+            f"for this mission; give it one with `swarmplan payload` (docs/sitl.md)"
+        )
+        return True
 
     def speed_commands(self, speeds_mps: np.ndarray, active: np.ndarray) -> list[Command]:
         """DO_CHANGE_SPEED for every active vehicle whose leg airspeed (rounded to 1 m/s)
@@ -402,6 +444,9 @@ class DecisionStep:
         answered, moved = sent[:n_req], sent[n_req : n_req + n_moves]
         for (i, _), cmd in zip(batch.requests, answered, strict=True):
             state.pending_engage[i] = int(cmd.params[3]) if cmd.ack is None else 0
+            if cmd.ack is None and self.without_camera(i, cmd):
+                state.pending_engage[i] = 0
+                continue
             if cmd.ack is None:
                 continue  # unanswered: asked again at the next step
             target = int(cmd.ack.result_param2) if cmd.accepted else 0

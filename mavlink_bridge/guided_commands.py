@@ -47,6 +47,12 @@ class Command:
     _serial_before: int = field(default=0, repr=False)
 
     @property
+    def serial_before(self) -> int:
+        """The vehicle's ack counter when this command was (first) sent: newer acks may answer
+        it."""
+        return self._serial_before
+
+    @property
     def key(self) -> tuple[int, int]:
         return (self.target_component, self.command)
 
@@ -70,7 +76,7 @@ class Command:
 
     def send(self) -> None:
         """Send (or resend) the command."""
-        mav = self.vehicle.link.mav
+        mav = self.vehicle.link_for(self.target_component).mav
         p = self.params
         sysid = self.vehicle.system_id
         if self.as_int:
@@ -189,8 +195,9 @@ def reposition_command(
 
 def change_speed_command(vehicle: VehicleState, airspeed_mps: float) -> Command:
     """MAV_CMD_DO_CHANGE_SPEED: param1 = 0 (airspeed), param2 = m/s, param3 = -1 (throttle
-    unchanged). ArduPlane and PX4 act on it in GUIDED; ArduPlane DENIES a speed outside
-    [AIRSPEED_MIN, AIRSPEED_MAX]."""
+    unchanged). ArduPlane and PX4 act on it in GUIDED; ArduPlane refuses a speed outside
+    [AIRSPEED_MIN, AIRSPEED_MAX] (FAILED from ArduPlane 4.8, DENIED from our simulator): any
+    result but ACCEPTED is a refusal."""
     return Command(
         vehicle, mavlink.MAV_CMD_DO_CHANGE_SPEED, (0, float(airspeed_mps), -1, 0, 0, 0, 0)
     )

@@ -10,27 +10,21 @@ simulated time meanwhile).
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from mavlink_bridge.airframe import read_airframes, scenario_warnings
 from mavlink_bridge.discovery import wait_for_vehicles, wait_until_ready
 from mavlink_bridge.gcs_failsafe import MISSION_FAILSAFE, set_gcs_failsafe
 from mavlink_bridge.guided_commands import (
-    CommandRefusedError,
-    arm_command,
     request_message_command,
     require_accepted,
     set_mode_command,
 )
 from mavlink_bridge.mission_upload import FenceCircle, upload_fence
-from mavlink_bridge.protocol import (
-    PLANE_MODE_GUIDED,
-    PLANE_MODE_TAKEOFF,
-    mavlink,
-    result_name,
-)
+from mavlink_bridge.protocol import PLANE_MODE_GUIDED, PLANE_MODE_TAKEOFF, mavlink
+from mavlink_bridge.readiness import arm_when_ready
 from planner.errors import UserError
 from planner.geodesy import local_km_to_geodetic
 
@@ -92,27 +86,28 @@ def failsafe(daemon: MissionDaemon) -> None:
     )
 
 
-def arm(daemon: MissionDaemon, attempts: int = 3) -> None:
-    """Arm every vehicle; a refusal is retried, then reported with the prearm reasons."""
-    link = daemon.require_link()
-    todo = [v for v in daemon.vehicles() if not v.armed]
-    for attempt in range(attempts):
-        started = time.monotonic()
-        tries = daemon.options.launch_command_attempts
-        results = daemon.send([arm_command(v) for v in todo], tries)
-        todo = [c.vehicle for c in results if not c.accepted]
-        if not todo:
-            break
-        link.pump_until(lambda: False, 0.3)  # let the STATUSTEXTs arrive
-        if attempt == attempts - 1:
-            cmd = next(c for c in results if not c.accepted)
-            reasons = cmd.vehicle.prearm_reasons(since_s=started - 0.5)
-            because = "; ".join(reasons) if reasons else "no PreArm message"
-            result = result_name(cmd.ack.result) if cmd.ack else "no answer"
-            raise CommandRefusedError(
-                f"vehicle {cmd.vehicle.system_id} refused to arm ({result}): {because}"
-            )
-        link.pump_until(lambda: False, 1.0)
+def airframe(daemon: MissionDaemon) -> None:
+    """Each vehicle's flight limits (``airframe.read_airframes``): the plane model of the flight
+    prediction and leg timing follows them; a scenario the airframes cannot fly is said now."""
+    frames = read_airframes(daemon.vehicles(), daemon.scenario.config, daemon.wait_sim)
+    daemon.use_airframes(frames)
+    for frame in frames:
+        daemon.say(f"airframe {frame.describe()}")
+    for line in scenario_warnings(frames, daemon.scenario.config):
+        daemon.say(f"warning: {line}")
+
+
+def arm(daemon: MissionDaemon) -> None:
+    """Arm every vehicle once it is ready to (``readiness.arm_when_ready``: pre-arm checks, GPS
+    fix, home), refusals retried within the readiness window, with progress lines."""
+    arm_when_ready(
+        daemon.vehicles(),
+        daemon.options.ready_timeout_s,
+        send=lambda commands, tries: daemon.send(commands, tries),
+        wait=daemon.wait_sim,
+        progress=daemon.say,
+        arm_attempts=daemon.options.launch_command_attempts,
+    )
     daemon.say(f"armed {daemon.n} vehicles")
 
 
@@ -160,6 +155,7 @@ def launch_phases() -> list[LaunchPhase]:
     return [
         LaunchPhase("discover", discover),
         LaunchPhase("ready", ready),
+        LaunchPhase("airframe", airframe),
         LaunchPhase("fence", fence),
         LaunchPhase("failsafe", failsafe),
         LaunchPhase("arm", arm),

@@ -108,6 +108,8 @@ class MissionAccount:
     looks_missed: int = 0
     late_steps: int = 0
     events: list[LinkEvent] = field(default_factory=list)
+    #: UAVs found to have no camera (engagements turned off for them; decision_step.py)
+    cameraless: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -143,6 +145,7 @@ def mavlink_extra(
         "refused_commands": account.refused_commands,
         "looks_missed": account.looks_missed,
         "late_steps": account.late_steps,
+        "uavs_without_camera": sorted(account.cameraless),
         "link_events": link_event_rows(account.events),
         "lost_uavs": sorted({e.uav for e in account.events if e.event == "lost"}),
         "frames_received": link.messages_received,

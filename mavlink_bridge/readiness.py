@@ -89,20 +89,6 @@ def readiness_of(vehicle: VehicleState) -> Readiness:
     )
 
 
-def latest_prearm_reasons(vehicle: VehicleState, since_s: float) -> list[str]:
-    """The newest batch of PreArm / Arm STATUSTEXTs since ``since_s`` (ArduPilot repeats its
-    failing checks every 30 s of its clock, and answers a refused arm with ``Arm: ...``)."""
-    texts = [
-        (when, text)
-        for when, _severity, text in vehicle.statustexts
-        if when >= since_s and text.lower().startswith(("prearm", "arm:"))
-    ]
-    if not texts:
-        return []
-    newest = texts[-1][0]
-    return list(dict.fromkeys(text for when, text in texts if when >= newest - 1.0))
-
-
 def arm_when_ready(
     vehicles: list[VehicleState],
     window_s: float,
@@ -181,7 +167,7 @@ def progress_line(vehicles: list[VehicleState], elapsed_s: float, window_s: floa
         if v.armed:
             continue
         missing = readiness_of(v).missing()
-        reasons = latest_prearm_reasons(v, 0.0) if "pre-arm checks failing" in missing else []
+        reasons = v.prearm_reasons() if "pre-arm checks failing" in missing else []
         text = ", ".join(missing) if missing else "ready, arming"
         if reasons:
             text += f" ({'; '.join(reasons)})"
@@ -202,7 +188,7 @@ def _failure_line(
         why = readiness_of(v).missing()
         if not why:
             why = [f"arming refused ({refusals.get(v.system_id, 'no answer')})"]
-        reasons = latest_prearm_reasons(v, started - 1.0)
+        reasons = v.prearm_reasons(since_s=started - 1.0)
         text = f"vehicle {v.system_id} ({', '.join(why)}"
         text += f": {'; '.join(reasons)})" if reasons else ")"
         parts.append(text)

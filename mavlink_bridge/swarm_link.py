@@ -166,11 +166,33 @@ class SwarmLink:
             verdict = trust.admit_address(sysid, compid, (id(endpoint), address), now)
             if verdict == "refused" or not trust.admit(sysid, msg, now):
                 return
-            if verdict == "moved" and compid == AUTOPILOT_COMPONENT_ID:
+            if compid != AUTOPILOT_COMPONENT_ID:
+                self._route_component(vehicle, compid, endpoint, address)
+            elif verdict == "moved":
                 vehicle.link.moved(endpoint, address)  # a reboot, a new socket: replies follow
         vehicle.handle(msg, now)
         for listen in self.listeners:
             listen(vehicle, msg)
+
+    def _route_component(
+        self, vehicle: VehicleState, component: int, endpoint: Endpoint, address: Address | None
+    ) -> None:
+        """Route by (system, component): a component heard where its autopilot is not (a
+        payload simulator's camera on its own link) is answered where it is heard; one heard
+        on the autopilot's link (routed through the autopilot, as ArduPilot does) shares it."""
+        on_autopilot_link = vehicle.link.endpoint is endpoint and (
+            address is None or address == vehicle.link.address
+        )
+        if on_autopilot_link:
+            vehicle.component_links.pop(component, None)
+            return
+        link = vehicle.component_links.get(component)
+        if link is None:
+            vehicle.component_links[component] = self._secure(
+                VehicleLink(vehicle.system_id, endpoint, address, self.tlog)
+            )
+        elif link.endpoint is not endpoint or (address is not None and link.address != address):
+            link.moved(endpoint, address)
 
     def _secure(self, link: VehicleLink) -> VehicleLink:
         """Sign what ``link`` sends (link id = the vehicle's system id: one stream each)."""

@@ -101,6 +101,9 @@ class VehicleState:
     params: dict[str, float] = field(default_factory=dict)
     # components other than the autopilot heard by HEARTBEAT (100: a camera), by component id
     components: dict[int, int] = field(default_factory=dict)
+    #: links of components heard on another link than the autopilot (swarm_link routes by
+    #: system and component id); a command to such a component goes there
+    component_links: dict[int, VehicleLink] = field(default_factory=dict)
 
     # ------------------------------------------------------------------ derived
 
@@ -131,17 +134,26 @@ class VehicleState:
         """The vehicle's own clock (time_boot_ms) as last reported, by position or SYSTEM_TIME."""
         return max(self.time_boot_ms, self.system_time_boot_ms)
 
+    def link_for(self, component: int) -> VehicleLink:
+        """Where a message to ``component`` of this vehicle goes."""
+        return self.component_links.get(component, self.link)
+
     def silent_for(self, now_s: float | None = None) -> float:
         return (time.monotonic() if now_s is None else now_s) - self.last_heard_s
 
     def prearm_reasons(self, since_s: float = 0.0) -> list[str]:
-        """STATUSTEXTs that explain an arming refusal (``PreArm: ...``, ``Arm: ...``)."""
-        reasons = []
-        for when, _severity, text in self.statustexts:
-            prearm = text.lower().startswith(("prearm", "arm"))
-            if when >= since_s and prearm and text not in reasons:
-                reasons.append(text)
-        return reasons
+        """The newest batch of STATUSTEXTs since ``since_s`` that explain an arming refusal
+        (``PreArm: ...``; ``Arm: ...`` answers a refused arm). ArduPilot repeats its failing
+        checks every 30 s of its clock, so the newest batch (within 1 s) is what still fails."""
+        texts = [
+            (when, text)
+            for when, _severity, text in self.statustexts
+            if when >= since_s and text.lower().startswith(("prearm", "arm:"))
+        ]
+        if not texts:
+            return []
+        newest = texts[-1][0]
+        return list(dict.fromkeys(text for when, text in texts if when >= newest - 1.0))
 
     # ------------------------------------------------------------------ dispatch
 

@@ -1,10 +1,10 @@
 """A minimal stand-in swarm for the daemon's tests: N vehicles, each its own UDP socket sending
 to the daemon (like SITL's udpout), speaking just enough ArduPlane: heartbeats with an
-initialising phase, GLOBAL_POSITION_INT, fence upload, PARAM_SET (echoed), arm (refusable with
-a PreArm STATUSTEXT), mode changes, COMMAND_INT DO_REPOSITION (COMMAND_LONG answered
-UNSUPPORTED), DO_CHANGE_SPEED within 60..150 m/s, sensor looks and engagement captures from the
-camera component. Flies straight to each target at the commanded speed. For protocol tests only; the
-end-to-end tests use ``swarmplan sim``."""
+initialising phase, GLOBAL_POSITION_INT, HOME_POSITION on request, fence upload, PARAM_SET
+(echoed), arm (refusable with a PreArm STATUSTEXT), mode changes, COMMAND_INT DO_REPOSITION
+(COMMAND_LONG answered UNSUPPORTED), DO_CHANGE_SPEED within 60..150 m/s, sensor looks and
+engagement captures from the camera component. Flies straight to each target at the commanded
+speed. For protocol tests only; the end-to-end tests use ``swarmplan sim``."""
 
 from __future__ import annotations
 
@@ -50,6 +50,7 @@ class FakeVehicle:
     params: dict = field(default_factory=dict)  # every PARAM_SET received, by name
 
     def __post_init__(self) -> None:
+        self.home = (self.lat, self.lon)  # where it starts: its launch point
         self.sock.bind(("127.0.0.1", 0))
         self.sock.setblocking(False)
         self.ap = mavlink.MAVLink(None, self.sysid, 1)
@@ -241,6 +242,16 @@ class FakeSwarm(threading.Thread):
                 # the camera echoes the sequence number (low byte) in result_param1
                 self._ack(
                     v, v.cam, msg.command, mavlink.MAV_RESULT_ACCEPTED, 0, int(msg.param4) % 256
+                )
+            elif (
+                msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE
+                and int(msg.param1) == mavlink.MAVLINK_MSG_ID_HOME_POSITION
+            ):
+                self._ack(v, v.ap, msg.command, mavlink.MAV_RESULT_ACCEPTED)
+                lat, lon = round(v.home[0] * 1e7), round(v.home[1] * 1e7)
+                v.send(
+                    v.ap,
+                    v.ap.home_position_encode(lat, lon, 584000, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0),
                 )
             else:
                 self._ack(v, v.ap, msg.command, mavlink.MAV_RESULT_UNSUPPORTED)

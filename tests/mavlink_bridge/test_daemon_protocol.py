@@ -11,6 +11,7 @@ from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
 from mavlink_bridge.discovery import DiscoveryError
 from mavlink_bridge.guided_commands import CommandRefusedError
 from mavlink_bridge.protocol import mavlink
+from mavlink_bridge.readiness import NotReadyError
 from mavlink_bridge.vehicle_link import EndpointError
 
 
@@ -83,8 +84,13 @@ def test_unreachable_tcp_endpoint(paper10, udp_port):
 
 def test_arm_refusal_names_prearm_reason(paper10, udp_port, fake_swarm_factory):
     fake_swarm_factory(2, udp_port, refuse_arm="PreArm: Throttle not at zero")
-    with pytest.raises(CommandRefusedError, match="refused to arm .*PreArm: Throttle not at zero"):
-        MissionDaemon(paper10, options(udp_port, expect=2)).fly()
+    # arming is retried within the readiness window, then each vehicle is named with its reason
+    with pytest.raises(
+        NotReadyError,
+        match="not ready to arm within .*vehicle 1 .*MAV_RESULT_FAILED.*PreArm: Throttle not at "
+        "zero.*vehicle 2 ",
+    ):
+        MissionDaemon(paper10, options(udp_port, expect=2, ready_timeout_s=4.0)).fly()
 
 
 def test_command_refusal_names_result(paper10, udp_port, fake_swarm_factory):
