@@ -1,10 +1,11 @@
 """A minimal stand-in swarm for the daemon's tests: N vehicles, each its own UDP socket sending
 to the daemon (like SITL's udpout), speaking just enough ArduPlane: heartbeats with an
 initialising phase, GLOBAL_POSITION_INT, HOME_POSITION on request, fence upload, PARAM_SET
-(echoed), arm (refusable with a PreArm STATUSTEXT), mode changes, COMMAND_INT DO_REPOSITION
-(COMMAND_LONG answered UNSUPPORTED), DO_CHANGE_SPEED within 60..150 m/s, sensor looks and
-engagement captures from the camera component. Flies straight to each target at the commanded
-speed. For protocol tests only; the end-to-end tests use ``swarmplan sim``."""
+(echoed), PARAM_REQUEST_READ of its airframe limits, arm (refusable with a PreArm STATUSTEXT),
+mode changes (RTL flies home), COMMAND_INT DO_REPOSITION (COMMAND_LONG answered UNSUPPORTED),
+DO_CHANGE_SPEED within 60..150 m/s, sensor looks and engagement captures from the camera
+component. Flies straight to each target at the commanded speed. For protocol tests only; the
+end-to-end tests use ``swarmplan sim``."""
 
 from __future__ import annotations
 
@@ -48,6 +49,13 @@ class FakeVehicle:
     speeds: list = field(default_factory=list)  # every accepted DO_CHANGE_SPEED, m/s
     airspeed: float = 150.0
     params: dict = field(default_factory=dict)  # every PARAM_SET received, by name
+    #: what PARAM_REQUEST_READ answers (ArduPlane's names; the simulator's airframe)
+    limits: dict = field(
+        default_factory=lambda: {
+            "AIRSPEED_MIN": 60.0, "AIRSPEED_CRUISE": 100.0, "AIRSPEED_MAX": 150.0,
+            "ROLL_LIMIT_DEG": 45.0, "WP_LOITER_RAD": 60.0, "WP_RADIUS": 90.0,
+        }
+    )  # fmt: skip
 
     def __post_init__(self) -> None:
         self.home = (self.lat, self.lon)  # where it starts: its launch point
@@ -178,9 +186,10 @@ class FakeSwarm(threading.Thread):
     def _fly(self, v: FakeVehicle, dt: float) -> None:
         if v.armed and v.mode in (13, 15) and v.alt < 500:
             v.alt = min(500.0, v.alt + 10 * dt)
-        if v.target is not None and v.mode == 15:
-            dn = (v.target[0] - v.lat) * M_PER_DEG
-            de = (v.target[1] - v.lon) * M_PER_DEG * math.cos(math.radians(v.lat))
+        goal = v.home if v.mode == 11 else v.target  # RTL: back to its launch point
+        if goal is not None and v.mode in (11, 15):
+            dn = (goal[0] - v.lat) * M_PER_DEG
+            de = (goal[1] - v.lon) * M_PER_DEG * math.cos(math.radians(v.lat))
             d = math.hypot(dn, de)
             step = min(d, v.airspeed * dt)
             if d > 0:
@@ -270,6 +279,12 @@ class FakeSwarm(threading.Thread):
             v.params[msg.param_id] = msg.param_value
             v.send(v.ap, v.ap.param_value_encode(msg.param_id.encode(), msg.param_value,
                                                  msg.param_type, 0, 0))  # fmt: skip
+        elif kind == "PARAM_REQUEST_READ":  # by name; a name it does not have: no answer
+            name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode()
+            value = v.params.get(name, v.limits.get(name))
+            if value is not None:
+                real32 = mavlink.MAV_PARAM_TYPE_REAL32
+                v.send(v.ap, v.ap.param_value_encode(name.encode(), value, real32, 0, 0))
         elif kind == "MISSION_COUNT":
             items = v.fence_items if msg.mission_type == 1 else v.mission_items
             items.clear()
