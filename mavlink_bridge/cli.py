@@ -53,7 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--ready-timeout",
         type=positive_float,
         default=120.0,
-        help="seconds to wait for the autopilots to finish initialising (default 120)",
+        help="wall seconds to wait until every vehicle can arm (pre-arm checks pass, GPS fix, "
+        "home known), arming retried meanwhile; ArduPlane SITL needs ~20 s of its clock "
+        "(default 120)",
     )
     parser.add_argument(
         "--lost-after",

@@ -23,7 +23,12 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from planner.errors import UserError  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
-from sim_gateway.cli import _positive_float  # noqa: E402
+from swarmplan.arguments import (  # noqa: E402
+    OneLineParser,
+    add_seed_argument,
+    positive_float,
+    positive_int,
+)
 
 HELP = (
     "simulate only the world and each vehicle's camera (component 100) for external autopilots "
@@ -31,18 +36,33 @@ HELP = (
 )
 
 
+def _endpoint(text: str) -> str:
+    """An endpoint spec that parses (``tcp:HOST:PORT``, ``udpin:...``, ``udpout:...``)."""
+    from mavlink_bridge.vehicle_link import EndpointError, parse_endpoint
+
+    try:
+        parse_endpoint(text)
+    except EndpointError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--connect ")) from None
+    return text
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--scenario", default="arduplane-3uav", help="built-in scenario name or TOML file"
     )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the world")
+    add_seed_argument(parser, "seed of the world (sensor noise, target motion)")
     parser.add_argument(
-        "--vehicles", type=int, default=None, help="number of vehicles (default: the scenario's)"
+        "--vehicles",
+        type=positive_int,
+        default=None,
+        help="number of vehicles (default: the scenario's)",
     )
     parser.add_argument(
         "--connect",
         action="append",
-        default=[],
+        required=True,
+        type=_endpoint,
         metavar="ENDPOINT",
         help="where an autopilot's telemetry is heard and its camera speaks: tcp:HOST:PORT "
         "(ArduPilot SITL instance i: SERIAL1 on 5762+10i), udpin:HOST:PORT or udpout:HOST:PORT; "
@@ -50,13 +70,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--min-look-altitude",
-        type=_positive_float,
+        type=positive_float,
         default=10.0,
         metavar="M",
         help="a vehicle looks only when armed and at least this far above home (default 10 m)",
     )
     parser.add_argument(
-        "--duration-s", type=_positive_float, default=None, help="stop after this many wall s"
+        "--duration-s", type=positive_float, default=None, help="stop after this many wall s"
     )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -100,7 +120,7 @@ def main(args: argparse.Namespace) -> int:
 
 def run_standalone(argv: list[str] | None = None) -> int:
     """``python -m sim_gateway.payload_command`` without the swarmplan wrapper."""
-    parser = argparse.ArgumentParser(prog="payload", description=HELP)
+    parser = OneLineParser(prog="payload", description=HELP)
     add_arguments(parser)
     args = parser.parse_args(argv)
     try:

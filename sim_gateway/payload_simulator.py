@@ -68,7 +68,7 @@ HEARTBEAT_PERIOD_S = 1.0
 
 @dataclass
 class PayloadOptions:
-    seed: int = 0
+    seed: int = 1
     vehicles: int | None = None  # default: the scenario's UAV count
     min_look_altitude_m: float = 10.0
     #: a world step per decision period of the leading vehicle clock, at most this many at once
