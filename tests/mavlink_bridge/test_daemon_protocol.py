@@ -57,12 +57,14 @@ def test_flies_fake_swarm_and_logs_a_readable_tlog(paper10, udp_port, fake_swarm
 
 
 def test_missing_vehicles_named_with_endpoint(paper10, udp_port, fake_swarm_factory):
-    fake_swarm_factory(2, udp_port)
+    swarm = fake_swarm_factory(2, udp_port)
     with pytest.raises(DiscoveryError) as err:
         MissionDaemon(paper10, options(udp_port, expect=4, discovery_timeout_s=1.5)).fly()
     text = str(err.value)
     assert "system id 3, 4" in text and f"udpin:127.0.0.1:{udp_port}" in text
     assert "\n" not in text
+    # the two grounded, disarmed vehicles heard are not commanded into RTL on the way out
+    assert all(mavlink.MAV_CMD_DO_SET_MODE not in v.commands for v in swarm.vehicles)
 
 
 def test_port_in_use_is_one_clear_line(paper10, udp_port):
