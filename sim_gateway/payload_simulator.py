@@ -6,11 +6,16 @@ This simulator follows each autopilot's own telemetry and speaks as that vehicle
 MAVLink component 100 of system id i + 1, with the very encoding of our own simulator
 (docs/mavlink.md, "Sensor looks" and "Engagements"):
 
-* **Looks.** At every decision period of the vehicle's own clock (``time_boot_ms`` of its
-  GLOBAL_POSITION_INT crossing a multiple of ``step_s``) an airborne vehicle (armed, at least
-  ``min_look_altitude_m`` above home) takes one look at its reported position:
-  CAMERA_IMAGE_CAPTURED with ``file_url`` ``look:dx,dy;...``. The world moves one decision step
-  whenever the most advanced vehicle clock enters a new period.
+* **Looks.** The world's clock is the most advanced of the vehicles' own clocks
+  (``time_boot_ms`` of their GLOBAL_POSITION_INT): whenever it enters a new decision period
+  (a multiple of ``step_s``) the world moves one decision step and every airborne vehicle
+  (armed, at least ``min_look_altitude_m`` above home, its position fresh) takes one look at
+  its latest reported position: CAMERA_IMAGE_CAPTURED with ``file_url`` ``look:dx,dy;...``,
+  stamped with its own clock. A vehicle looks from the first period boundary after its first
+  airborne fix. One instant for all (not each vehicle's own boundary): SITL instances boot
+  one after the other, so their clocks differ by up to a decision period, and looks taken at
+  each clock's own boundary reached the daemon staggered by up to a period; it then planned
+  with positions a whole step old (measured with three ArduPlane SITL planes: 0.5 km behind).
 * **Engagements.** COMMAND_LONG MAV_CMD_IMAGE_START_CAPTURE to (i + 1, 100) is resolved against
   ground truth at the vehicle's latest reported position (``World.engage``) and answered
   COMMAND_ACK from component 100, ``progress`` = sequence number modulo 256, ``result_param2`` =
@@ -64,6 +69,8 @@ from sim_gateway.world import World  # noqa: E402
 AUTOPILOT = 1
 RECONNECT_S = 0.5
 HEARTBEAT_PERIOD_S = 1.0
+#: a vehicle whose latest position is older than this (wall s) does not look
+FRESH_S = 2.0
 
 
 @dataclass
@@ -85,6 +92,7 @@ class _Channel:
     connected: bool = False
     next_try_s: float = 0.0
     last_error: str = ""
+    fd: int | None = None  # the socket registered with the selector
 
 
 class _Writer:
@@ -117,7 +125,9 @@ class FollowedCamera:
     alt_mm: int = 0
     relative_alt_mm: int = 0
     time_boot_ms: int = 0
-    period: int = -1  # the decision period of its clock that got its latest look
+    period: int = -1  # the world period of its latest look (-1: not looking yet)
+    airborne: bool = False
+    heard_s: float = -1e9  # wall time of its latest position
     look_index: int = 0
     looks: int = 0
     engagements: EngagementLog = field(default_factory=EngagementLog)
@@ -174,18 +184,21 @@ class PayloadSimulator:
 
     def _attach(self, channel: _Channel) -> None:
         channel.connected = True
-        self._selector.register(channel.endpoint.fileno(), selectors.EVENT_READ, channel)
+        channel.fd = channel.endpoint.fileno()
+        self._selector.register(channel.fd, selectors.EVENT_READ, channel)
         if channel.endpoint.needs_first_word:  # udpout: say hello so the peer answers
             hello = mavlink.MAVLink(None, 0, CAMERA_COMPONENT_ID)
             channel.endpoint.send_to(_heartbeat_frame(hello), None)
 
     def _detach(self, channel: _Channel, reason: str) -> None:
-        if channel.endpoint.sock is not None:
-            self._selector.unregister(channel.endpoint.fileno())
+        if channel.fd is not None:
+            self._selector.unregister(channel.fd)  # by the number: the socket may be closed
+            channel.fd = None
         channel.endpoint.close()
         channel.connected = False
         channel.last_error = reason
         channel.next_try_s = time.monotonic() + RECONNECT_S
+        channel.endpoint.closed_reason = None  # noted here; the channel reconnects itself
         if isinstance(channel.endpoint, TcpEndpoint):
             channel.endpoint.parser = mavlink.MAVLink(None)
             channel.endpoint.parser.robust_parsing = True
@@ -238,6 +251,8 @@ class PayloadSimulator:
                 continue
             for msg, address in received:
                 self._handle(msg, channel, address)
+            if channel.endpoint.closed_reason is not None:  # a TCP server went away
+                self._detach(channel, channel.endpoint.closed_reason)
         self._heartbeats(time.monotonic())
 
     def run(
@@ -304,30 +319,38 @@ class PayloadSimulator:
         camera.lat_e7, camera.lon_e7 = msg.lat, msg.lon
         camera.alt_mm, camera.relative_alt_mm = msg.alt, msg.relative_alt
         camera.time_boot_ms = msg.time_boot_ms
-        period = msg.time_boot_ms // self.step_ms
-        self._advance_world(period)
-        airborne = camera.armed and msg.relative_alt >= self.options.min_look_altitude_m * 1000
-        if period < camera.period:
-            camera.period = period  # its clock restarted (a reboot)
-        if not airborne:
-            return
-        if camera.period < 0:
-            camera.period = period  # first airborne fix: the next boundary brings the first look
-            return
-        if period > camera.period:
-            camera.period = period
-            self._look(camera)
+        camera.heard_s = time.monotonic()
+        camera.airborne = (
+            camera.armed and msg.relative_alt >= self.options.min_look_altitude_m * 1000
+        )
+        moved = self._advance_world(msg.time_boot_ms // self.step_ms)
+        if camera.airborne and camera.period < 0 and self.world_period is not None:
+            camera.period = self.world_period  # looks from the next boundary on
+        if moved:
+            self._look_all()
 
-    def _advance_world(self, period: int) -> None:
+    def _advance_world(self, period: int) -> bool:
+        """Move the world to the leading clock's decision period; True if it moved."""
         if self.world_period is None:
             self.world_period = period
-            return
+            return False
+        if period <= self.world_period:
+            return False
         steps = min(period - self.world_period, self.options.max_world_steps_at_once)
-        if period > self.world_period:
-            self.world_period = period
-        for _ in range(max(steps, 0)):
+        self.world_period = period
+        for _ in range(steps):
             self.world.step(self.config.step_s)
             self.world_steps += 1
+        return True
+
+    def _look_all(self) -> None:
+        """One look for every airborne vehicle heard within the last ``FRESH_S``."""
+        now = time.monotonic()
+        for camera in self.cameras:
+            fresh = now - camera.heard_s <= FRESH_S
+            if camera.airborne and fresh and 0 <= camera.period < self.world_period:
+                camera.period = self.world_period
+                self._look(camera)
 
     def _xy_km(self, camera: FollowedCamera) -> np.ndarray:
         x, y = geodetic_to_local_km(camera.lat_e7 / 1e7, camera.lon_e7 / 1e7, self.scenario.origin)
@@ -410,7 +433,7 @@ class PayloadSimulator:
 
     def progress_line(self) -> str:
         heard = sum(c.heard for c in self.cameras)
-        airborne = sum(c.period >= 0 for c in self.cameras)
+        airborne = sum(c.airborne and c.period >= 0 for c in self.cameras)
         waiting = f"; waiting for {', '.join(self.unconnected)}" if self.unconnected else ""
         return (
             f"payload: {heard}/{len(self.cameras)} vehicles heard, {airborne} looking, world "
