@@ -10,6 +10,7 @@ simulated time meanwhile).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -99,7 +100,9 @@ def airframe(daemon: MissionDaemon) -> None:
 
 def arm(daemon: MissionDaemon) -> None:
     """Arm every vehicle once it is ready to (``readiness.arm_when_ready``: pre-arm checks, GPS
-    fix, home), refusals retried within the readiness window, with progress lines."""
+    fix, home), refusals retried within the readiness window, with progress lines. The line
+    that ends it says how long it took, and when on the vehicles' own clocks (s since boot)."""
+    started = time.monotonic()
     arm_when_ready(
         daemon.vehicles(),
         daemon.options.ready_timeout_s,
@@ -108,7 +111,11 @@ def arm(daemon: MissionDaemon) -> None:
         progress=daemon.say,
         arm_attempts=daemon.options.launch_command_attempts,
     )
-    daemon.say(f"armed {daemon.n} vehicles")
+    clocks = [v.clock_ms / 1000.0 for v in daemon.vehicles()]
+    daemon.say(
+        f"armed {daemon.n} vehicles after {time.monotonic() - started:.1f} s (vehicle clocks "
+        f"{min(clocks):.1f}..{max(clocks):.1f} s since boot)"
+    )
 
 
 def take_off(daemon: MissionDaemon) -> None:
