@@ -1,0 +1,79 @@
+"""The airframe read at launch (mavlink_bridge/airframe.py): parameters answered by the vehicle
+become its limits (ArduPlane's names, older names, PX4's), the fleet flies the most restrictive
+of them, and a scenario the airframe cannot fly is said with its fix. The read itself against
+real ArduPlane SITL is in tests/sitl/test_sitl_mission.py."""
+
+from __future__ import annotations
+
+import math
+
+from mavlink_bridge.airframe import (
+    airframe_from_params,
+    fleet_plane_model,
+    scenario_warnings,
+)
+from mavlink_bridge.protocol import mavlink
+from mavlink_bridge.vehicle_state import VehicleState
+from planner.scenario import load_scenario
+
+ARDUPLANE = {  # ArduPlane SITL's defaults (../shared/sitl/README.md)
+    "AIRSPEED_MIN": 10.0, "AIRSPEED_CRUISE": 22.0, "AIRSPEED_MAX": 30.0,
+    "ROLL_LIMIT_DEG": 65.0, "WP_LOITER_RAD": 80.0, "WP_RADIUS": 90.0,
+}  # fmt: skip
+
+
+def vehicle(sysid: int, params: dict[str, float], autopilot: int | None = None) -> VehicleState:
+    v = VehicleState(sysid, link=None)  # type: ignore[arg-type]
+    v.params.update(params)
+    if autopilot is not None:
+        v.autopilot = autopilot
+    return v
+
+
+def test_arduplane_names_old_names_and_px4_names_are_read():
+    cfg = load_scenario("arduplane-3uav").config
+    new = airframe_from_params(vehicle(1, ARDUPLANE), cfg)
+    assert (new.min_airspeed_mps, new.cruise_mps, new.max_airspeed_mps) == (10, 22, 30)
+    assert (new.bank_limit_deg, new.wp_loiter_radius_m) == (65, 80) and not new.defaulted
+    turn_m = 22.0**2 / (9.80665 * math.tan(math.radians(65)))  # v^2 / (g tan(bank))
+    assert math.isclose(new.min_turn_radius_m(22.0), turn_m)
+    old = airframe_from_params(
+        vehicle(2, {"ARSPD_FBW_MIN": 12, "TRIM_ARSPD_CM": 2000, "ARSPD_FBW_MAX": 28,
+                    "LIM_ROLL_CD": 4500, "WP_LOITER_RAD": -60}), cfg,
+    )  # fmt: skip
+    assert (old.min_airspeed_mps, old.cruise_mps, old.max_airspeed_mps) == (12, 20, 28)
+    assert old.bank_limit_deg == 45 and old.wp_loiter_radius_m == 60  # < 0: counter-clockwise
+    assert old.defaulted == ("WP_RADIUS",)
+    px4 = airframe_from_params(
+        vehicle(3, {"FW_AIRSPD_MIN": 11, "FW_AIRSPD_TRIM": 16, "FW_AIRSPD_MAX": 25, "FW_R_LIM": 50,
+                    "NAV_LOITER_RAD": 70, "NAV_ACC_RAD": 30}, mavlink.MAV_AUTOPILOT_PX4), cfg,
+    )  # fmt: skip
+    assert (px4.cruise_mps, px4.bank_limit_deg, px4.wp_loiter_radius_m) == (16, 50, 70)
+    # nothing answered: the daemon's assumption, and it says which names were not reported
+    silent = airframe_from_params(vehicle(4, {}), cfg)
+    assert silent.cruise_mps == cfg.speed_mps and "AIRSPEED_MIN" in silent.describe()
+
+
+def test_the_fleet_flies_the_most_restrictive_airframe():
+    cfg = load_scenario("arduplane-3uav").config
+    a = airframe_from_params(vehicle(1, ARDUPLANE), cfg)
+    b = airframe_from_params(vehicle(2, {**ARDUPLANE, "ROLL_LIMIT_DEG": 45, "AIRSPEED_MAX": 27,
+                                         "WP_LOITER_RAD": 120}), cfg)  # fmt: skip
+    model = fleet_plane_model([a, b], cfg)
+    assert model.bank_limit_deg == 45 and model.wp_loiter_radius_m == 120
+    assert (model.min_speed_mps, model.max_speed_mps) == (22, 27)  # v .. min(1.5 v, slowest max)
+    # the loiter circle is WP_LOITER_RAD (wider than the tightest turn at 22 m/s and 45 deg)
+    assert math.isclose(float(model.loiter_radius_km(22.0)), 0.12)
+
+
+def test_a_scenario_the_airframe_cannot_fly_gets_a_warning_with_the_fix():
+    arduplane = load_scenario("arduplane-3uav").config
+    frame = airframe_from_params(vehicle(1, ARDUPLANE), arduplane)
+    assert scenario_warnings([frame], arduplane) == []
+    paper = load_scenario("paper-10uav").config  # 100 m/s, 1 km cells, 10 s steps
+    (line,) = scenario_warnings([frame], paper)
+    assert "vehicle 1 flies 10..30 m/s but the scenario's UAV speed is 100 m/s" in line
+    assert "speed_mps = 22" in line and "step_s = 45" in line
+    fast = arduplane.replace(step_s=40.0)  # a diagonal cell needs 35 m/s
+    (line,) = scenario_warnings([frame], fast)
+    assert "cannot fly a diagonal cell of 1 km in one 40 s step" in line and "step_s >= 48" in line

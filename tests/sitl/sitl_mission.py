@@ -1,0 +1,270 @@
+"""A whole mission against ArduPlane SITL, for tests and benchmarks/bench_sitl.py.
+
+``fly_sitl_mission`` starts N ArduPlane SITL instances (``sitl_harness.SitlSwarm``) at the
+scenario's start cells, the payload simulator (``swarmplan payload``) on each instance's SERIAL1
+and the daemon (``swarmplan daemon``) on each SERIAL0, waits (bounded) for the daemon's end, and
+returns what it printed (with the wall time of each line), its result.json and the payload
+simulator's summary. Every process it started is stopped on the way out, whatever happens.
+
+``measure`` turns a run into the numbers docs/sitl.md reports: time to ready (wall s from the
+daemon's start to ``armed N vehicles``; the arm phase's own wall time and the vehicles' clocks,
+s since boot, when they were armed), distance of each plane from its planned cell centre at
+the next decision, looks, engagements, violations, and the decision steps' drift on the
+vehicles' clock (read from the daemon's tlog: vehicle 1's ``time_boot_ms`` when each step's
+guided targets went out).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+import threading
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+os.environ.setdefault("MAVLINK20", "1")
+
+from loopback import env, stop  # noqa: E402
+from sitl_harness import SitlSwarm, homes_for_scenario  # noqa: E402
+
+from planner.scenario import Scenario, load_scenario  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+#: the daemon's line at the end of its arm phase
+ARMED = re.compile(
+    r"armed \d+ vehicles after (?P<wall>[\d.]+) s \(vehicle clocks (?P<first>[\d.]+)\.\."
+    r"(?P<last>[\d.]+) s since boot\)"
+)
+
+
+@dataclass
+class Printed:
+    """A process's output lines, each with the wall time (s since the start) it was read."""
+
+    lines: list[tuple[float, str]] = field(default_factory=list)
+
+    def first(self, text: str) -> float | None:
+        return next((t for t, line in self.lines if text in line), None)
+
+    def text(self) -> str:
+        return "\n".join(line for _, line in self.lines)
+
+
+@dataclass
+class SitlMissionRun:
+    returncode: int | None
+    result: dict | None
+    payload: dict | None
+    daemon: Printed
+    payload_printed: Printed
+    wall_s: float
+    out: Path
+    planes: int
+    speedup: float
+    step_s: float
+
+    def explain(self) -> str:
+        """What to show when a test fails: the daemon's last lines and the payload's."""
+        tail = "\n".join(line for _, line in self.daemon.lines[-40:])
+        side = "\n".join(line for _, line in self.payload_printed.lines[-5:])
+        return f"daemon exit {self.returncode}:\n{tail}\npayload:\n{side}"
+
+
+def _read_lines(proc: subprocess.Popen, sink: Printed, started: float) -> threading.Thread:
+    def read() -> None:
+        assert proc.stdout is not None
+        for raw in proc.stdout:
+            sink.lines.append((time.monotonic() - started, raw.rstrip("\n")))
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    return reader
+
+
+def _start(args: list[str]) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "swarmplan", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+        text=True,
+        env=env(PYTHONUNBUFFERED="1"),
+        cwd=REPO,
+    )
+
+
+def scenario_with_planes(name: str, planes: int, folder: Path) -> str:
+    """The built-in scenario ``name`` as it is for its own UAV count; for another count a copy in
+    ``folder`` with ``planes`` starts spread in a row along the south edge, heading north."""
+    scenario = load_scenario(name)
+    if planes == scenario.uav_count:
+        return name
+    text = (REPO / "planner" / "scenarios" / f"{name}.toml").read_text()
+    data = tomllib.loads(text)
+    nx = data["parameters"]["grid_nx"]
+    if planes > nx - 2:
+        raise ValueError(f"{name} has room for at most {nx - 2} planes in a row")
+    body = text.replace(f"count = {scenario.uav_count}", f"count = {planes}")
+    body = body.split("[[uavs.start]]")[0].rstrip() + "\n"
+    rest = text[text.index("[[targets]]") :]
+    starts = "".join(
+        f"\n[[uavs.start]]\nx_km = {int((k + 0.5) * nx / planes) + 0.5}\ny_km = 1.5\n"
+        f"heading_deg = 90\n"
+        for k in range(planes)
+    )
+    path = folder / f"{name}-{planes}.toml"
+    path.write_text(body + starts + "\n" + rest)
+    load_scenario(str(path))  # refuse a broken copy here, not in the daemon
+    return str(path)
+
+
+def fly_sitl_mission(
+    binary: Path,
+    workdir: Path,
+    *,
+    planes: int = 3,
+    speedup: float = 10.0,
+    scenario: str = "arduplane-3uav",
+    steps: int | None = None,
+    seed: int = 1,
+    timeout_s: float = 300.0,
+    params: dict[str, float] | None = None,
+    daemon_args: list[str] | None = None,
+    with_payload: bool = True,
+) -> SitlMissionRun:
+    """Fly one mission (module docstring). ``timeout_s`` bounds the daemon's whole run (wall)."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    spec = scenario_with_planes(scenario, planes, workdir)
+    loaded: Scenario = load_scenario(spec)
+    out = workdir / "out"
+    daemon_printed, payload_printed = Printed(), Printed()
+    procs: list[subprocess.Popen] = []
+    # the threat zones the daemon uploads are enforced (with no zone, ArduPlane refuses to arm
+    # with FENCE_ENABLE 1: "Fences enabled, but none selected")
+    sitl_params = {"FENCE_ENABLE": int(bool(loaded.threats)), **(params or {})}
+    started = time.monotonic()
+    returncode = None
+    with SitlSwarm(
+        binary, homes_for_scenario(loaded, seed), speedup=speedup, params=sitl_params,
+        workdir=workdir / "sitl",
+    ) as swarm:  # fmt: skip
+        try:
+            if with_payload:
+                payload = _start(
+                    ["payload", "--scenario", spec, "--seed", str(seed),
+                     *swarm.payload_args()]
+                )  # fmt: skip
+                procs.append(payload)
+                _read_lines(payload, payload_printed, started)
+            daemon = _start(
+                ["daemon", "--scenario", spec, "--seed", str(seed), "--time-scale", f"{speedup:g}",
+                 "--out", str(out), "--no-view", *(["--steps", str(steps)] if steps else []),
+                 *swarm.connect_args(), *(daemon_args or [])]
+            )  # fmt: skip
+            procs.append(daemon)
+            reader = _read_lines(daemon, daemon_printed, started)
+            try:
+                returncode = daemon.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                returncode = None
+            reader.join(5)
+        finally:
+            for proc in reversed(procs):
+                stop(proc, 10.0)
+    result_path = out / "result.json"
+    result = json.loads(result_path.read_text()) if result_path.is_file() else None
+    summary = None
+    for _, line in reversed(payload_printed.lines):
+        if line.startswith("{"):
+            summary = json.loads(line)
+            break
+    return SitlMissionRun(
+        returncode, result, summary, daemon_printed, payload_printed,
+        time.monotonic() - started, out, planes, speedup, loaded.config.step_s,
+    )  # fmt: skip
+
+
+def decision_instants_ms(tlog: Path, system_id: int = 1) -> list[int]:
+    """Vehicle ``system_id``'s clock (``time_boot_ms`` of its newest GLOBAL_POSITION_INT) when
+    each decision step's first DO_REPOSITION to it went out, from the daemon's tlog."""
+    from pymavlink import mavutil
+
+    log = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    clock, instants, last_wall = None, [], -1e9
+    while True:
+        msg = log.recv_match()
+        if msg is None:
+            break
+        kind = msg.get_type()
+        if kind == "GLOBAL_POSITION_INT" and msg.get_srcSystem() == system_id:
+            clock = msg.time_boot_ms
+        elif (
+            kind == "COMMAND_INT"
+            and msg.command == mavutil.mavlink.MAV_CMD_DO_REPOSITION
+            and msg.target_system == system_id
+            and clock is not None
+        ):
+            wall = getattr(msg, "_timestamp", 0.0)
+            if wall - last_wall > 0.5:  # resends of one step's command come within 0.5 s
+                instants.append(clock)
+            last_wall = wall
+    return instants
+
+
+def measure(run: SitlMissionRun) -> dict:
+    """The numbers of a run (module docstring); None where the run did not produce them."""
+    r = run.result or {}
+    numbers: dict = {
+        "planes": run.planes,
+        "speedup": run.speedup,
+        "exit": run.returncode,
+        "wall_s": round(run.wall_s, 1),
+        "time_to_ready_wall_s": run.daemon.first(f"armed {run.planes} vehicles"),
+        "steps": r.get("steps"),
+        "coverage": r.get("coverage"),
+        "engaged": r.get("engaged_count"),
+        "violations": r.get("violations"),
+        "min_separation_km": r.get("min_separation_km"),
+        "late_steps": r.get("late_steps"),
+        "looks_missed": r.get("looks_missed"),
+        "refused_commands": r.get("refused_commands"),
+        "uavs_without_camera": r.get("uavs_without_camera"),
+        "looks": (run.payload or {}).get("looks_sent"),
+        "targets_engaged_truth": (run.payload or {}).get("targets_engaged"),
+    }
+    armed = next((line for _, line in run.daemon.lines if ARMED.search(line)), None)
+    if armed is not None:
+        found = ARMED.search(armed)
+        assert found is not None
+        numbers["arm_phase_wall_s"] = float(found["wall"])
+        numbers["armed_at_vehicle_s"] = [float(found["first"]), float(found["last"])]
+    if ready := numbers["time_to_ready_wall_s"]:
+        numbers["time_to_ready_wall_s"] = round(ready, 1)
+    misses = []
+    for uav in r.get("uavs", []):
+        track, planned = uav.get("track_km") or [], uav.get("planned_km") or []
+        for k in range(min(len(planned), len(track) - 1)):
+            (x, y), (px, py) = track[k + 1], planned[k]
+            misses.append(math.hypot(x - px, y - py))
+    if misses:
+        misses.sort()
+        numbers["miss_km_mean"] = round(sum(misses) / len(misses), 3)
+        numbers["miss_km_p95"] = round(misses[int(0.95 * (len(misses) - 1))], 3)
+        numbers["miss_km_max"] = round(misses[-1], 3)
+    tlog = run.out / "mission.tlog"
+    if tlog.is_file() and r:
+        instants = decision_instants_ms(tlog)
+        gaps = [(b - a) / 1000.0 for a, b in zip(instants, instants[1:], strict=False)]
+        if gaps:
+            step_s = run.step_s
+            numbers["step_s_vehicle_mean"] = round(sum(gaps) / len(gaps), 2)
+            numbers["step_s_vehicle_min"] = round(min(gaps), 2)
+            numbers["step_s_vehicle_max"] = round(max(gaps), 2)
+            numbers["step_drift_s_max"] = round(max(abs(g - step_s) for g in gaps), 2)
+    return numbers
