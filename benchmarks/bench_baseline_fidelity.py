@@ -10,6 +10,8 @@ Variants (docs/experiments.md, "A fair comparison"):
 - ``pso-eq7``: search fitness = eq 7's J_E only (the unsearched cells of the path's footprints),
   no TPM term, no beyond-horizon value;
 - ``pso-eq7-h1``: the same over the next position only (eq 7's U_i*, one move);
+- ``pso-no-tpm``: the shipped PSO without its TPM term (beyond-horizon value kept);
+- ``pso-no-terminal``: the shipped PSO without its beyond-horizon value (TPM term kept);
 - ``acoapf``: ACOAPF as shipped (the APF without the TPM forecast; shared confirmation);
 - ``acoapf-static``: the earlier ACOAPF, whose confirmation beliefs had no forecast either;
 - ``hapf-aco``: the reference.
@@ -24,7 +26,10 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-VARIANTS = ("hapf-aco", "pso", "pso-eq7", "pso-eq7-h1", "acoapf", "acoapf-static")
+VARIANTS = (
+    "hapf-aco", "pso", "pso-eq7", "pso-eq7-h1", "pso-no-tpm", "pso-no-terminal", "acoapf",
+    "acoapf-static",
+)  # fmt: skip
 
 
 def planner_factory(variant: str):
@@ -52,6 +57,8 @@ def planner_factory(variant: str):
         "pso": PsoSettings(),
         "pso-eq7": PsoSettings(tpm_weight=0.0, terminal_weight=0.0),
         "pso-eq7-h1": PsoSettings(tpm_weight=0.0, terminal_weight=0.0, horizon_steps=1),
+        "pso-no-tpm": PsoSettings(tpm_weight=0.0),
+        "pso-no-terminal": PsoSettings(terminal_weight=0.0),
     }[variant]
     return lambda scenario, starts, seed: PsoPlanner(scenario, starts, seed, settings)
 
@@ -76,6 +83,11 @@ def one_run(job: tuple[str, str, int]) -> tuple[str, str, int, dict]:
             "misses": result["engage_misses"],
             "returned": result["returned_count"],
             "violations": sum(result["violations"].values()),
+            **{
+                f"{stage}:{kind}": counts[stage]
+                for kind, counts in result["target_account"]["by_kind"].items()
+                for stage in ("seen", "engaged")
+            },
         },
     )
 
@@ -112,6 +124,18 @@ def main() -> None:
               f" | {mean['engaged']:.1f} ± {engaged_std:.1f} | {conversion:.2f} | "
               f"{mean['misses']:.1f} | {100 * mean['coverage']:.1f} | {mean['returned']:.1f} | "
               f"{int(sum(r['violations'] for r in runs))} |")  # fmt: skip
+    kinds = ("known_position", "known_speed", "known_velocity", "unknown_position")
+    print("\nEngaged / seen per run, by target kind:\n")
+    print(f"| scenario | variant | {' | '.join(kinds)} |")
+    print("|---|---|" + "---|" * len(kinds))
+    for (name, variant), runs in sorted(rows.items(), key=lambda kv: (kv[0][0], VARIANTS.index(
+            kv[0][1]))):  # fmt: skip
+        cells = [
+            f"{np.mean([r.get(f'engaged:{k}', 0) for r in runs]):.1f} / "
+            f"{np.mean([r.get(f'seen:{k}', 0) for r in runs]):.1f}"
+            for k in kinds
+        ]
+        print(f"| {name} | {variant} | {' | '.join(cells)} |")
     print(f"\n{len(jobs)} runs in {time.perf_counter() - started:.0f} s on {args.jobs} processes")
 
 
