@@ -95,7 +95,9 @@ class AcoApfPlanner(HapfAcoPlanner):
     def __init__(self, scenario: Scenario, starts: Sequence[UavStart], seed: int) -> None:
         #: The airframe's real range (fuel), which the planner itself does not consider.
         self.fuel_range_km = scenario.config.max_range_km
-        super().__init__(scenario.with_config(max_range_km=math.inf), starts, seed)
+        super().__init__(
+            scenario.with_config(max_range_km=math.inf, home_by_end=False), starts, seed
+        )
         self.tpm = ApfBeliefs(
             self.tpm, StaticTargetProbabilityMaps(scenario.targets, self.cfg, self.n)
         )

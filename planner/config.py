@@ -50,6 +50,8 @@ class PlannerConfig:
     pursue_threshold: float = (
         0.1  # existence probability worth flying back for a closer look (open)
     )
+    pursue_keep_threshold: float = 0.02  # ... below which a pursued suspect is ruled out (open)
+    pursue_max_steps: int = 16  # steps a suspect below pursue_threshold is kept at most (open)
     pursue_range_km: float = 6.0  # farthest cell a UAV flies to for a look or an engagement (open)
     engage_radius_km: float = 1.0  # attack (engagement) radius
 
@@ -105,6 +107,10 @@ class PlannerConfig:
     max_range_km: float = math.inf  # L_max
     return_reserve_km: float = 4.0  # kept back for turns on the way home (open)
     return_margin_km: float = 6.0  # slack below which the return term decides (open)
+    # --- home by mission end (section 4.3: UAVs back at their start at the last step) ---
+    home_by_end: bool = False  # plan C_r so every UAV is home at the scenario's last step
+    home_reserve_steps: int = 3  # steps kept back for the turns on the way home (open)
+    home_margin_steps: int = 2  # time slack below which the return term decides (open)
 
     # --- seeds for the parts of the run that are random ---
     seed: int = 0
@@ -114,6 +120,8 @@ class PlannerConfig:
             value = getattr(self, f.name)
             if f.type in ("int",) and not isinstance(value, int | bool):
                 raise ConfigError(f"parameter {f.name!r} must be an integer, got {value!r}")
+            if f.type in ("bool",) and not isinstance(value, bool):
+                raise ConfigError(f"parameter {f.name!r} must be true or false, got {value!r}")
             if f.type in ("float",) and not isinstance(value, int | float):
                 raise ConfigError(f"parameter {f.name!r} must be a number, got {value!r}")
             if isinstance(value, float) and math.isnan(value):
@@ -144,8 +152,8 @@ class PlannerConfig:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"parameter {name!r} must be > 0, got {getattr(self, name)!r}")
         probabilities = (
-            "p_detect p_false tpm_decay_tau confirm_threshold pursue_threshold q0"
-            " env_perception_lambda"
+            "p_detect p_false tpm_decay_tau confirm_threshold pursue_threshold"
+            " pursue_keep_threshold q0 env_perception_lambda"
         )
         for name in probabilities.split():
             if not 0.0 <= getattr(self, name) <= 1.0:

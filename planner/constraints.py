@@ -79,6 +79,8 @@ class SafetyModel:
         self.viable = self._viability_kernel()
         self._home_rows: dict[int, int] = {}  # home cell -> row of _fields
         self._fields = np.zeros((0, grid.nx, grid.ny))
+        self._hop_rows: dict[int, int] = {}  # home cell -> row of _hop_fields
+        self._hop_fields = np.zeros((0, grid.nx, grid.ny))
 
     def _shifted(self, viable_h: np.ndarray, h: int) -> np.ndarray:
         """value[x, y] = viable_h[(x, y) + step(h)] (False outside the area)."""
@@ -161,6 +163,22 @@ class SafetyModel:
         (M, ...)), in one gather."""
         rows = self._field_rows(np.asarray(homes_flat).tolist())
         return self._fields[np.asarray(rows).reshape((-1,) + (1,) * (np.ndim(x) - 1)), x, y]
+
+    def hops_home_at(self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Fewest safe moves (decision steps, any heading) from cell ``(x[i], y[i])`` to
+        ``homes_flat[i]``, like ``distances_home_at`` but counting moves instead of km (a
+        diagonal move is one step): the time a UAV needs to be home, before turns. Computed once
+        per home and model (breadth-first, Dijkstra on unit weights)."""
+        homes = np.asarray(homes_flat).tolist()
+        missing = [h for h in dict.fromkeys(homes) if h not in self._hop_rows]
+        if missing:
+            fresh = dijkstra(self._reversed_graph, indices=missing, unweighted=True)
+            fresh = fresh.reshape(-1, *self.grid.shape)
+            self._hop_fields = np.concatenate([self._hop_fields, fresh])
+            for h in missing:
+                self._hop_rows[h] = len(self._hop_rows)
+        rows = [self._hop_rows[h] for h in homes]
+        return self._hop_fields[np.asarray(rows).reshape((-1,) + (1,) * (np.ndim(x) - 1)), x, y]
 
     def _field_rows(self, homes: list[int]) -> list[int]:
         missing = [h for h in dict.fromkeys(homes) if h not in self._home_rows]

@@ -31,6 +31,7 @@ class MoveOptions:
     step_km: np.ndarray  # (N, C) leg length
     home_km: np.ndarray  # (N, C) D_left(k+1): shortest safe path home from the candidate
     slack_km: np.ndarray  # (N, C) range slack after the move (inf when L_max is)
+    time_slack: np.ndarray  # (N, C) decision steps to spare to be home by the last step (or inf)
     feasible: np.ndarray  # (N, C) bool: allowed and in range (safety only if range cannot be kept)
     freedom: np.ndarray  # (N, C) int: allowed moves after this one (``SafetyModel.freedom``)
 
@@ -44,6 +45,7 @@ def feasible_moves(
     safety_model: Callable[[np.ndarray], SafetyModel],
     cfg: PlannerConfig,
     grid: Grid,
+    steps_left: int | None = None,
 ) -> MoveOptions:
     """Eq 5's C_m, C_t and C_r over the candidate set Omega of eqs 35-37, for N UAVs.
 
@@ -57,6 +59,7 @@ def feasible_moves(
     allowed = np.zeros(cand_head.shape, dtype=bool)
     home_km = np.zeros(cand_head.shape)
     freedom = np.zeros(cand_head.shape, dtype=np.int64)
+    hops = np.zeros(cand_head.shape)
     cx = np.minimum(np.maximum(cand[..., 0], 0), grid.nx - 1)  # clipped into the area
     cy = np.minimum(np.maximum(cand[..., 1], 0), grid.ny - 1)
     for known, members in threat_groups(known_threats):
@@ -66,6 +69,8 @@ def feasible_moves(
         freedom[members] = model.freedom[cand_head[members], cx[members], cy[members]]
         homes = np.asarray(home_flat)[members]  # fields computed once per (model, home)
         home_km[members] = model.distances_home_at(homes, cx[members], cy[members])
+        if steps_left is not None:
+            hops[members] = model.hops_home_at(homes, cx[members], cy[members])
     home_km = np.where(grid.inside(cand), home_km, np.inf)
     if np.isfinite(cfg.max_range_km):
         slack = cfg.max_range_km - (
@@ -74,10 +79,18 @@ def feasible_moves(
     else:
         slack = np.full(home_km.shape, np.inf)
     slack = np.where(np.isfinite(home_km), slack, -np.inf)
-    feasible = allowed & (slack >= 0)
+    if steps_left is None:
+        time_slack = np.full(home_km.shape, np.inf)
+    else:
+        time_slack = np.where(
+            np.isfinite(home_km), steps_left - cfg.home_reserve_steps - hops, -np.inf
+        )
+    feasible = allowed & (slack >= 0) & (time_slack >= 0)
     # If range cannot be kept (only when the start is boxed in), keep safety only.
     feasible = np.where(feasible.any(axis=1, keepdims=True), feasible, allowed)
-    return MoveOptions(cand, cand_head, moves, step_km, home_km, slack, feasible, freedom)
+    return MoveOptions(
+        cand, cand_head, moves, step_km, home_km, slack, time_slack, feasible, freedom
+    )
 
 
 def threat_groups(known_threats: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:

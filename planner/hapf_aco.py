@@ -113,6 +113,7 @@ class HapfAcoPlanner:
         self.track_confirmed = np.zeros(
             n, dtype=bool
         )  # ... and whether a target is confirmed there
+        self.track_age = np.zeros(n, dtype=np.int64)  # steps on the current track so far
         self.target_ids = np.array([t.id for t in scenario.targets], dtype=np.int64)
         self.known_engaged = np.zeros((n, len(self.target_ids)), dtype=bool)
         self.engaged_applied = self.known_engaged.copy()  # removed from that UAV's TPM already
@@ -131,6 +132,7 @@ class HapfAcoPlanner:
             self.footprint, cfg.eta_lookahead_steps, cfg.eta_lookahead_discount
         )
         self.k = 0
+        self.mission_steps = scenario.steps  # the last step, for ``home_by_end``
         self._safety: dict[bytes, SafetyModel] = {}  # by the known-threat row's bytes
         #: Read-only observers, called as ``observe(planner, decision)`` after each decision and
         #: before the forecast (``planner.pursuit_log.PursuitLog``); they must not change state.
@@ -316,6 +318,7 @@ class HapfAcoPlanner:
             positive = [by_source[j] for j in sources.tolist()]
             rows.append(np.repeat(receivers, [len(c) for c in positive]))
             cells.append(np.concatenate(positive))
+        previous = self.track.copy()
         self.track[:] = -1
         if not rows:
             return
@@ -328,10 +331,19 @@ class HapfAcoPlanner:
         rows_all = keys // self.grid.size
         cells_all = np.column_stack(np.unravel_index(keys % self.grid.size, self.grid.shape))
         p = self.engage_probability(rows_all, cells_all)
-        worth = p >= cfg.pursue_threshold
+        # a suspect already pursued is kept (hysteresis) while its peak stays above
+        # ``pursue_keep_threshold``, for at most ``pursue_max_steps`` steps: one look that
+        # misses a moving target does not end its pursuit; looks that find nothing rule it out
+        on_track = (previous[rows_all, 0] >= 0) & (
+            np.abs(cells_all - previous[rows_all]).max(axis=1) <= 2
+        )
+        kept = on_track & (self.track_age[rows_all] < cfg.pursue_max_steps)
+        worth = (p >= cfg.pursue_threshold) | (kept & (p >= cfg.pursue_keep_threshold))
         if not worth.any():
+            self.track_age[:] = 0
             return
         rows_all, cells_all, p = rows_all[worth], cells_all[worth], p[worth]
+        on_track = on_track[worth]
         value = self.tpm.values_at(rows_all, cells_all)
         confirmed = p >= cfg.confirm_threshold
         # confirmed first (higher value first), then the likeliest value among the suspects
@@ -342,8 +354,12 @@ class HapfAcoPlanner:
         sorted_rows = rows_all[order]
         first = np.concatenate(([True], sorted_rows[1:] != sorted_rows[:-1]))
         chosen = order[first]
-        self.track[rows_all[chosen]] = cells_all[chosen]
-        self.track_confirmed[rows_all[chosen]] = confirmed[chosen]
+        who = rows_all[chosen]
+        self.track[who] = cells_all[chosen]
+        self.track_confirmed[who] = confirmed[chosen]
+        age = np.zeros(self.n, dtype=np.int64)
+        age[who] = np.where(on_track[chosen], self.track_age[who] + 1, 0)
+        self.track_age = age
         self._leave_to_nearer(hears)
 
     def _leave_to_nearer(self, hears: np.ndarray) -> None:
@@ -429,19 +445,25 @@ class HapfAcoPlanner:
 
     def _move_options(self) -> MoveOptions:
         """The candidate moves and the hard constraints on them (C_m, C_t, C_r)."""
+        steps_left = self.mission_steps - self.k - 1 if self.cfg.home_by_end else None
         return feasible_moves(
             self.cells, self.headings, self.distance_km, self.homes_key, self.known_threats,
-            self.safety_model, self.cfg, self.grid,
+            self.safety_model, self.cfg, self.grid, steps_left,
         )  # fmt: skip
 
     def _update_return(self, opts: MoveOptions, flying: np.ndarray) -> None:
         """C_r: the return term takes over once the range slack is nearly spent (eqs 35/37,
-        omega_2 = 1); a returning UAV back next to its start is done."""
+        omega_2 = 1), or, when the scenario asks for the UAVs home by its last step
+        (``home_by_end``), once the steps to spare are; a returning UAV back next to its start
+        is done."""
         cfg = self.cfg
         bounded = np.isfinite(cfg.max_range_km)
         past_half = self.distance_km + opts.step_km.min(axis=1) > cfg.max_range_km / 2
         best_slack = np.where(opts.feasible, opts.slack_km, -np.inf).max(axis=1)
         self.returning |= bounded & past_half & (best_slack < cfg.return_margin_km) & flying
+        if cfg.home_by_end:
+            best_time = np.where(opts.feasible, opts.time_slack, -np.inf).max(axis=1)
+            self.returning |= (best_time < cfg.home_margin_steps) & flying
         near_home = np.abs(self.cells - self.home).max(axis=1) <= 1
         self.done |= self.returning & near_home & flying
 
@@ -478,7 +500,9 @@ class HapfAcoPlanner:
 
     def _engage_requests(self, engaging: np.ndarray) -> np.ndarray:
         """Engage once a target lies within the engage radius with probability at least
-        ``confirm_threshold`` (``engage_probability`` at the UAV's own cell)."""
+        ``confirm_threshold`` (``engage_probability`` at the UAV's own cell), whether or not the
+        UAV was going for it: a UAV that finds itself on top of a confirmed target while
+        searching or returning engages it on the way."""
         engage = engaging.copy()
         if engage.any():
             who = np.flatnonzero(engage)
@@ -579,7 +603,7 @@ class HapfAcoPlanner:
         next_headings = np.where(flying, cand_head[rows, pick], self.headings)
         modes[~flying] = MODES.index("hold")
 
-        engage = self._engage_requests(engaging)
+        engage = self._engage_requests(flying)
         return StepDecision(next_cells, next_headings, engage, self.done.copy(), modes)
 
 

@@ -4,6 +4,7 @@ sockets. It is the fast path for experiments; the MAVLink end-to-end run flies t
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -60,6 +61,7 @@ def run_offline(
     started = time.perf_counter()
     cfg = scenario.config
     steps = scenario.steps if steps is None else steps
+    scenario = dataclasses.replace(scenario, steps=steps)  # the planner's last step is this run's
     grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
     starts = scenario.starts_for_seed(seed)
     world = World(scenario, seed)
