@@ -50,7 +50,7 @@ class PlannerConfig:
     pursue_threshold: float = (
         0.1  # existence probability worth flying back for a closer look (open)
     )
-    pursue_keep_threshold: float = 0.02  # ... below which a pursued suspect is ruled out (open)
+    pursue_keep_threshold: float = 0.01  # ... below which a pursued suspect is ruled out (open)
     pursue_max_steps: int = 16  # steps a suspect below pursue_threshold is kept at most (open)
     pursue_range_km: float = 6.0  # farthest cell a UAV flies to for a look or an engagement (open)
     engage_radius_km: float = 1.0  # attack (engagement) radius
@@ -102,6 +102,12 @@ class PlannerConfig:
     )
     eta_lookahead_weight: float = 1.0  # weight of that look-ahead unsearched share in eta (open)
     eta_lookahead_discount: float = 0.85  # weight of each further step ahead (open)
+    # far attraction: eq 23's field smoothed over far_length_km, read far_lookahead_steps ahead
+    far_weight: float = 0.0  # weight in eta of the pull toward distant TPM mass (open)
+    far_length_km: float = 15.0  # decay length of that pull (open)
+    far_lookahead_steps: int = 8  # where along each candidate's heading it is read (open)
+    far_block_cells: int = 10  # block side of the TPM mass it sums (open)
+    far_refresh_steps: int = 5  # how often the block masses are recomputed (open)
 
     # --- range constraint C_r (eqs 35, 37) ---
     max_range_km: float = math.inf  # L_max
@@ -146,6 +152,9 @@ class PlannerConfig:
             "tau_max",
             "global_update_period_steps",
             "escape_steps",
+            "far_length_km",
+            "far_block_cells",
+            "far_refresh_steps",
             "max_range_km",
         ]
         for name in positive:

@@ -80,12 +80,12 @@ class SafetyModel:
         self._home_rows: dict[int, int] = {}  # home cell -> row of _fields
         self._fields = np.zeros((0, grid.nx, grid.ny))
         self._hop_rows: dict[int, int] = {}  # home cell -> row of _hop_fields
-        self._hop_fields = np.zeros((0, grid.nx, grid.ny))
+        self._hop_fields = np.zeros((0, 8, grid.nx, grid.ny))
 
-    def _shifted(self, viable_h: np.ndarray, h: int) -> np.ndarray:
-        """value[x, y] = viable_h[(x, y) + step(h)] (False outside the area)."""
+    def _shifted(self, viable_h: np.ndarray, h: int, outside: float = False) -> np.ndarray:
+        """value[x, y] = viable_h[(x, y) + step(h)] (``outside`` beyond the area's edge)."""
         dx, dy = HEADING_STEPS[h]
-        out = np.zeros_like(viable_h)
+        out = np.full_like(viable_h, outside)
         nx, ny = viable_h.shape
         xs = slice(max(0, -dx), nx - max(0, dx))
         ys = slice(max(0, -dy), ny - max(0, dy))
@@ -164,21 +164,41 @@ class SafetyModel:
         rows = self._field_rows(np.asarray(homes_flat).tolist())
         return self._fields[np.asarray(rows).reshape((-1,) + (1,) * (np.ndim(x) - 1)), x, y]
 
-    def hops_home_at(self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Fewest safe moves (decision steps, any heading) from cell ``(x[i], y[i])`` to
-        ``homes_flat[i]``, like ``distances_home_at`` but counting moves instead of km (a
-        diagonal move is one step): the time a UAV needs to be home, before turns. Computed once
-        per home and model (breadth-first, Dijkstra on unit weights)."""
+    def hops_home_at(
+        self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray, headings: np.ndarray
+    ) -> np.ndarray:
+        """Decision steps a UAV at cell ``(x[i], y[i])`` flying heading ``headings[i]`` needs to
+        reach ``homes_flat[i]``: the fewest safe moves (like ``distances_home_at`` but counting
+        moves, a diagonal one step) plus the turns beyond the first that it takes to point along
+        the first move of such a path (45 degrees per step: a UAV heading away turns for up to
+        three more steps). Fields computed once per home and model (breadth-first search)."""
         homes = np.asarray(homes_flat).tolist()
         missing = [h for h in dict.fromkeys(homes) if h not in self._hop_rows]
         if missing:
-            fresh = dijkstra(self._reversed_graph, indices=missing, unweighted=True)
-            fresh = fresh.reshape(-1, *self.grid.shape)
-            self._hop_fields = np.concatenate([self._hop_fields, fresh])
+            hops = dijkstra(self._reversed_graph, indices=missing, unweighted=True)
+            hops = hops.reshape(-1, *self.grid.shape)
+            self._hop_fields = np.concatenate([self._hop_fields, hops[:, None] + self._turn_extra(hops)])
             for h in missing:
                 self._hop_rows[h] = len(self._hop_rows)
-        rows = [self._hop_rows[h] for h in homes]
-        return self._hop_fields[np.asarray(rows).reshape((-1,) + (1,) * (np.ndim(x) - 1)), x, y]
+        rows = np.asarray([self._hop_rows[h] for h in homes])
+        rows = rows.reshape((-1,) + (1,) * (np.ndim(x) - 1))
+        return self._hop_fields[rows, headings, x, y]
+
+    def _turn_extra(self, hops: np.ndarray) -> np.ndarray:
+        """(M, 8, nx, ny): for hop fields (M, nx, ny), the steps of turning beyond the first that
+        a UAV with heading h needs before it can take the best first move home (0 at home)."""
+        best = np.full(hops.shape, np.inf)
+        direction = np.zeros(hops.shape, dtype=np.int64)
+        for h in range(8):
+            after = np.stack([self._shifted(f, h, np.inf) for f in hops])
+            after = np.where(self.edge_safe[h][None], after, np.inf)
+            better = after < best
+            best = np.where(better, after, best)
+            direction = np.where(better, h, direction)
+        diff = np.abs(np.arange(8)[None, :, None, None] - direction[:, None])
+        turns = np.minimum(diff, 8 - diff)
+        extra = np.maximum(turns - 1, 0).astype(float)
+        return np.where((hops > 0)[:, None], extra, 0.0)
 
     def _field_rows(self, homes: list[int]) -> list[int]:
         missing = [h for h in dict.fromkeys(homes) if h not in self._home_rows]

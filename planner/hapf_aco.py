@@ -43,7 +43,14 @@ from planner.grid import (
     steps_to_reach,
 )
 from planner.pheromone import PheromoneMaps
-from planner.potential_field import attraction, morse_repulsion, threat_repulsion
+from planner.potential_field import (
+    attraction,
+    block_masses,
+    far_potential,
+    far_weights,
+    morse_repulsion,
+    threat_repulsion,
+)
 from planner.scenario import Scenario, UavStart
 from planner.sensor_model import SensorReport
 from planner.target_probability_map import TargetProbabilityMaps
@@ -131,6 +138,10 @@ class HapfAcoPlanner:
         self.corridor, self.corridor_weights = corridor_offsets(
             self.footprint, cfg.eta_lookahead_steps, cfg.eta_lookahead_discount
         )
+        self.far_kernel = far_weights(
+            cfg.grid_nx, cfg.grid_ny, cfg.cell_km, cfg.far_block_cells, cfg.far_length_km
+        )
+        self.far_masses = np.zeros((n, self.far_kernel.shape[1]))
         self.k = 0
         self.mission_steps = scenario.steps  # the last step, for ``home_by_end``
         self._safety: dict[bytes, SafetyModel] = {}  # by the known-threat row's bytes
@@ -363,12 +374,22 @@ class HapfAcoPlanner:
         self._leave_to_nearer(hears)
 
     def _leave_to_nearer(self, hears: np.ndarray) -> None:
-        """One UAV per target: a UAV drops its track when a UAV it hears goes for the same or an
-        adjacent cell from nearer (ties to the lower index), instead of the swarm converging."""
+        """One UAV per target, the best placed: a UAV drops its track when a UAV it hears goes
+        for the same or an adjacent cell in fewer turn-limited moves (``steps_to_reach`` from
+        its heading: a UAV next to a target but flying away from it is worse placed than one a
+        few cells off pointing at it; ties to the lower index), instead of the swarm
+        converging."""
         tracking = self.track[:, 0] >= 0
         same = np.abs(self.track[:, None, :] - self.track[None, :, :]).max(axis=2) <= 1
         same &= tracking[:, None] & tracking[None, :] & hears
-        gap = np.hypot(*(self.track - self.cells).T)
+        if not same.any():
+            return
+        r = self.pursuit_reach
+        offset = self.track - self.cells
+        inside = (np.abs(offset) <= r).all(axis=1)
+        ox, oy = np.clip(offset + r, 0, 2 * r).T
+        steps = self.pursuit_steps[self.headings, ox, oy].astype(float)
+        gap = np.where(inside, steps, 1e6 + np.hypot(*offset.T))
         nearer = (gap[None, :] < gap[:, None]) | (
             (gap[None, :] == gap[:, None])
             & (np.arange(self.n)[None, :] < np.arange(self.n)[:, None])
@@ -442,6 +463,25 @@ class HapfAcoPlanner:
         # a suspect is circled (looked at from all sides, eq 35); a confirmed target is flown to
         steps = np.where(self.track_confirmed[:, None], steps, 0.0)
         return np.where(feasible, -steps - angle / (2 * np.pi), -np.inf)
+
+    def _far_share(
+        self, cand: np.ndarray, cand_head: np.ndarray, feasible: np.ndarray
+    ) -> np.ndarray:
+        """(N, C) in [0, 1]: how much more of the smoothed attraction field (``far_potential``)
+        each candidate's heading reaches ``far_lookahead_steps`` ahead than the worst allowed
+        candidate, over the spread between the best and the worst: the pull toward distant
+        probability mass (a prior's blob beyond the footprint)."""
+        cfg = self.cfg
+        if self.k % cfg.far_refresh_steps == 0:
+            self.far_masses = block_masses(
+                self.tpm.maps, self.tpm.scale, cfg.far_block_cells, ~self.coverage
+            )
+        ahead = cand + HEADING_STEPS[cand_head] * cfg.far_lookahead_steps
+        v = far_potential(self.far_kernel, self.far_masses, self.grid.clipped_flat(ahead))
+        low = np.where(feasible, v, np.inf).min(axis=1, keepdims=True)
+        high = np.where(feasible, v, -np.inf).max(axis=1, keepdims=True)
+        del low
+        return np.where(feasible & (high > 0), v / np.where(high > 0, high, 1.0), 0.0)
 
     def _move_options(self) -> MoveOptions:
         """The candidate moves and the hard constraints on them (C_m, C_t, C_r)."""
@@ -556,6 +596,8 @@ class HapfAcoPlanner:
             + cfg.eta_lookahead_weight * ahead_share
             + cfg.eta_tpm_weight * mass_share
         )
+        if cfg.far_weight > 0:
+            eta = eta + cfg.far_weight * self._far_share(cand, cand_head, feasible)
         tau = self.pheromone.at(np.arange(n)[:, None], cand)
         weights = transition_weights(tau, eta, feasible, cfg)
 

@@ -10,6 +10,8 @@ d^t_max -> threat radius + R (a threat is felt once detected, section 3.2.2); b,
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from planner.config import PlannerConfig
@@ -97,3 +99,45 @@ def morse_repulsion(
     push = magnitude[..., None] * x / np.maximum(dist, 1e-9)[..., None]
     np.add.at(force, owner, push)
     return force
+
+
+@lru_cache(maxsize=4)
+def far_weights(nx: int, ny: int, cell_km: float, block_cells: int, length_km: float) -> np.ndarray:
+    """``exp(-d / length_km)`` from every cell (flat index) to the centre of every block of
+    ``block_cells`` x ``block_cells`` cells, (nx * ny, B) float32: the kernel of the far
+    attraction (``far_potential``), computed once per grid."""
+    bx, by = -(-nx // block_cells), -(-ny // block_cells)
+    cx = (np.arange(bx) + 0.5) * block_cells - 0.5
+    cy = (np.arange(by) + 0.5) * block_cells - 0.5
+    gx = np.arange(nx)[:, None] - cx[None, :]  # (nx, bx)
+    gy = np.arange(ny)[:, None] - cy[None, :]  # (ny, by)
+    d = np.hypot(gx[:, None, :, None], gy[None, :, None, :]) * cell_km  # (nx, ny, bx, by)
+    weights = np.exp(-d / length_km).astype(np.float32).reshape(nx * ny, bx * by)
+    weights.setflags(write=False)
+    return weights
+
+
+def block_masses(
+    maps: np.ndarray, scale: np.ndarray, block_cells: int, keep: np.ndarray | None = None
+) -> np.ndarray:
+    """Expected number of targets in each block of ``block_cells`` x ``block_cells`` cells, per
+    UAV: ``maps`` (L, N, nx, ny) stored TPM layers, ``scale`` (L, N) their scales
+    (``TargetProbabilityMaps``), counting only the cells ``keep`` (N, nx, ny) bool marks;
+    returns (N, B)."""
+    layers, n, nx, ny = maps.shape
+    if keep is not None:
+        maps = maps * keep[None]
+    b = block_cells
+    bx, by = -(-nx // b), -(-ny // b)
+    if (bx * b, by * b) != (nx, ny):
+        maps = np.pad(maps, ((0, 0), (0, 0), (0, bx * b - nx), (0, by * b - ny)))
+    sums = maps.reshape(layers, n, bx, b, by, b).sum(axis=(3, 5), dtype=np.float64)
+    return np.einsum("lnxy,ln->nxy", sums, scale).reshape(n, bx * by)
+
+
+def far_potential(weights: np.ndarray, masses: np.ndarray, flat_cells: np.ndarray) -> np.ndarray:
+    """The attraction field of eq 23 smoothed over the far kernel: ``sum_b m_b exp(-d_b / L)``
+    at cells (flat indices (N, C)) for each UAV's block masses (N, B). Its differences between
+    points far from any TPM peak point toward distant probability mass, where the gradient of
+    eq 24 at the UAV's own cell is near zero."""
+    return np.einsum("ncb,nb->nc", weights[flat_cells], masses.astype(np.float32))

@@ -1,0 +1,153 @@
+"""The rules that turn sightings into engagements and bring the UAVs home (issue 13): a pursued
+suspect is kept through a missed look until it is confirmed or ruled out, and a scenario that
+asks for it (``home_by_end``) ends with every UAV back at its start, with no constraint broken."""
+
+import numpy as np
+import pytest
+
+from planner.hapf_aco import HapfAcoPlanner
+from planner.scenario import parse_scenario
+from planner.sensor_model import SensorReport
+from sim_gateway.offline_runner import run_offline
+
+ONE_UAV = """
+name = "suspect"
+steps = 40
+[uavs]
+count = 1
+[[uavs.start]]
+x_km = 49.5
+y_km = 50.5
+heading_deg = 0
+[[targets]]
+kind = "unknown_position"
+x_km = 20
+y_km = 80
+value = 1
+[[targets]]
+kind = "unknown_position"
+x_km = 80
+y_km = 80
+value = 1
+"""
+
+
+def look(planner: HapfAcoPlanner, cell: np.ndarray, hits: list[np.ndarray]) -> SensorReport:
+    """One look from ``cell``: b = 1 exactly at the cells in ``hits``, b = 0 elsewhere."""
+    footprint = cell + planner.footprint
+    footprint = footprint[planner.grid.inside(footprint)]
+    detected = np.zeros(len(footprint), dtype=bool)
+    for hit in hits:
+        detected |= (footprint == hit).all(axis=1)
+    return SensorReport(footprint, detected)
+
+
+def pursue_then_miss(**parameters) -> tuple[HapfAcoPlanner, list[bool]]:
+    """Detections at one cell until the UAV pursues it, then looks that find nothing there;
+    returns the planner and, per empty look, whether the UAV still pursued the cell."""
+    scenario = parse_scenario(ONE_UAV).with_config(**parameters)
+    planner = HapfAcoPlanner(scenario, scenario.starts_for_seed(0), seed=0)
+    suspect = np.array([50, 50])
+    # the UAV is held next to the suspect (circling it, as the pursuit does), so every look is
+    # a strong one (within d_in)
+    cells, headings = np.array([[49, 50]]), np.array([0])
+    for _ in range(6):  # detections until it is worth a closer look
+        planner.step(cells, headings, [look(planner, cells[0], [suspect])])
+        if planner.track[0, 0] >= 0:
+            break
+    assert planner.track[0, 0] >= 0, "a repeated detection was never pursued"
+    assert not planner.track_confirmed[0]
+    kept = []
+    for _ in range(8):  # the target is missed (or was a false alarm)
+        planner.step(cells, headings, [look(planner, cells[0], [])])
+        near = np.abs(planner.track[0] - suspect).max() <= 2
+        kept.append(bool(planner.track[0, 0] >= 0 and near))
+    return planner, kept
+
+
+def test_a_pursued_suspect_is_kept_through_a_missed_look_then_ruled_out():
+    _, kept = pursue_then_miss()
+    assert kept[0], "one look that missed the suspect ended its pursuit"
+    assert not kept[-1], "looks that keep finding nothing never ruled the suspect out"
+
+
+def test_without_the_keep_threshold_one_missed_look_ends_the_pursuit():
+    # the same situation with the hysteresis switched off: the check above would fail
+    _, kept = pursue_then_miss(pursue_keep_threshold=0.1, pursue_max_steps=1)
+    assert not kept[0]
+
+
+HOMING = """
+name = "homing"
+steps = 70
+[parameters]
+grid_nx = 30
+grid_ny = 30
+max_range_km = 95.0
+home_by_end = {home}
+[uavs]
+count = 3
+[[uavs.start]]
+x_km = 5.5
+y_km = 5.5
+heading_deg = 45
+[[uavs.start]]
+x_km = 24.5
+y_km = 6.5
+heading_deg = 90
+[[uavs.start]]
+x_km = 15.5
+y_km = 24.5
+heading_deg = 270
+[[threats]]
+x_km = 22
+y_km = 21
+radius_km = 2
+[[targets]]
+kind = "unknown_position"
+x_km = 10
+y_km = 20
+value = 1
+[[targets]]
+kind = "known_position"
+x_km = 22
+y_km = 12
+value = 2
+"""
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_uavs_are_home_at_the_last_step_when_the_scenario_asks(seed):
+    home = run_offline(parse_scenario(HOMING.format(home="true")), seed)
+    assert home["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
+    assert home["returned_count"] == 3, [u["track_km"][-1] for u in home["uavs"]]
+    # the rule is what brings them home: without it they end the mission out in the area
+    away = run_offline(parse_scenario(HOMING.format(home="false")), seed)
+    assert away["returned_count"] < 3
+    assert away["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
+
+
+def test_a_shorter_run_brings_them_home_at_its_own_last_step():
+    scenario = parse_scenario(HOMING.format(home="true"))
+    result = run_offline(scenario, 1, steps=40)
+    assert result["steps"] == 40
+    assert result["returned_count"] == 3
+
+
+def test_the_uav_fewer_turn_limited_moves_away_takes_the_target():
+    # A is 1 km from the detections but flying away from them; B is 4 km off, pointing at
+    # them: B gets there first under the 45 degree turn limit, so B pursues and A leaves it
+    scenario = parse_scenario(
+        ONE_UAV.replace("count = 1", "count = 2").replace(
+            "heading_deg = 0\n",
+            "heading_deg = 180\n[[uavs.start]]\nx_km = 46.5\ny_km = 50.5\nheading_deg = 0\n",
+        )
+    )
+    planner = HapfAcoPlanner(scenario, scenario.starts_for_seed(0), seed=0)
+    target = np.array([50, 50])
+    cells, headings = np.array([[49, 50], [46, 50]]), np.array([4, 0])
+    for _ in range(6):
+        planner.step(cells, headings, [look(planner, c, [target]) for c in cells])
+        if (planner.track[:, 0] >= 0).any():
+            break
+    assert planner.track[1, 0] >= 0 and planner.track[0, 0] < 0, planner.track
