@@ -735,6 +735,8 @@ class MissionDaemon:
                 cfg.min_separation_km + 2 * self.options.separation_margin_km,
             ),
         )
+        # the planner's last step is this mission's (home_by_end plans to be home by then)
+        planning = replace(planning, steps=self.steps)
         planner = planner_cls(planning, starts, self.options.seed)
         PursuitLog().attach(planner)  # the planner's half of the per-target account (read-only)
         recorder = recorder_cls(

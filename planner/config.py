@@ -116,7 +116,7 @@ class PlannerConfig:
     # --- home by mission end (section 4.3: UAVs back at their start at the last step) ---
     home_by_end: bool = False  # plan C_r so every UAV is home at the scenario's last step
     home_reserve_steps: int = 3  # steps kept back for the turns on the way home (open)
-    home_margin_steps: int = 2  # time slack below which the return term decides (open)
+    home_margin_steps: int = 0  # time slack below which the return term decides (open)
 
     # --- seeds for the parts of the run that are random ---
     seed: int = 0
