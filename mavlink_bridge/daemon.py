@@ -785,8 +785,8 @@ class MissionDaemon:
                 self.checkpoints.save(
                     step, self, state.checkpoint_view(), time.monotonic() - self.started
                 )
-            if plan.done.all():
-                break
+            if plan.done.all() and not self.scenario.config.home_by_end:
+                break  # (home_by_end: the mission ends at its last step, as offline)
         self.options = replace(self.options, leg_timing=stages.leg_timing)
 
     def holds(self, step: int, state: LoopState, active: np.ndarray) -> bool:
