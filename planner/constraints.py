@@ -177,7 +177,9 @@ class SafetyModel:
         if missing:
             hops = dijkstra(self._reversed_graph, indices=missing, unweighted=True)
             hops = hops.reshape(-1, *self.grid.shape)
-            self._hop_fields = np.concatenate([self._hop_fields, hops[:, None] + self._turn_extra(hops)])
+            self._hop_fields = np.concatenate(
+                [self._hop_fields, hops[:, None] + self._turn_extra(hops)]
+            )
             for h in missing:
                 self._hop_rows[h] = len(self._hop_rows)
         rows = np.asarray([self._hop_rows[h] for h in homes])

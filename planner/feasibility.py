@@ -70,9 +70,7 @@ def feasible_moves(
         homes = np.asarray(home_flat)[members]  # fields computed once per (model, home)
         home_km[members] = model.distances_home_at(homes, cx[members], cy[members])
         if steps_left is not None:
-            hops[members] = model.hops_home_at(
-                homes, cx[members], cy[members], cand_head[members]
-            )
+            hops[members] = model.hops_home_at(homes, cx[members], cy[members], cand_head[members])
     home_km = np.where(grid.inside(cand), home_km, np.inf)
     if np.isfinite(cfg.max_range_km):
         slack = cfg.max_range_km - (
