@@ -81,17 +81,20 @@ class SafetyModel:
         self._fields = np.zeros((0, grid.nx, grid.ny))
         self._hop_rows: dict[int, int] = {}  # home cell -> row of _hop_fields
         self._hop_fields = np.zeros((0, 8, grid.nx, grid.ny))
+        self._home_index: dict[bytes, np.ndarray] = {}  # homes array's bytes -> rows
+        self._hop_index: dict[bytes, np.ndarray] = {}  # homes array's bytes -> rows (per step)
 
     def _shifted(self, viable_h: np.ndarray, h: int, outside: float = False) -> np.ndarray:
-        """value[x, y] = viable_h[(x, y) + step(h)] (``outside`` beyond the area's edge)."""
+        """value[..., x, y] = viable_h[..., (x, y) + step(h)] (``outside`` beyond the area's
+        edge); leading axes are kept."""
         dx, dy = HEADING_STEPS[h]
         out = np.full_like(viable_h, outside)
-        nx, ny = viable_h.shape
+        nx, ny = viable_h.shape[-2:]
         xs = slice(max(0, -dx), nx - max(0, dx))
         ys = slice(max(0, -dy), ny - max(0, dy))
         xd = slice(max(0, dx), nx - max(0, -dx))
         yd = slice(max(0, dy), ny - max(0, -dy))
-        out[xs, ys] = viable_h[xd, yd]
+        out[..., xs, ys] = viable_h[..., xd, yd]
         return out
 
     def _viability_kernel(self) -> np.ndarray:
@@ -161,8 +164,11 @@ class SafetyModel:
     def distances_home_at(self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """``distance_home_km(homes_flat[i])[x[i], y[i]]`` for arrays of UAVs (homes (M,), cells
         (M, ...)), in one gather."""
-        rows = self._field_rows(np.asarray(homes_flat).tolist())
-        return self._fields[np.asarray(rows).reshape((-1,) + (1,) * (np.ndim(x) - 1)), x, y]
+        homes = np.asarray(homes_flat)
+        rows = self._home_index.get(homes.tobytes())
+        if rows is None:  # the same UAVs ask every step: their rows are kept
+            rows = self._home_index[homes.tobytes()] = np.asarray(self._field_rows(homes.tolist()))
+        return self._fields[rows.reshape((-1,) + (1,) * (np.ndim(x) - 1)), x, y]
 
     def hops_home_at(
         self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray, headings: np.ndarray
@@ -172,17 +178,21 @@ class SafetyModel:
         moves, a diagonal one step) plus the turns beyond the first that it takes to point along
         the first move of such a path (45 degrees per step: a UAV heading away turns for up to
         three more steps). Fields computed once per home and model (breadth-first search)."""
-        homes = np.asarray(homes_flat).tolist()
-        missing = [h for h in dict.fromkeys(homes) if h not in self._hop_rows]
-        if missing:
-            hops = dijkstra(self._reversed_graph, indices=missing, unweighted=True)
-            hops = hops.reshape(-1, *self.grid.shape)
-            self._hop_fields = np.concatenate(
-                [self._hop_fields, hops[:, None] + self._turn_extra(hops)]
-            )
-            for h in missing:
-                self._hop_rows[h] = len(self._hop_rows)
-        rows = np.asarray([self._hop_rows[h] for h in homes])
+        homes = np.asarray(homes_flat)
+        key = homes.tobytes()
+        rows = self._hop_index.get(key)
+        if rows is None:
+            missing = [h for h in dict.fromkeys(homes.tolist()) if h not in self._hop_rows]
+            if missing:
+                hops = dijkstra(self._reversed_graph, indices=missing, unweighted=True)
+                hops = hops.reshape(-1, *self.grid.shape)
+                self._hop_fields = np.concatenate(
+                    [self._hop_fields, hops[:, None] + self._turn_extra(hops)]
+                )
+                for h in missing:
+                    self._hop_rows[h] = len(self._hop_rows)
+            rows = np.asarray([self._hop_rows[h] for h in homes.tolist()])
+            self._hop_index[key] = rows
         rows = rows.reshape((-1,) + (1,) * (np.ndim(x) - 1))
         return self._hop_fields[rows, headings, x, y]
 
@@ -192,8 +202,7 @@ class SafetyModel:
         best = np.full(hops.shape, np.inf)
         direction = np.zeros(hops.shape, dtype=np.int64)
         for h in range(8):
-            after = np.stack([self._shifted(f, h, np.inf) for f in hops])
-            after = np.where(self.edge_safe[h][None], after, np.inf)
+            after = np.where(self.edge_safe[h][None], self._shifted(hops, h, np.inf), np.inf)
             better = after < best
             best = np.where(better, after, best)
             direction = np.where(better, h, direction)

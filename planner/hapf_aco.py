@@ -138,8 +138,13 @@ class HapfAcoPlanner:
         self.corridor, self.corridor_weights = corridor_offsets(
             self.footprint, cfg.eta_lookahead_steps, cfg.eta_lookahead_discount
         )
-        self.far_kernel = far_weights(
-            cfg.grid_nx, cfg.grid_ny, cfg.cell_km, cfg.far_block_cells, cfg.far_length_km
+        # the far attraction's block weights, only when it is on (``far_weight`` > 0)
+        self.far_kernel = (
+            far_weights(
+                cfg.grid_nx, cfg.grid_ny, cfg.cell_km, cfg.far_block_cells, cfg.far_length_km
+            )
+            if cfg.far_weight > 0
+            else np.zeros((0, 0))
         )
         self.far_masses = np.zeros((n, self.far_kernel.shape[1]))
         self.k = 0
@@ -467,10 +472,10 @@ class HapfAcoPlanner:
     def _far_share(
         self, cand: np.ndarray, cand_head: np.ndarray, feasible: np.ndarray
     ) -> np.ndarray:
-        """(N, C) in [0, 1]: how much more of the smoothed attraction field (``far_potential``)
-        each candidate's heading reaches ``far_lookahead_steps`` ahead than the worst allowed
-        candidate, over the spread between the best and the worst: the pull toward distant
-        probability mass (a prior's blob beyond the footprint)."""
+        """(N, C) in [0, 1]: the smoothed attraction field (``far_potential``) that each
+        candidate's heading reaches ``far_lookahead_steps`` ahead, relative to the best allowed
+        candidate: the pull toward distant probability mass (a prior's blob beyond the
+        footprint)."""
         cfg = self.cfg
         if self.k % cfg.far_refresh_steps == 0:
             self.far_masses = block_masses(
@@ -478,9 +483,7 @@ class HapfAcoPlanner:
             )
         ahead = cand + HEADING_STEPS[cand_head] * cfg.far_lookahead_steps
         v = far_potential(self.far_kernel, self.far_masses, self.grid.clipped_flat(ahead))
-        low = np.where(feasible, v, np.inf).min(axis=1, keepdims=True)
         high = np.where(feasible, v, -np.inf).max(axis=1, keepdims=True)
-        del low
         return np.where(feasible & (high > 0), v / np.where(high > 0, high, 1.0), 0.0)
 
     def _move_options(self) -> MoveOptions:
