@@ -32,6 +32,7 @@ from swarmplan.arguments import (  # noqa: E402
 
 if TYPE_CHECKING:
     from sim_gateway.simulator import Simulator
+    from sim_gateway.target_account import TargetAccount
 
 HELP = (
     "run N simulated fixed-wing autopilots (ArduPlane-like) over UDP MAVLink in front of the world"
@@ -195,16 +196,16 @@ def main(args: argparse.Namespace) -> int:
             sim.run(sim_duration_s=args.duration_s, on_progress=progress)
         print(json.dumps(sim.summary()), flush=True)
         if args.target_account is not None:
-            write_target_truth(sim, args.target_account)
+            write_target_truth(sim.target_account, args.target_account)
     return 0
 
 
-def write_target_truth(sim: Simulator, path: Path) -> None:
-    """The simulator's ground-truth target account as JSON at ``path`` (written whole, then
+def write_target_truth(account: TargetAccount, path: Path) -> None:
+    """A simulator's ground-truth target account as JSON at ``path`` (written whole, then
     renamed into place, so a reader never sees half a file)."""
     partial = path.with_name(path.name + ".partial")
     try:
-        partial.write_text(json.dumps(sim.target_account.truth()))
+        partial.write_text(json.dumps(account.truth()))
         partial.replace(path)
     except OSError as exc:
         raise UserError(

@@ -18,6 +18,7 @@ import signal
 import sys
 import threading
 import time
+from pathlib import Path
 
 os.environ.setdefault("MAVLINK20", "1")
 
@@ -79,6 +80,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--duration-s", type=positive_float, default=None, help="stop after this many wall s"
     )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    parser.add_argument(
+        "--target-account", type=Path, default=None, metavar="PATH",
+        help="on exit, write the ground-truth half of the per-target account as JSON; "
+        "swarmplan account joins it to the daemon's result.json (docs/experiments.md)",
+    )  # fmt: skip
 
 
 def main(args: argparse.Namespace) -> int:
@@ -115,6 +121,10 @@ def main(args: argparse.Namespace) -> int:
 
         payload.run(until=over, on_progress=progress)
         print(json.dumps(payload.summary()), flush=True)
+        if args.target_account is not None:
+            from sim_gateway.cli import write_target_truth
+
+            write_target_truth(payload.target_account, args.target_account)
     return 0
 
 

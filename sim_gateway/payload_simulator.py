@@ -58,12 +58,14 @@ from mavlink_bridge.vehicle_link import (  # noqa: E402
 )
 from planner.geodesy import geodetic_to_local_km  # noqa: E402
 from planner.scenario import Scenario  # noqa: E402
+from planner.sensor_model import SensorReport  # noqa: E402
 from sim_gateway.camera import (  # noqa: E402
     EngagementLog,
     engagement_sequence,
     engagement_text,
     look_messages,
 )
+from sim_gateway.target_account import TargetAccount  # noqa: E402
 from sim_gateway.world import World  # noqa: E402
 
 AUTOPILOT = 1
@@ -161,6 +163,8 @@ class PayloadSimulator:
         count = options.vehicles or scenario.uav_count
         self.cameras = [FollowedCamera(i) for i in range(count)]
         self.world = World(scenario, options.seed)
+        #: ground truth per target (never sent): the per-target account's truth half
+        self.target_account = TargetAccount(self.world)
         self.world_period: int | None = None
         self.world_steps = 0
         self.step_ms = round(self.config.step_s * 1000)
@@ -346,17 +350,28 @@ class PayloadSimulator:
     def _look_all(self) -> None:
         """One look for every airborne vehicle heard within the last ``FRESH_S``."""
         now = time.monotonic()
+        looked = []
         for camera in self.cameras:
             fresh = now - camera.heard_s <= FRESH_S
             if camera.airborne and fresh and 0 <= camera.period < self.world_period:
                 camera.period = self.world_period
-                self._look(camera)
+                looked.append((camera, *self._look(camera)))
+        if looked:  # the account's truth of this step: who looked from where, what they saw
+            stamps, counts = np.unique([c.time_boot_ms for c, _, _ in looked], return_counts=True)
+            self.target_account.observe(
+                self.world_steps,
+                np.array([xy for _, xy, _ in looked]),
+                None,
+                [report for _, _, report in looked],
+                int(stamps[np.argmax(counts)]),  # as the daemon's look_times_ms picks one
+            )
 
     def _xy_km(self, camera: FollowedCamera) -> np.ndarray:
         x, y = geodetic_to_local_km(camera.lat_e7 / 1e7, camera.lon_e7 / 1e7, self.scenario.origin)
         return np.array([float(x[0]), float(y[0])])
 
-    def _look(self, camera: FollowedCamera) -> None:
+    def _look(self, camera: FollowedCamera) -> tuple[np.ndarray, SensorReport]:
+        """One look of ``camera`` sent; its position (km) and the sensor's report."""
         xy = self._xy_km(camera)
         report = self.world.sense(xy[None, :])[0]
         look_cell = self.world.grid.cell_of(xy[None, :])[0]
@@ -375,6 +390,7 @@ class PayloadSimulator:
         camera.look_index += 1
         camera.looks += 1
         self.looks_sent += 1
+        return xy, report
 
     def _command(self, camera: FollowedCamera, msg: mavlink.MAVLink_message) -> None:
         mav = camera.encoder()
@@ -409,6 +425,7 @@ class PayloadSimulator:
         if not replay:
             if outcome.success:
                 camera.engaged.append(outcome.target_id)
+            self.target_account.record_engagement(self.world_steps, camera.index, outcome)
             mav.statustext_send(
                 mavlink.MAV_SEVERITY_INFO, engagement_text(sequence, outcome).encode()
             )

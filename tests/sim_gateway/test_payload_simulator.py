@@ -91,7 +91,8 @@ def test_looks_on_the_vehicle_clock_and_engagements_from_ground_truth(tmp_path):
     # opens only once the autopilot has booted)
     proc = start_swarmplan(
         ["payload", "--scenario", "arduplane-3uav", "--seed", "1",
-         "--connect", f"tcp:127.0.0.1:{autopilot.port}"],
+         "--connect", f"tcp:127.0.0.1:{autopilot.port}",
+         "--target-account", str(tmp_path / "truth.json")],
         tmp_path / "payload.log",
     )  # fmt: skip
     try:
@@ -155,6 +156,15 @@ def test_looks_on_the_vehicle_clock_and_engagements_from_ground_truth(tmp_path):
     summary = json.loads(lines[-1])
     assert code == 0
     assert summary["targets_engaged"] == [5] and summary["looks_per_vehicle"][1] == 3
+    # the truth half of the per-target account: a step per look instant, stamped with the
+    # vehicle's clock, and the engagement of target 5 by UAV 1 (system id 2)
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    assert truth["times_ms"][0] == 3 * STEP_MS + 102 and len(truth["steps"]) == 3
+    five = next(i for i, t in enumerate(truth["targets"]) if t["id"] == 5)
+    # in the footprint at both looks before its engagement; serviced, it is gone at the third
+    assert [five in inside for inside in truth["in_footprint"]] == [True, True, False]
+    assert truth["targets"][five]["engaged_uav"] == 1
+    assert truth["targets"][five]["engaged_step"] == truth["steps"][1]
 
 
 def test_bad_endpoint_is_one_line(tmp_path):
