@@ -9,10 +9,12 @@ One mission, in order:
    stages (``decision_step.py``): gather each UAV's inputs, plan, flight envelope, record,
    command batch, send (acknowledged, retried), account; step listeners get a read-only
    :class:`~mavlink_bridge.mission_result.StepRecord`;
-3. RTL every vehicle.
+3. the one exit path, also on an error, Ctrl-C or SIGTERM (:meth:`MissionDaemon.finish`): RTL to
+   every airborne vehicle still reachable (``return_home.py``), the result of what was flown.
 
-A vehicle silent for ``lost_after_s`` is lost (inactive to the planner; the others go on) and
-rejoins when heard again. What is recorded comes from what came back over MAVLink: positions from
+A vehicle whose link went away, silent for ``lost_after_s``, or (in the loop) disarmed or out of
+GUIDED is lost (inactive to the planner; the others go on) and rejoins when it is back
+(``vehicle_loss.py``). What is recorded comes from what came back over MAVLink: positions from
 the looks / telemetry, engagements from their acknowledged outcomes (``mission_result.py``).
 """
 
@@ -64,12 +66,14 @@ from mavlink_bridge.mission_result import (
     mavlink_extra,
 )
 from mavlink_bridge.pacing import STEP_DEADLINE_SHARE, DecisionInstant, PacingChoice, PacingContext
-from mavlink_bridge.protocol import PLANE_MODE_GUIDED, PLANE_MODE_RTL, mavlink, mode_name
+from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
+from mavlink_bridge.return_home import HomeWatch, rtl_line, rtl_recipients
 from mavlink_bridge.safety_envelope import SafetyEnvelope
 from mavlink_bridge.swarm_link import SwarmLink
 from mavlink_bridge.telemetry_plausibility import PlausibilityFilter, PlausibilityLimits
 from mavlink_bridge.tlog import TlogWriter
 from mavlink_bridge.track_audit import TrackAudit, position_listener
+from mavlink_bridge.vehicle_loss import LossWatch
 from mavlink_bridge.vehicle_state import VehicleState
 from planner.errors import UserError
 from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
@@ -168,10 +172,6 @@ def ended_by(exc: BaseException) -> str:
     return f"error: {type(exc).__name__}: {exc}"
 
 
-def _ids(ids: list[int]) -> str:
-    return ", ".join(str(i) for i in ids)
-
-
 def _import_planner() -> tuple[Any, Any]:
     from planner.hapf_aco import HapfAcoPlanner
     from planner.metrics import MissionRecorder
@@ -262,8 +262,14 @@ class MissionDaemon:
         self.state: LoopState | None = None  # the decision loop's, once it runs
         self.report: MissionReport | None = None  # set on every way out of fly()
         self.started = time.monotonic()
-        self.lost_reason: dict[int, str] = {}  # UAV -> why it is lost now
-        self._off_mission: dict[int, int] = {}  # UAV -> heartbeat count when first seen off
+        #: one vehicle's failure stays one vehicle's: lost and rejoined (vehicle_loss.py)
+        self.loss = LossWatch(
+            self.vehicles,
+            self.account,
+            options.lost_after_s,
+            in_mission=lambda: self.phase == "decisions",
+            say=self.say,
+        )
 
     # ------------------------------------------------------------------ the daemon's counters
     # (attributes of the account; a checkpoint reads and restores them by these names)
@@ -410,53 +416,13 @@ class MissionDaemon:
         if self.clock is not None and self.link is not None:
             self.clock.release(list(self.link.vehicles.values()))
 
-    def loss_reason(self, i: int, v: VehicleState, now: float) -> str | None:
-        """Why vehicle ``v`` (UAV ``i``) cannot take part in the mission now, or None: its link
-        went away, it has been silent for ``lost_after_s``, or (once the decision loop runs) it is
-        no longer armed or no longer in GUIDED (seen on two heartbeats in a row: one late
-        heartbeat from before the switch to GUIDED is not a mode change)."""
-        closed = v.link.endpoint.closed_reason
-        if closed is not None:
-            return f"link {v.link.endpoint.spec}: {closed}"
-        silent = v.silent_for(now)
-        if silent > self.options.lost_after_s:
-            return f"silent {silent:.1f} s"
-        if self.phase != "decisions":
-            return None
-        off = None
-        if not v.armed:
-            off = "disarmed"
-        elif v.custom_mode != PLANE_MODE_GUIDED:
-            off = f"left GUIDED (now {mode_name(v.custom_mode)})"
-        if off is None:
-            self._off_mission.pop(i, None)
-            return None
-        first = self._off_mission.setdefault(i, v.heartbeats)
-        return off if v.heartbeats - first >= 1 or v.lost else None
-
     def watch_links(self, step: int) -> None:
-        """Loss and return: a vehicle whose link went away, silent for ``lost_after_s``, disarmed
-        or out of GUIDED is lost (inactive to the planner, no commands; the others go on); once
-        it is heard again, armed and in GUIDED it rejoins. Lines the plausibility filter has to
-        say (a clock restarted, an address moved) are said here."""
+        """Loss and return (``vehicle_loss.LossWatch``), at every pump of the loop; and the
+        lines the plausibility filter has to say (a clock restarted, an address moved)."""
         notices = self.require_link().plausibility.notices
         while notices:
             self.say(f"warning: {notices.pop(0)}")
-        now = time.monotonic()
-        back_within_s = min(1.0, self.options.lost_after_s / 2)
-        for i, v in enumerate(self.vehicles()):
-            why = self.loss_reason(i, v, now)
-            if not v.lost and why is not None:
-                v.lost = True
-                self.lost_reason[i] = why
-                reason = "silent" if why.startswith("silent") else why
-                self.events.append(LinkEvent(step, i, "lost", now, reason))
-                self.say(f"vehicle {v.system_id} lost at step {step} ({why}); the others go on")
-            elif v.lost and why is None and v.silent_for(now) < back_within_s:
-                v.lost = False
-                self.lost_reason.pop(i, None)
-                self.events.append(LinkEvent(step, i, "rejoined", now))
-                self.say(f"vehicle {v.system_id} rejoined at step {step}")
+        self.loss.watch(step)
 
     # ------------------------------------------------------------------ the mission
 
@@ -513,46 +479,21 @@ class MissionDaemon:
         return max(self.options.time_scale, 1e-6)
 
     def watch_rtl(self) -> None:
-        """Listen on (in lockstep: grant time) until every vehicle still heard circles its home,
-        for the continuous account of the flight home (``rtl_watch_s``)."""
+        """Listen on (in lockstep: grant time) until every vehicle still heard circles its home
+        (``return_home.HomeWatch``), for the continuous account of the flight home
+        (``rtl_watch_s``)."""
         vehicles = [v for v in self.vehicles() if not v.lost and v.home is not None]
         if not vehicles:
             return
         near_km = float(self.plane.loiter_radius_km()) + 0.5
-
-        def away_km(v: VehicleState) -> float:  # flat earth: ample within a mission area
-            assert v.home is not None
-            north = math.radians(v.lat_deg - v.home[0]) * 6371.0
-            east = math.radians(v.lon_deg - v.home[1]) * 6371.0 * math.cos(math.radians(v.lat_deg))
-            return math.hypot(north, east)
-
-        # home = within a loiter circle (and a half kilometre) of it for a whole circle
-        circle_ms = 2e3 * math.pi * (near_km - 0.5) * 1e3 / self.plane.speed_mps
-        limit_s = self.options.rtl_watch_s
-        if limit_s is None:
-            farthest_km = max(away_km(v) for v in vehicles)
-            limit_s = farthest_km * 1e3 / self.plane.speed_mps + circle_ms / 1e3 + 120.0
+        watch = HomeWatch(vehicles, near_km, self.plane.speed_mps)
+        limit_s = watch.limit_s(self.options.rtl_watch_s)
         if limit_s <= 0:
             return
-        since_ms: dict[int, int] = {}
-
-        def home() -> bool:
-            for v in vehicles:
-                if away_km(v) > near_km:
-                    since_ms.pop(v.system_id, None)
-                else:
-                    since_ms.setdefault(v.system_id, v.time_boot_ms)
-            return all(
-                v.lost
-                or not v.armed
-                or v.time_boot_ms - since_ms.get(v.system_id, v.time_boot_ms + 1) >= circle_ms
-                for v in vehicles
-            )
-
         if self.clock is not None:
-            self.wait_sim(home, limit_s)
+            self.wait_sim(watch.home, limit_s)
         else:
-            self.require_link().pump_until(home, limit_s / self.time_scale)
+            self.require_link().pump_until(watch.home, limit_s / self.time_scale)
 
     def finish(self, ended: str) -> MissionReport:
         """The one exit path: RTL to every airborne vehicle still reachable (never to a grounded,
@@ -585,23 +526,12 @@ class MissionDaemon:
         return self.report
 
     def return_to_launch(self) -> tuple[list[int], dict[int, str]]:
-        """RTL (at cruise speed) to every airborne vehicle still reachable. Returns the system ids
-        it was sent to and, for every other vehicle, why not; says both, and warns of every
-        vehicle that did not accept."""
+        """RTL (at cruise speed) to every airborne vehicle still reachable
+        (``return_home.rtl_recipients``). Returns the system ids it was sent to and, for every
+        other vehicle, why not; says both, and warns of every vehicle that did not accept."""
         if self.link is None:
             return [], {}
-        skipped: dict[int, str] = {}
-        flying: list[VehicleState] = []
-        for sysid, v in sorted(self.link.vehicles.items()):
-            closed = v.link.endpoint.closed_reason
-            if closed is not None:
-                skipped[sysid] = f"unreachable: {closed}"
-            elif v.silent_for() > self.options.lost_after_s:
-                skipped[sysid] = f"unreachable: silent {v.silent_for():.0f} s"
-            elif not v.airborne:
-                skipped[sysid] = "on the ground, disarmed" if not v.armed else "on the ground"
-            else:
-                flying.append(v)
+        flying, skipped = rtl_recipients(self.link.vehicles.values(), self.options.lost_after_s)
         if self.stages is not None:
             self.stages.end_leg_timing(flying)  # home at cruise speed
         elif self.options.leg_timing and flying:
@@ -613,15 +543,7 @@ class MissionDaemon:
                 self.say(f"warning: {c.describe_failure()}")
         sent = [c.vehicle.system_id for c in results]
         accepted = [c.vehicle.system_id for c in results if c.accepted]
-        if sent:
-            line = f"RTL sent to vehicle{'s' if len(sent) > 1 else ''} {_ids(sent)}"
-            if accepted != sent:
-                line += f" (accepted by {_ids(accepted) or 'none'})"
-        else:
-            line = "RTL sent to no vehicle (none airborne and reachable)"
-        if skipped:
-            line += "; not to " + ", ".join(f"{k} ({why})" for k, why in skipped.items())
-        self.say(line)
+        self.say(rtl_line(sent, accepted, skipped))
         return sent, skipped
 
     def result_so_far(self, ended: str, phase: str) -> dict[str, Any]:

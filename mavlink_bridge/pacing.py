@@ -11,7 +11,7 @@
   SYSTEM_TIME): a decision instant every ``step_s`` of each vehicle's clock, whatever the wall
   clock does (a speedup that is not the one the daemon was told, a loaded machine).
 * :class:`WallClockPacing`: vehicles that report no time at all: one step per
-  ``step_s / time_scale`` wall seconds; never known to be late.
+  ``step_s / time_scale`` wall seconds, on a schedule; late against that schedule.
 
 The last two hand over to :class:`LookPacing` as soon as a look arrives.
 
@@ -189,32 +189,52 @@ class LookPacing:
 
 
 class WallClockPacing:
-    """Vehicles that send no looks (ArduPlane without a payload simulator): one step per
-    ``step_s / time_scale`` wall seconds. Hands over (returns None) when a look arrives."""
+    """Vehicles that report no time at all: a decision instant every ``step_s / time_scale``
+    wall seconds from the start (a schedule, so a step's own computation does not stretch the
+    next period). Lateness is judged on that schedule, as the vehicles' clock would be at the
+    told speed: commands out more than half a period after their instant, or an instant skipped
+    (the daemon stalled), count in ``late_steps``. Hands over (returns None) when a look
+    arrives."""
 
     name = "wall clock"
 
     def __init__(self, ctx: PacingContext) -> None:
         self.ctx = ctx
+        self.start_s = time.monotonic()  # step 0 is now
+        self.last_s = self.start_s  # the last decision instant (monotonic)
+        self.due_s = self.start_s  # this step's instant
+
+    def resume(self, last_instant_s: float) -> None:
+        """Take over from another pacing whose last decision instant was ``last_instant_s``."""
+        self.last_s = self.due_s = last_instant_s
 
     def wait(self, step: int, consumed: list[int]) -> DecisionInstant | None:
         ctx = self.ctx
-        start = time.monotonic()
-        gap = ctx.gap_s()
+        self.due_s = self.last_s + ctx.period_wall_s
         while True:
             ctx.link.pump(0.003)
             ctx.watch(step)
             if ctx.new_looks(consumed):
                 return None  # the cameras speak: pace by their looks
-            if time.monotonic() - start > gap:
+            if time.monotonic() >= self.due_s:
                 break
         ctx.measure_gap()
+        self.last_s = self.due_s
         return DecisionInstant(
             step, {}, time.monotonic() + STEP_DEADLINE_SHARE * ctx.period_wall_s, self.name
         )
 
     def late(self, instant: DecisionInstant) -> bool:
-        return False
+        """Late when the commands go out more than half a period after the instant, or an
+        instant was skipped; whole periods passed are skipped (the schedule keeps its phase)."""
+        ctx = self.ctx
+        period = ctx.period_wall_s
+        behind_s = time.monotonic() - self.due_s
+        if behind_s >= period:
+            self.last_s += (behind_s // period) * period
+        scale_ms = 1e3 * max(ctx.time_scale, 1e-6)  # vehicle ms per wall s, as told
+        instant_ms = round((self.due_s - self.start_s) * scale_ms)
+        return note_late(ctx, instant.step, instant_ms, round(behind_s * scale_ms))
 
 
 class VehicleClockPacing:
@@ -357,7 +377,12 @@ class PacingChoice:
 
     def wait(self, step: int, consumed: list[int]) -> DecisionInstant:
         while True:
-            self.current = self.choose()
+            chosen = self.choose()
+            if (chosen is self.wall) != (self.current is self.wall):
+                self.ctx.decision_instant_ms = None  # another time base: no stall across it
+                if chosen is self.wall:
+                    self.wall.resume(self.ctx.last_step_wall or time.monotonic())
+            self.current = chosen
             instant = self.current.wait(step, consumed)
             if instant is not None:
                 return instant

@@ -1,7 +1,7 @@
 """``swarmplan daemon``: fly a swarm of MAVLink vehicles (SITL, hardware or ``swarmplan sim``)
 with the HAPF-ACO planner; writes result.json, the figures (paths.png, coverage.png), the
 waypoint files and the .tlog to --out, on every way out: the end, an error, Ctrl-C or SIGTERM
-(after RTL to every airborne vehicle; docs/daemon.md, "Exit paths").
+(after RTL to every airborne vehicle; docs/daemon.md, "A mission, phase by phase", 8).
 
 This layer composes the daemon (``mavlink_bridge``) with the figures (``swarmplan.figures``), so
 the dependencies point one way: swarmplan -> mavlink_bridge -> planner.

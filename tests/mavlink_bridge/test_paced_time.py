@@ -85,7 +85,12 @@ def test_without_looks_steps_keep_the_vehicles_clock_and_lateness_is_counted(
     20 s of vehicle time and said 0 late steps.)"""
     fake_swarm_factory(2, udp_port, camera=False)
     instants: list[int] = []
-    daemon = MissionDaemon(paper10, options(udp_port, expect=2, steps=10, time_scale=25.0))
+    # (the start-up refusal of a time scale this machine cannot keep is keeping_up's test: on a
+    # loaded machine it would end this one before it flies)
+    daemon = MissionDaemon(
+        paper10,
+        options(udp_port, expect=2, steps=10, time_scale=25.0, check_time_scale=False),
+    )
     daemon.options.step_listeners.append(
         lambda record: instants.append(int(record.positions_ms.max()))
     )
@@ -99,3 +104,36 @@ def test_without_looks_steps_keep_the_vehicles_clock_and_lateness_is_counted(
     assert (np.array(instants) >= schedule - 2500).all(), (instants, schedule)
     assert result["late_steps"] >= int((gaps > 1.5 * step_ms).sum()), (gaps, result["late_steps"])
     assert daemon.pacing is not None and daemon.pacing.current.name == "vehicle clock"
+
+
+def test_without_any_vehicle_clock_steps_keep_a_wall_clock_schedule_and_a_stall_is_late(udp_port):
+    """Vehicles that report no time at all (no position, no SYSTEM_TIME): a decision instant
+    every period of the told time scale, never before it, on a schedule whatever a step takes;
+    a step whose commands go out more than half a period after its instant is counted late and
+    said. (Paced this way, the daemon once said 0 late steps whatever happened.)"""
+    from mavlink_bridge.mission_result import MissionAccount
+    from mavlink_bridge.pacing import PacingChoice, PacingContext
+
+    link = SwarmLink.open([f"udpin:127.0.0.1:{udp_port}"])
+    try:
+        account, said = MissionAccount(), []
+        ctx = PacingContext(
+            link, lambda: [], lambda step: None, step_s=10.0, time_scale=100.0,
+            lost_after_s=3.0, account=account, say=said.append,
+        )  # fmt: skip
+        period = 0.1  # wall seconds: 10 s at 100x
+        before = time.monotonic()
+        pacing = PacingChoice(ctx, None)
+        first = pacing.wait(1, [])
+        assert pacing.current.name == "wall clock" and time.monotonic() >= before + period
+        time.sleep(3 * period)  # this step stalls three periods before its commands go out
+        assert pacing.current.late(first)
+        assert account.late_steps == 1 and "behind the vehicles' clock at step 1" in said[0]
+        pacing.wait(2, [])
+        # the schedule kept its phase: instants at whole periods from the start, none skipped
+        # twice
+        periods = (pacing.wall.due_s - pacing.wall.start_s) / period
+        assert periods >= 4 and abs(periods - round(periods)) < 1e-6
+        assert time.monotonic() >= pacing.wall.due_s
+    finally:
+        link.close()

@@ -13,6 +13,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -100,6 +101,30 @@ def watch(swarm) -> list[HeartbeatWatch]:
     return watches
 
 
+def decision_clocks(tlog: Path, system_id: int) -> list[int]:
+    """The vehicle's own clock (time_boot_ms of its newest GLOBAL_POSITION_INT) as each decision
+    step's guided target to it went out, read from the daemon's tlog (what went over the wire);
+    a step's resent command (every 0.3 s of wall time) is folded into its step."""
+    log = mavutil.mavlink_connection(str(tlog))
+    clock, last, out = 0, None, []
+    while True:
+        msg = log.recv_match(type=["GLOBAL_POSITION_INT", "COMMAND_INT"])
+        if msg is None:
+            break
+        if msg.get_type() == "GLOBAL_POSITION_INT" and msg.get_srcSystem() == system_id:
+            clock = max(clock, msg.time_boot_ms)
+        elif (
+            msg.get_type() == "COMMAND_INT"
+            and msg.target_system == system_id
+            and msg.command == mavutil.mavlink.MAV_CMD_DO_REPOSITION
+        ):
+            if last is None or clock - last > 10_000:
+                out.append(clock)
+            last = clock
+    log.close()
+    return out
+
+
 def reached_step(log: Path, step: int) -> bool:
     return re.search(rf"step +{step}/", log.read_text(errors="replace")) is not None
 
@@ -129,6 +154,13 @@ def test_one_plane_killed_mid_mission_the_others_finish_and_return(sitl_swarm, t
     assert lost["uav"] == 2 and "tcp:127.0.0.1:" in lost["reason"]
     assert result["rtl_sent_to"] == [1, 2] and "3" in result["rtl_not_sent"]
     assert all(GUIDED in w.modes for w in watches)  # all three flew the mission
+    # paced by the planes' own clock: a decision every 50 s of it; a gap over 1.5 steps is a
+    # stall or a late step, and is counted (paced by the wall clock, steps were 51.7-63 s of
+    # the planes' time and late_steps said 0)
+    gaps_s = np.diff(decision_clocks(tmp_path / "mission.tlog", 1)) / 1e3
+    print("plane 1, vehicle seconds between decisions:", gaps_s, "late", result["late_steps"])
+    assert len(gaps_s) == 4, gaps_s
+    assert result["late_steps"] >= int((gaps_s > 75.0).sum()), (gaps_s, result["late_steps"])
 
 
 @pytest.mark.timeout(180)
@@ -142,9 +174,7 @@ def test_sigterm_sends_rtl_to_every_airborne_plane_and_writes_the_result(sitl_sw
         assert all(w.mode == GUIDED for w in watches), [w.modes for w in watches]
         daemon.send_signal(signal.SIGTERM)
         status = daemon.wait(60)
-        assert wait_for(lambda: all(w.mode == RTL for w in watches), 10), [
-            w.modes for w in watches
-        ]
+        assert wait_for(lambda: all(w.mode == RTL for w in watches), 10), [w.modes for w in watches]
     finally:
         stop(daemon)
         for w in watches:

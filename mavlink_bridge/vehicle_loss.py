@@ -1,0 +1,87 @@
+"""Loss and return of one vehicle: one vehicle's failure stays one vehicle's.
+
+A vehicle is **lost** when
+
+* its link went away (a TCP connection closed or failed: ``Endpoint.closed_reason``; the
+  endpoint reconnects with backoff, ``vehicle_link.py``),
+* it has been silent for ``lost_after_s`` wall seconds, or,
+* once the decision loop runs, it is no longer armed or no longer in GUIDED (seen on two
+  heartbeats in a row: one late heartbeat from before the switch to GUIDED is not a mode change;
+  a plane that lands disarms or leaves GUIDED).
+
+A lost vehicle is inactive to the planner and gets no commands; the others go on. It **rejoins**
+when it is heard again (within ``min(1, lost_after_s / 2)`` s), its link is up, and, in the
+loop, it is armed and in GUIDED. Both events are said and kept (``MissionAccount.events``,
+``LinkEvent`` with the reason).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from mavlink_bridge.mission_result import LinkEvent, MissionAccount
+from mavlink_bridge.protocol import PLANE_MODE_GUIDED, mode_name
+from mavlink_bridge.vehicle_state import VehicleState
+
+
+def link_down(v: VehicleState) -> str | None:
+    """Why the link to ``v`` is down now (its endpoint closed), or None."""
+    link = v.link
+    return None if link is None else link.endpoint.closed_reason
+
+
+@dataclass
+class LossWatch:
+    """Marks vehicles lost and rejoined (see the module docstring). ``vehicles()`` lists the
+    expected vehicles, index = UAV; ``in_mission()`` tells whether the decision loop runs (only
+    then are disarmed or non-GUIDED vehicles lost)."""
+
+    vehicles: Callable[[], list[VehicleState]]
+    account: MissionAccount
+    lost_after_s: float
+    in_mission: Callable[[], bool]
+    say: Callable[[str], None] = lambda text: None
+    reasons: dict[int, str] = field(default_factory=dict)  # UAV -> why it is lost now
+    #: UAV -> its heartbeat count when first seen disarmed / out of GUIDED
+    _off_since: dict[int, int] = field(default_factory=dict)
+
+    def reason(self, i: int, v: VehicleState, now: float) -> str | None:
+        """Why vehicle ``v`` (UAV ``i``) cannot take part in the mission now, or None."""
+        closed = link_down(v)
+        if closed is not None:
+            return f"link {v.link.endpoint.spec}: {closed}"
+        silent = v.silent_for(now)
+        if silent > self.lost_after_s:
+            return f"silent {silent:.1f} s"
+        if not self.in_mission():
+            return None
+        off = None
+        if not v.armed:
+            off = "disarmed"
+        elif v.custom_mode != PLANE_MODE_GUIDED:
+            off = f"left GUIDED (now {mode_name(v.custom_mode)})"
+        if off is None:
+            self._off_since.pop(i, None)
+            return None
+        first = self._off_since.setdefault(i, v.heartbeats)
+        return off if v.heartbeats - first >= 1 or v.lost else None
+
+    def watch(self, step: int, now: float | None = None) -> None:
+        """Mark who is lost and who rejoined at ``step`` (called at every pump)."""
+        now = time.monotonic() if now is None else now
+        back_within_s = min(1.0, self.lost_after_s / 2)
+        for i, v in enumerate(self.vehicles()):
+            why = self.reason(i, v, now)
+            if not v.lost and why is not None:
+                v.lost = True
+                self.reasons[i] = why
+                reason = "silent" if why.startswith("silent") else why
+                self.account.events.append(LinkEvent(step, i, "lost", now, reason))
+                self.say(f"vehicle {v.system_id} lost at step {step} ({why}); the others go on")
+            elif v.lost and why is None and v.silent_for(now) < back_within_s:
+                v.lost = False
+                self.reasons.pop(i, None)
+                self.account.events.append(LinkEvent(step, i, "rejoined", now))
+                self.say(f"vehicle {v.system_id} rejoined at step {step}")
