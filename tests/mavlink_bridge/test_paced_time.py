@@ -19,7 +19,12 @@ def test_a_stalled_step_is_counted_late_and_said_once(paper10, udp_port, fake_sw
     fake_swarm_factory(2, udp_port)  # 50x: a 10 s decision period is 0.2 s of wall time
     said: list[str] = []
     late_before_stall: list[int] = []
-    daemon = MissionDaemon(paper10, options(udp_port, expect=2, progress=said.append))
+    # told the swarm's true speed (the plausibility filter refuses a clock running more than
+    # 4x the told one); no start-up refusal: this test stalls the daemon on purpose
+    daemon = MissionDaemon(
+        paper10,
+        options(udp_port, expect=2, progress=said.append, time_scale=50.0, check_time_scale=False),
+    )
 
     def on_step(status) -> None:
         if status.step == 4:

@@ -218,3 +218,42 @@ def test_a_closed_tcp_link_loses_one_vehicle_which_rejoins_when_it_is_back(tmp_p
     assert "connection closed" in result["link_events"][0]["reason"]
     assert bridges[1].connections >= 2  # it connected again
     assert result["rtl_sent_to"] == [1, 2]
+
+
+@pytest.mark.timeout(120)
+def test_an_error_mid_mission_sends_rtl_to_every_airborne_vehicle_and_keeps_the_result(tmp_path):
+    """A fault inside the decision loop (here a step listener that raises at step 3, as a broken
+    live view would): the error goes up to the caller, but first both flying vehicles get RTL
+    (their own heartbeats say so) and the result of the steps flown is kept with how it ended."""
+    port, base = free_udp_port(), free_port_block(2)
+    relays = relays_for(port, base, 2)
+    sim = start_sim(base, tmp_path / "sim.log")
+
+    def on_step(status) -> None:
+        if status.step == 3:
+            raise RuntimeError("listener broke")
+
+    daemon = None
+    try:
+        with pytest.raises(RuntimeError, match="listener broke"):
+            daemon = MissionDaemon(
+                load_scenario("paper-2uav"),
+                DaemonOptions(
+                    connect=[f"udpin:127.0.0.1:{port}"], seed=1, steps=STEPS, lockstep=True,
+                    discovery_timeout_s=20, tlog_path=tmp_path / "m.tlog", on_step=on_step,
+                ),
+            )  # fmt: skip
+            daemon.fly()
+        assert wait_for(lambda: all(r.watch.mode == PLANE_MODE_RTL for r in relays), 10), [
+            r.watch.modes for r in relays
+        ]
+    finally:
+        stop(sim)
+        for r in relays:
+            r.stop()
+    assert daemon is not None and daemon.report is not None
+    result = daemon.report.result
+    assert result["ended"] == "error: RuntimeError: listener broke"
+    assert result["ended_in_phase"] == "decisions" and result["steps"] == 3
+    assert result["rtl_sent_to"] == [1, 2]
+    assert sent_modes(tmp_path / "m.tlog")[-1] == PLANE_MODE_RTL
