@@ -197,6 +197,23 @@ def fleet_plane_model(
     )
 
 
+#: the safety envelope's threat margin never exceeds this (km): about the minimum turn radius of
+#: the simulator's 100 m/s plane at 45 deg, the margin the daemon has always flown it with
+MAX_THREAT_MARGIN_KM = 1.0
+
+
+def threat_margin_km(model: PlaneModel, predicted_margin_km: float) -> float:
+    """The safety envelope's clearance of each leg from the threat circles for this airframe:
+    the circle the plane flies around a guided target at cruise (WP_LOITER_RAD, or its tightest
+    turn when wider) plus the flight envelope's predicted margin, at most
+    ``MAX_THREAT_MARGIN_KM``. ArduPlane's defaults: 0.08 + 0.25 = 0.33 km; the simulator's plane:
+    1 km. A 1 km margin for a plane that circles within 80 m left three ArduPlane SITL planes
+    held beside the threat zones of arduplane-3uav for most of a mission (59 overrides in 40
+    steps)."""
+    loiter_km = float(model.loiter_radius_km(model.speed_mps))
+    return min(loiter_km + predicted_margin_km, MAX_THREAT_MARGIN_KM)
+
+
 def scenario_warnings(airframes: list[Airframe], cfg: PlannerConfig) -> list[str]:
     """One line per thing the scenario asks that an airframe cannot fly, each with its fix."""
     lines = []

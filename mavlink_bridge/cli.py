@@ -66,8 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--threat-margin-km",
         type=non_negative_float,
-        default=1.0,
-        help="safety envelope clearance from threat circles (default 1 km, a plane turn radius)",
+        default=None,
+        help="safety envelope clearance from threat circles (default: the airframe's loiter "
+        "circle + 0.25 km, at most 1 km; ArduPlane's defaults: 0.33 km)",
     )
     parser.add_argument(
         "--time-scale",

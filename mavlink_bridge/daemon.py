@@ -30,7 +30,12 @@ from typing import Any
 
 import numpy as np
 
-from mavlink_bridge.airframe import Airframe, fleet_plane_model
+from mavlink_bridge.airframe import (
+    MAX_THREAT_MARGIN_KM,
+    Airframe,
+    fleet_plane_model,
+    threat_margin_km,
+)
 from mavlink_bridge.checkpoint import (
     Checkpoint,
     CheckpointWriter,
@@ -95,7 +100,11 @@ class DaemonOptions:
     lost_after_s: float = 3.0  # wall seconds of silence before a vehicle counts as lost
     takeoff_altitude_m: float = 30.0  # climb (above home) that ends the TAKEOFF phase
     takeoff_timeout_s: float = 60.0
-    threat_margin_km: float = 1.0  # about a plane's minimum turn radius at 100 m/s
+    #: the safety envelope's clearance of every leg from the threat circles; None: from the
+    #: airframe read at launch (``airframe.threat_margin_km``: its loiter circle plus
+    #: ``predicted_threat_margin_km``, at most 1 km; 1 km until then, and for the simulator's
+    #: 100 m/s plane, about its minimum turn radius)
+    threat_margin_km: float | None = None
     separation_margin_km: float = 1.0  # on top of d_min: telemetry positions lag the cells
     #: guided targets lead the next cell by this many legs along the planned direction, so a
     #: plane passes through the cell centre on time instead of arriving and circling it
@@ -193,7 +202,9 @@ class MissionDaemon:
         self.system_ids = list(range(1, self.n + 1))
         self.steps = options.steps or scenario.steps
         self.envelope = SafetyEnvelope.for_scenario(
-            scenario, options.threat_margin_km, options.separation_margin_km
+            scenario,
+            MAX_THREAT_MARGIN_KM if options.threat_margin_km is None else options.threat_margin_km,
+            options.separation_margin_km,
         )
         self.account = MissionAccount()
         #: each step's look time stamps, to join a simulator's truth (the per-target account)
@@ -370,8 +381,13 @@ class MissionDaemon:
             self.options.airspeed_range_mps,
             self.options.bank_limit_deg,
         )
+        if self.options.threat_margin_km is None:
+            margin = threat_margin_km(self.plane, self.options.predicted_threat_margin_km)
+            self.envelope = replace(self.envelope, threat_margin_km=margin)
         if self.flight_envelope is not None:
-            self.flight_envelope = replace(self.flight_envelope, model=self.plane)
+            self.flight_envelope = replace(
+                self.flight_envelope, model=self.plane, cells=self.envelope
+            )
 
     # ------------------------------------------------------------------ link and clock
 

@@ -94,6 +94,9 @@ def airframe(daemon: MissionDaemon) -> None:
     daemon.use_airframes(frames)
     for frame in frames:
         daemon.say(f"airframe {frame.describe()}")
+    margin = daemon.envelope.threat_margin_km
+    source = "given" if daemon.options.threat_margin_km is not None else "from the airframe"
+    daemon.say(f"safety envelope: legs kept {margin:.2f} km clear of the threat zones ({source})")
     for line in scenario_warnings(frames, daemon.scenario.config):
         daemon.say(f"warning: {line}")
 

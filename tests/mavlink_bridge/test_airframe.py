@@ -8,9 +8,11 @@ from __future__ import annotations
 import math
 
 from mavlink_bridge.airframe import (
+    MAX_THREAT_MARGIN_KM,
     airframe_from_params,
     fleet_plane_model,
     scenario_warnings,
+    threat_margin_km,
 )
 from mavlink_bridge.protocol import mavlink
 from mavlink_bridge.vehicle_state import VehicleState
@@ -77,3 +79,17 @@ def test_a_scenario_the_airframe_cannot_fly_gets_a_warning_with_the_fix():
     fast = arduplane.replace(step_s=40.0)  # a diagonal cell needs 35 m/s
     (line,) = scenario_warnings([frame], fast)
     assert "cannot fly a diagonal cell of 1 km in one 40 s step" in line and "step_s >= 48" in line
+
+
+def test_the_threat_margin_follows_the_airframe():
+    """A plane that circles within 80 m is not kept 1 km off the threat zones (three ArduPlane
+    SITL planes were held beside arduplane-3uav's zones for most of a mission); the simulator's
+    100 m/s plane keeps its 1 km."""
+    arduplane = load_scenario("arduplane-3uav").config
+    small = fleet_plane_model([airframe_from_params(vehicle(1, ARDUPLANE), arduplane)], arduplane)
+    assert math.isclose(threat_margin_km(small, 0.25), 0.08 + 0.25)
+    paper = load_scenario("paper-10uav").config
+    sim = {**ARDUPLANE, "AIRSPEED_MIN": 60, "AIRSPEED_CRUISE": 100, "AIRSPEED_MAX": 150,
+           "ROLL_LIMIT_DEG": 45, "WP_LOITER_RAD": 60}  # fmt: skip
+    big = fleet_plane_model([airframe_from_params(vehicle(1, sim), paper)], paper)
+    assert threat_margin_km(big, 0.25) == MAX_THREAT_MARGIN_KM == 1.0
