@@ -9,9 +9,8 @@ simulator's summary. Every process it started is stopped on the way out, whateve
 ``measure`` turns a run into the numbers docs/sitl.md reports: time to ready (wall s from the
 daemon's start to ``armed N vehicles``; the arm phase's own wall time and the vehicles' clocks,
 s since boot, when they were armed), distance of each plane from its planned cell centre at
-the next decision, looks, engagements, violations, and the decision steps' drift on the
-vehicles' clock (read from the daemon's tlog: vehicle 1's ``time_boot_ms`` when each step's
-guided targets went out).
+the next decision, looks, engagements, violations, and the decision steps' length on the
+vehicles' clock (the daemon's ``look_times_ms``: each step's look time stamp).
 """
 
 from __future__ import annotations
@@ -190,33 +189,6 @@ def fly_sitl_mission(
     )  # fmt: skip
 
 
-def decision_instants_ms(tlog: Path, system_id: int = 1) -> list[int]:
-    """Vehicle ``system_id``'s clock (``time_boot_ms`` of its newest GLOBAL_POSITION_INT) when
-    each decision step's first DO_REPOSITION to it went out, from the daemon's tlog."""
-    from pymavlink import mavutil
-
-    log = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
-    clock, instants, last_wall = None, [], -1e9
-    while True:
-        msg = log.recv_match()
-        if msg is None:
-            break
-        kind = msg.get_type()
-        if kind == "GLOBAL_POSITION_INT" and msg.get_srcSystem() == system_id:
-            clock = msg.time_boot_ms
-        elif (
-            kind == "COMMAND_INT"
-            and msg.command == mavutil.mavlink.MAV_CMD_DO_REPOSITION
-            and msg.target_system == system_id
-            and clock is not None
-        ):
-            wall = getattr(msg, "_timestamp", 0.0)
-            if wall - last_wall > 0.5:  # resends of one step's command come within 0.5 s
-                instants.append(clock)
-            last_wall = wall
-    return instants
-
-
 def measure(run: SitlMissionRun) -> dict:
     """The numbers of a run (module docstring); None where the run did not produce them."""
     r = run.result or {}
@@ -257,14 +229,12 @@ def measure(run: SitlMissionRun) -> dict:
         numbers["miss_km_mean"] = round(sum(misses) / len(misses), 3)
         numbers["miss_km_p95"] = round(misses[int(0.95 * (len(misses) - 1))], 3)
         numbers["miss_km_max"] = round(misses[-1], 3)
-    tlog = run.out / "mission.tlog"
-    if tlog.is_file() and r:
-        instants = decision_instants_ms(tlog)
-        gaps = [(b - a) / 1000.0 for a, b in zip(instants, instants[1:], strict=False)]
-        if gaps:
-            step_s = run.step_s
-            numbers["step_s_vehicle_mean"] = round(sum(gaps) / len(gaps), 2)
-            numbers["step_s_vehicle_min"] = round(min(gaps), 2)
-            numbers["step_s_vehicle_max"] = round(max(gaps), 2)
-            numbers["step_drift_s_max"] = round(max(abs(g - step_s) for g in gaps), 2)
+    # the decision instants on the vehicles' clock: each step's look time stamp (the daemon's)
+    instants = [ms for _, ms in r.get("look_times_ms") or []]
+    gaps = [(b - a) / 1000.0 for a, b in zip(instants[1:], instants[2:], strict=False)]
+    if gaps:  # from step 1 on: step 0 is the first instant after take-off, not a period
+        numbers["step_s_vehicle_mean"] = round(sum(gaps) / len(gaps), 2)
+        numbers["step_s_vehicle_min"] = round(min(gaps), 2)
+        numbers["step_s_vehicle_max"] = round(max(gaps), 2)
+        numbers["step_drift_s_max"] = round(max(abs(g - run.step_s) for g in gaps), 2)
     return numbers
