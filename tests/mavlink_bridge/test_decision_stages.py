@@ -100,3 +100,39 @@ def test_one_step_through_every_stage(paper10):
     assert state.last_target[0] == batch.moves[0][1] and state.last_target[1] is None
     assert state.refusals == [0, 1, 0] and stages.counters.refused_commands == 1
     assert (state.commanded_cells == flight.next_cells).all()
+
+
+def test_a_vehicle_without_a_camera_gets_one_warning_and_no_more_engagement_requests(paper10):
+    """ArduPlane without a camera on any port answers IMAGE_START_CAPTURE for component 100
+    itself, FAILED: that vehicle is named once and its engagements are off (never a retry every
+    step); a vehicle whose camera was heard (its HEARTBEAT) is only retried."""
+    from mavlink_bridge.guided_commands import engagement_command
+
+    starts = paper10.starts_for_seed(1)[:2]
+    lat, lon = local_km_to_geodetic([s.x_km for s in starts], [s.y_km for s in starts],
+                                    paper10.origin)  # fmt: skip
+    vehicles = [_heard(i + 1, lat[i], lon[i], 5000) for i in range(2)]
+    said: list[str] = []
+    stages = _stages(paper10, vehicles)
+    stages.say = said.append
+    ap, cam = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None, 2, 100)
+    request = engagement_command(vehicles[0], 1)
+    request.attempts = 1
+    def wire(msg, mav):  # as the daemon gets it: packed, then parsed
+        return mavlink.MAVLink(None).parse_char(msg.pack(mav))
+
+    vehicles[0].handle(  # the autopilot (component 1) answers for the missing camera
+        wire(ap.command_ack_encode(mavlink.MAV_CMD_IMAGE_START_CAPTURE, 4), ap)  # FAILED
+    )
+    assert stages.without_camera(0, request)
+    assert stages.counters.cameraless == [0] and len(said) == 1
+    assert "vehicle 1 has no camera" in said[0] and "MAV_RESULT_FAILED" in said[0]
+    # vehicle 2's camera is there (heard), it just did not answer this time: asked again
+    vehicles[1].handle(
+        wire(cam.heartbeat_encode(mavlink.MAV_TYPE_CAMERA, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 4),
+             cam)
+    )  # fmt: skip
+    unanswered = engagement_command(vehicles[1], 1)
+    unanswered.attempts = 5
+    assert not stages.without_camera(1, unanswered)
+    assert stages.counters.cameraless == [0] and len(said) == 1
