@@ -49,6 +49,7 @@ from mavlink_bridge.flight_prediction import PlaneModel
 from mavlink_bridge.guided_commands import (
     Command,
     change_speed_command,
+    reposition_command,
     send_commands,
     set_mode_command,
 )
@@ -73,6 +74,7 @@ from mavlink_bridge.mission_result import (
 from mavlink_bridge.pacing import STEP_DEADLINE_SHARE, DecisionInstant, PacingChoice, PacingContext
 from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
 from mavlink_bridge.return_home import HomeWatch, rtl_line, rtl_recipients
+from mavlink_bridge.safe_return import HomeRoutes
 from mavlink_bridge.safety_envelope import SafetyEnvelope
 from mavlink_bridge.swarm_link import SwarmLink
 from mavlink_bridge.telemetry_plausibility import PlausibilityFilter, PlausibilityLimits
@@ -236,6 +238,19 @@ class MissionDaemon:
             if options.prediction_horizon_steps > 0
             else None
         )
+        #: the way home around threats (RTL flies straight), and each vehicle's waypoint on it
+        self.home_routes = HomeRoutes(
+            self.grid,
+            self.envelope.threat_xy_km,
+            self.envelope.threat_radius_km,
+            self.plane,
+            margin_km=options.threat_margin_km,
+            # the turn onto the way home with the full margin: the plane may fly faster (leg
+            # timing) and turn wider than the model (0.25 km let an RTL 0.19 km into a threat)
+            turn_margin_km=options.threat_margin_km,
+        )
+        self.homing: dict[int, np.ndarray] = {}
+        self.detoured: set[int] = set()  # every vehicle that was guided around threats home
         self._target_values = {t.id: float(t.value) for t in scenario.targets}
         self.fingerprint = mission_fingerprint(scenario, options.seed, self.n, self.steps)
         self.checkpoints = (
@@ -506,10 +521,20 @@ class MissionDaemon:
         limit_s = watch.limit_s(self.options.rtl_watch_s)
         if limit_s <= 0:
             return
-        if self.clock is not None:
-            self.wait_sim(watch.home, limit_s)
-        else:
-            self.require_link().pump_until(watch.home, limit_s / self.time_scale)
+        # planes flying a safe way home (safe_return.py) are re-judged once per decision period
+        period_s = self.scenario.config.step_s
+        waited_s = 0.0
+        while waited_s < limit_s:
+            chunk_s = min(period_s, limit_s - waited_s) if self.homing else limit_s - waited_s
+            if self.clock is not None:
+                done = self.wait_sim(watch.home, chunk_s)
+            else:
+                done = self.require_link().pump_until(watch.home, chunk_s / self.time_scale)
+            waited_s += chunk_s
+            if done and not self.homing:
+                return
+            flying = [v for v in vehicles if not v.lost and v.system_id in self.homing]
+            self.send(self.homeward_commands(flying, announce=False))
 
     def finish(self, ended: str) -> MissionReport:
         """The one exit path: RTL to every airborne vehicle still reachable (never to a grounded,
@@ -527,6 +552,7 @@ class MissionDaemon:
                 self.watch_rtl()
         except Exception as exc:  # noqa: BLE001 - the cleanup goes on whatever happens
             self.say(f"warning: RTL could not be sent to every vehicle ({exc})")
+        self.audit.end()  # the account ends with the watch, before the simulator runs free
         with contextlib.suppress(Exception):
             self.release_clock()
         try:
@@ -534,7 +560,9 @@ class MissionDaemon:
         except Exception as exc:  # noqa: BLE001 - a result of what is known, whatever happens
             self.state = None
             result = self.result_so_far(f"{ended} (no flight result: {exc})", where)
-        result["rtl_sent_to"] = sent_to
+        # a vehicle guided around threats got its RTL during the watch, once the way was clear
+        result["rtl_sent_to"] = sorted(set(sent_to) | (self.detoured - set(self.homing)))
+        result["guided_home_around_threats"] = sorted(self.detoured)
         result["rtl_not_sent"] = {str(k): why for k, why in sorted(skipped.items())}
         result["track_audit"] = self.audit.summary()
         self.close()
@@ -542,9 +570,11 @@ class MissionDaemon:
         return self.report
 
     def return_to_launch(self) -> tuple[list[int], dict[int, str]]:
-        """RTL (at cruise speed) to every airborne vehicle still reachable
-        (``return_home.rtl_recipients``). Returns the system ids it was sent to and, for every
-        other vehicle, why not; says both, and warns of every vehicle that did not accept."""
+        """RTL (at cruise speed) to every airborne vehicle still reachable whose way home is clear
+        of threats; one whose is not is guided around them (``homeward_commands``, re-judged by
+        ``watch_rtl``). Returns the system ids RTL was sent to and, for every vehicle not
+        reachable or not flying, why not; says both, and warns of every vehicle that did not
+        accept."""
         if self.link is None:
             return [], {}
         flying, skipped = rtl_recipients(self.link.vehicles.values(), self.options.lost_after_s)
@@ -553,14 +583,53 @@ class MissionDaemon:
         elif self.options.leg_timing and flying:
             cruise = self.plane.speed_mps
             self.send([change_speed_command(v, cruise) for v in flying])
-        results = self.send([set_mode_command(v, PLANE_MODE_RTL) for v in flying])
+        # RTL where the way home is clear, else guided around the threats (safe_return.py)
+        results = self.send(self.homeward_commands(flying, announce=True))
         for c in results:
             if not c.accepted:
                 self.say(f"warning: {c.describe_failure()}")
-        sent = [c.vehicle.system_id for c in results]
-        accepted = [c.vehicle.system_id for c in results if c.accepted]
-        self.say(rtl_line(sent, accepted, skipped))
+        rtl = [c for c in results if c.command == mavlink.MAV_CMD_DO_SET_MODE]
+        sent = [c.vehicle.system_id for c in rtl]
+        accepted = [c.vehicle.system_id for c in rtl if c.accepted]
+        line = rtl_line(sent, accepted, skipped)
+        if self.homing:
+            around = ", ".join(str(i) for i in sorted(self.homing))
+            line += f"; guided home around the threats: {around}"
+        self.say(line)
         return sent, skipped
+
+    def homeward_commands(self, vehicles: list[VehicleState], announce: bool) -> list[Command]:
+        """Per vehicle: RTL when its way home is clear (``HomeRoutes.rtl_clear``), else a
+        DO_REPOSITION to the next safe waypoint (sent again only when the waypoint changes)."""
+        commands: list[Command] = []
+        for v in vehicles:
+            waypoint = None
+            if v.home is not None and v.has_position:
+                xy = self.local_km(v.lat_deg, v.lon_deg)
+                home = self.local_km(v.home[0], v.home[1])
+                course = math.atan2(v.vn_mps, v.ve_mps)
+                if not self.home_routes.rtl_clear(xy, course, home):
+                    waypoint = self.home_routes.waypoint(xy, home, course)
+            before = self.homing.get(v.system_id)
+            if waypoint is None:
+                self.homing.pop(v.system_id, None)
+                if before is not None or announce:
+                    commands.append(set_mode_command(v, PLANE_MODE_RTL))
+                continue
+            self.homing[v.system_id] = waypoint
+            self.detoured.add(v.system_id)
+            if before is not None and np.allclose(before, waypoint):
+                continue
+            if before is None:
+                self.say(
+                    f"vehicle {v.system_id} flies home around the threats (RTL's straight line "
+                    f"would cross one): guided via ({waypoint[0]:.1f}, {waypoint[1]:.1f}) km"
+                )
+            lat, lon = local_km_to_geodetic(waypoint[:1], waypoint[1:], self.scenario.origin)
+            commands.append(
+                reposition_command(v, float(lat[0]), float(lon[0]), self.scenario.altitude_m)
+            )
+        return commands
 
     def result_so_far(self, ended: str, phase: str) -> dict[str, Any]:
         """The result of what was flown: the recorder's (every recorded step), with the MAVLink

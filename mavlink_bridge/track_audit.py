@@ -129,13 +129,34 @@ class TrackAudit:
         self.project = project
         self.tracks = [_Track() for _ in range(n)]
         self.phase = "launch"
+        #: phase changes on each vehicle's clock: (its newest report time at the change, phase)
+        self.changes: list[tuple[np.ndarray, str]] = []
+        self.latest_s = np.full(n, -math.inf)  # each vehicle's newest report time taken in
         self.reports = 0
+        self.closed = False  # after end(): the account is the mission's, nothing more is added
 
     def set_phase(self, phase: str) -> None:
-        """The daemon's phase from now on (``launch``, ``mission``, ``hold``, ``rtl``)."""
+        """The daemon's phase from now on (``launch``, ``mission``, ``hold``, ``rtl``). A report
+        belongs to the phase in force at its own time: one stamped no later than its vehicle's
+        newest report taken in before the change belongs to the phase before, however late it
+        arrives (in lockstep a grant's reports arrive whenever the machine gets to them)."""
         if phase not in PHASES:
             raise ValueError(f"unknown phase {phase!r}")
         self.phase = phase
+        self.changes.append((self.latest_s.copy(), phase))
+
+    def phase_at(self, uav: int, t_s: float) -> str:
+        """The phase in force at time ``t_s`` of vehicle ``uav``'s clock."""
+        for at_s, phase in reversed(self.changes):
+            if t_s > at_s[uav]:
+                return phase
+        return "launch"
+
+    def end(self) -> None:
+        """The mission's account is complete (the daemon's watch of the flight home is over):
+        later reports are not added. A lockstep simulator runs free once released, and how
+        many of its reports arrive before the link closes depends on the machine's speed."""
+        self.closed = True
 
     def add(
         self,
@@ -148,10 +169,11 @@ class TrackAudit:
         """One position report of ``uav`` at its clock ``t_s``; ``arrival_scaled_s`` is when it
         arrived (wall seconds x time scale, for the clock offsets); ``in_failsafe`` marks a
         vehicle the daemon is not flying right now (out of GUIDED, or in a failsafe)."""
-        if not 0 <= uav < self.n or not math.isfinite(t_s):
+        if self.closed or not 0 <= uav < self.n or not math.isfinite(t_s):
             return
         track = self.tracks[uav]
-        phase = self.phase
+        phase = self.phase_at(uav, t_s)
+        self.latest_s[uav] = max(self.latest_s[uav], float(t_s))
         if in_failsafe and phase in ("mission", "hold"):
             phase = "failsafe"
         track.t_s.append(float(t_s))
@@ -304,7 +326,7 @@ def position_listener(
 ) -> Callable[[VehicleState, mavlink.MAVLink_message], None]:
     """A ``SwarmLink`` listener feeding ``audit`` (made with a ``project`` from degrees) every
     GLOBAL_POSITION_INT a vehicle's state took in (not one dropped as stale or implausible)
-    while it flies (armed, 1 m above home). A vehicle out of GUIDED (TAKEOFF aside: its mode
+    while it flies (1 m above home). A vehicle out of GUIDED (TAKEOFF aside: its mode
     as last heard may lag its first guided seconds) or reporting CRITICAL (a failsafe, a fence
     breach) counts under ``failsafe`` during the mission. ``time_scale`` None: one shared clock
     (lockstep)."""
@@ -314,7 +336,7 @@ def position_listener(
             return
         if not v.has_position or v.time_boot_ms != msg.time_boot_ms or v.lat_deg != msg.lat * 1e-7:
             return
-        if not v.armed or v.relative_alt_m < 1.0:
+        if v.relative_alt_m < 1.0:  # (not v.armed: the heartbeat saying so may come later)
             return
         failsafe = (
             v.custom_mode not in (PLANE_MODE_GUIDED, PLANE_MODE_TAKEOFF)

@@ -20,6 +20,12 @@ stays what the failsafe made it, as on ArduPlane. FS_GCS_ENABL: 0 off, 1 heartbe
 
 The timeout counts wall-clock seconds (ArduPlane counts its own clock): a ground station sends
 heartbeats at a wall-clock rate (1 Hz), so at a 50x speedup 1 s of silence is 50 s of flight.
+In lockstep (``--lockstep``) the ground station is the clock: no simulated time passes while it
+computes (ArduPlane in lockstep SITL counts its own stopped clock), so its silence counts only
+once the lock is released (by the ground station, or after ``--lockstep-timeout`` wall seconds
+without it); then a silence already longer than FS_LONG_TIMEOUT acts at once. Counting wall
+seconds under the lock made a loaded machine's slow decision step a "failsafe" that changed
+nothing in the flight but the mode group its ground truth was counted under.
 """
 
 from __future__ import annotations

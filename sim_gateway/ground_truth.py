@@ -11,7 +11,9 @@ d_min (C_c) among the airborne vehicles:
   more; ``min_separation_km`` the smallest pairwise distance seen.
 
 Each is also counted per **flight mode group** of the vehicle(s) involved (``guided``,
-``failsafe`` while a GCS failsafe is on, ``rtl``, ``other``: take-off, loiter, circle, auto),
+``failsafe`` while a GCS failsafe is on, out of RTL; ``rtl``, in which a failsafe changes
+nothing, as after a mission whose ground station has gone; ``other``: take-off, loiter, circle,
+auto),
 so a ground station's continuous account (``mavlink_bridge.track_audit``) can be checked
 against the truth. Printed in the simulator's JSON summary under ``safety``.
 """

@@ -401,10 +401,10 @@ class Simulator:
         index = self._group_index
         out = []
         for v in self.vehicles:
-            if v.failsafe.stage:
-                out.append(index["failsafe"])
-            elif v.mode == modes.RTL:
+            if v.mode == modes.RTL:  # a GCS failsafe changes nothing in RTL (failsafe.py)
                 out.append(index["rtl"])
+            elif v.failsafe.stage:
+                out.append(index["failsafe"])
             elif v.mode == modes.GUIDED:
                 out.append(index["guided"])
             else:
@@ -488,7 +488,8 @@ class Simulator:
                     snapshot = self.snapshot()
                 for name in due:
                     v.send(BUILDERS[name](v, snapshot))
-            v.check_failsafe(now_wall)
+            if not gate.locked:  # in lockstep the ground station is the clock (failsafe.py)
+                v.check_failsafe(now_wall)
             if v.missions.upload is not None:
                 retry_upload(v, now_wall)
 

@@ -1,8 +1,10 @@
 """The two-shell example of docs/daemon.md (``swarmplan sim --lockstep & swarmplan daemon
 --lockstep``, with their default scenario and seed) flies the very mission ``swarmplan demo``
-flies: ``sim`` and ``daemon`` once defaulted to seed 0 while ``run`` and ``demo`` used 1; and
+flies: ``sim`` and ``daemon`` once defaulted to seed 0 while ``run`` and ``demo`` used 1;
 ``swarmplan account`` joins the simulator's ground truth to the daemon's result into the very
-per-target account the demo gives."""
+per-target account the demo gives; and the simulator's ground-truth safety account, which the
+demo merges into result.json as ``simulator_truth``, is the two-shell user's too: the simulator
+prints it (``safety``) in the JSON summary it ends with."""
 
 from __future__ import annotations
 
@@ -15,23 +17,28 @@ from loopback import free_udp_port, run_swarmplan, start_swarmplan, stop
 
 from sim_gateway.target_account import align_steps
 from swarmplan.arguments import DEFAULT_SEED
+from swarmplan.demo import simulator_summary
 
 STEPS = 12
 
-#: The run's own bookkeeping (and what only the demo joins in), not the mission flown.
-VOLATILE = {"wall_time_s", "endpoints", "frames_received", "tlog"}
-VOLATILE |= {"target_account", "simulator_truth"}
+#: The run's own bookkeeping, not the mission flown; and what only the demo joins in from the
+#: simulator it runs (the daemon flies MAVLink vehicles: SITL or aircraft have no ground truth)
+VOLATILE = {"wall_time_s", "endpoints", "frames_received", "tlog", "target_account"}
+FROM_THE_SIMULATOR = {"simulator_truth"}
 #: The simulator's ground truth, written when it stops (``swarmplan sim --target-account``).
 TRUTH = "target_truth.json"
 
 
-def two_shells(out: Path) -> dict:
+def two_shells(out: Path) -> tuple[dict, dict]:
     """``swarmplan sim --lockstep`` in the background, then ``swarmplan daemon --lockstep``, both
-    with their defaults but for a free port (the docs use 14550) and a short mission."""
+    with their defaults but for a free port (the docs use 14550) and a short mission; then the
+    simulator stopped as the docs say (Ctrl-C or ``kill``). The daemon's result and the
+    simulator's summary."""
     port = free_udp_port()
+    log = out.parent / "sim.log"
     sim = start_swarmplan(
         ["sim", "--lockstep", "--gcs-port", str(port), "--target-account", str(out.parent / TRUTH)],
-        out.parent / "sim.log",
+        log,
     )
     try:
         proc = run_swarmplan(
@@ -42,7 +49,9 @@ def two_shells(out: Path) -> dict:
     finally:
         stop(sim)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    return json.loads(proc.stdout)
+    summary = simulator_summary(log)  # what the demo reads from its simulator
+    assert summary is not None, log.read_text()[-2000:]
+    return json.loads(proc.stdout), summary
 
 
 def demo(out: Path) -> dict:
@@ -59,12 +68,12 @@ def test_the_docs_two_shell_example_reproduces_the_demo(tmp_path):
     with ThreadPoolExecutor(2) as pool:  # both lockstep: the load cannot change either result
         shells = pool.submit(two_shells, tmp_path / "shells" / "out")
         alone = pool.submit(demo, tmp_path / "demo")
-        a, b = shells.result(), alone.result()
+        (a, simulator), b = shells.result(), alone.result()
     assert a["seed"] == b["seed"] == DEFAULT_SEED and a["scenario"] == b["scenario"]
     assert a["steps"] == b["steps"] == STEPS
     assert [u["track_km"] for u in a["uavs"]] == [u["track_km"] for u in b["uavs"]]
     assert a["coverage_curve"] == b["coverage_curve"] and a["engagements"] == b["engagements"]
-    keys = (set(a) | set(b)) - VOLATILE
+    keys = (set(a) | set(b)) - VOLATILE - FROM_THE_SIMULATOR
     assert {k: a.get(k) for k in keys} == {k: b.get(k) for k in keys}
     # the daemon alone has no truth; `swarmplan account` joins the simulator's, as the demo does
     out = tmp_path / "shells" / "out"
@@ -84,6 +93,9 @@ def test_the_docs_two_shell_example_reproduces_the_demo(tmp_path):
         proc = run_swarmplan(["account", str(out), *bad], timeout=60)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    # the ground truth of what flew: in the demo's result, and in the simulator's own summary
+    assert "simulator_truth" not in a and b["simulator_truth"]["source"].startswith("simulator")
+    assert simulator["safety"] == b["simulator_truth"]
 
 
 def test_every_command_defaults_to_one_seed():

@@ -32,6 +32,7 @@ class FakeVehicle:
     init_s: float = 2.0  # simulated seconds in CALIBRATING
     refuse_arm: str | None = None  # PreArm text to refuse arming with
     refuse_command: int | None = None  # a command id answered DENIED
+    keep_param: str | None = None  # a parameter a PARAM_SET does not change (echoes its old 0)
     silent: threading.Event = field(default_factory=threading.Event)
     sock: socket.socket = field(
         default_factory=lambda: socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -275,9 +276,11 @@ class FakeSwarm(threading.Thread):
                 self._ack(v, v.ap, msg.command, mavlink.MAV_RESULT_ACCEPTED)
             else:
                 self._ack(v, v.ap, msg.command, mavlink.MAV_RESULT_UNSUPPORTED)
-        elif kind == "PARAM_SET":  # every parameter is accepted and echoed (the GCS failsafe)
-            v.params[msg.param_id] = msg.param_value
-            v.send(v.ap, v.ap.param_value_encode(msg.param_id.encode(), msg.param_value,
+        elif kind == "PARAM_SET":  # accepted and echoed (the GCS failsafe), but keep_param
+            if msg.param_id != v.keep_param:
+                v.params[msg.param_id] = msg.param_value
+            value = v.params.get(msg.param_id, 0.0)
+            v.send(v.ap, v.ap.param_value_encode(msg.param_id.encode(), value,
                                                  msg.param_type, 0, 0))  # fmt: skip
         elif kind == "PARAM_REQUEST_READ":  # by name; a name it does not have: no answer
             name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode()

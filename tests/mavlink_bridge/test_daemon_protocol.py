@@ -13,6 +13,7 @@ from mavlink_bridge.guided_commands import CommandRefusedError
 from mavlink_bridge.protocol import mavlink
 from mavlink_bridge.readiness import NotReadyError
 from mavlink_bridge.vehicle_link import EndpointError
+from planner.errors import UserError
 
 
 def options(port: int, **kw: object) -> DaemonOptions:
@@ -93,6 +94,28 @@ def test_arm_refusal_names_prearm_reason(paper10, udp_port, fake_swarm_factory):
         "zero.*vehicle 2 ",
     ):
         MissionDaemon(paper10, options(udp_port, expect=2, ready_timeout_s=4.0)).fly()
+
+
+def test_gcs_failsafe_is_set_and_confirmed_before_arming(paper10, udp_port, fake_swarm_factory):
+    """Issue 12, finding 2: every vehicle flies on to its last guided target without a ground
+    station (FS_GCS_ENABL 1, FS_LONG_ACTN 0), set at launch and confirmed by its PARAM_VALUE."""
+    swarm = fake_swarm_factory(2, udp_port)
+    MissionDaemon(paper10, options(udp_port, expect=2, steps=2)).fly()
+    for v in swarm.vehicles:
+        assert v.params["FS_GCS_ENABL"] == 1 and v.params["FS_LONG_ACTN"] == 0
+        assert v.params["FS_SHORT_ACTN"] == 0 and v.params["FS_LONG_TIMEOUT"] == 5
+
+
+def test_a_vehicle_keeping_its_failsafe_stops_the_launch_unarmed(
+    paper10, udp_port, fake_swarm_factory
+):
+    swarm = fake_swarm_factory(2, udp_port, keep_param="FS_GCS_ENABL")
+    with pytest.raises(UserError) as err:
+        MissionDaemon(paper10, options(udp_port, expect=2)).fly()
+    text = str(err.value)
+    assert "kept FS_GCS_ENABL = 0 when set to 1" in text and "\n" not in text
+    assert "set them by hand" in text
+    assert not any(v.armed for v in swarm.vehicles)
 
 
 def test_command_refusal_names_result(paper10, udp_port, fake_swarm_factory):

@@ -82,3 +82,21 @@ def test_separate_clocks_are_aligned_by_arrival():
     s = a.summary()
     assert s["clock_offsets_s"][1] - s["clock_offsets_s"][0] == 100.0
     assert s["all"]["min_separation_km"] < 1e-6
+
+
+def test_a_report_belongs_to_the_phase_of_its_own_time_not_of_its_arrival():
+    """In lockstep a grant's reports arrive whenever the machine gets to them: one stamped
+    before the phase changed, taken in after, is still the earlier phase's. The account ends
+    with end(): what arrives later (a released simulator running free) is not added."""
+    a = audit(threats=(), n=1)
+    a.add(0, 0.0, (0.0, 0.0))
+    a.add(0, 10.0, (1.0, 0.0))
+    a.set_phase("mission")  # at the vehicle's 10 s
+    a.add(0, 5.0, (0.5, 0.0))  # late, stamped within the launch
+    a.add(0, 20.0, (2.0, 0.0))
+    a.end()
+    a.add(0, 30.0, (3.0, 0.0))
+    s = a.summary()
+    assert s["phases"]["launch"]["observed_uav_s"] == 10.0
+    assert s["phases"]["mission"]["observed_uav_s"] == 10.0
+    assert s["reports"] == 4

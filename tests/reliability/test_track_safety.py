@@ -4,6 +4,7 @@ the simulator and the daemon (``swarmplan demo`` or ``swarmplan sim`` + ``swarmp
 * a separation breach between two decision instants shows in result.json (the flown tracks'
   account, ``track_audit``), as the simulator's own ground truth saw it;
 * a ground-station outage (the daemon stopped, then killed) near a threat takes no plane into it;
+* the flight home at the end of a mission goes around a threat RTL's straight line would cross;
 * a daemon that falls behind the vehicles' clock holds them at safe points and says so;
 * a speedup the daemon cannot keep is refused at start, in one line.
 """
@@ -64,6 +65,32 @@ id = 1
 kind = "unknown_position"
 x_km = 3
 y_km = 17
+value = 1
+[[threats]]
+x_km = 10.0
+y_km = 10.0
+radius_km = 3.0
+"""
+
+#: one plane sent for a known target on the far side of a threat from its home
+BEHIND_THREAT = """
+name = "behind-threat"
+steps = 40
+altitude_m = 500
+[parameters]
+grid_nx = 20
+grid_ny = 20
+[uavs]
+count = 1
+[[uavs.start]]
+x_km = 10.5
+y_km = 3.5
+heading_deg = 90
+[[targets]]
+id = 1
+kind = "known_position"
+x_km = 10.5
+y_km = 17.5
 value = 1
 [[threats]]
 x_km = 10.0
@@ -149,6 +176,28 @@ def test_a_ground_station_outage_near_threats_enters_none(tmp_path: Path):
     assert summary["fence_breaches"] == 0, log[-2000:]
     assert summary["safety"]["threat_entries"] == 0
     assert summary["safety"]["by_mode"]["failsafe"]["min_threat_margin_km"] is not None
+
+
+@pytest.mark.timeout(120)
+def test_the_flight_home_goes_around_a_threat_between_plane_and_home(tmp_path: Path):
+    """At the mission's end the plane is north of a threat and its home south of it: RTL's
+    straight line would cross the threat (it did: 0.52 km deep, in the simulator's truth and the
+    track account). It is guided around it and sent RTL once the way home is clear."""
+    scenario = tmp_path / "behind.toml"
+    scenario.write_text(BEHIND_THREAT)
+    done = run_swarmplan(
+        ["demo", str(scenario), "--out", str(tmp_path / "out"), "--no-view", "--json"],
+        timeout=110,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads(done.stdout)
+    end_km = result["uavs"][0]["track_km"][-1]
+    assert end_km[1] > 13.0, end_km  # the mission did end beyond the threat
+    truth = result["simulator_truth"]
+    assert truth["threat_entries"] == 0
+    assert truth["by_mode"]["rtl"]["min_threat_margin_km"] > 0
+    audit = result["track_audit"]["phases"]["rtl"]
+    assert audit["threat_entries"] == 0 and audit["min_threat_margin_km"] > 0
 
 
 @pytest.mark.timeout(150)

@@ -115,3 +115,23 @@ def test_the_heartbeat_of_a_horizon_comes_before_any_position_stamped_with_it(gc
     assert m.time_boot_ms == 10_000
     assert previous is not None and previous.get_type() == "HEARTBEAT", previous
     assert previous.system_status == 3  # MAV_STATE_STANDBY: booted, at the very horizon
+
+
+def test_no_gcs_failsafe_while_the_ground_station_holds_the_clock(gcs, sim_factory):
+    """In lockstep no simulated time passes while the ground station computes: a wall-clock
+    silence longer than FS_LONG_TIMEOUT is no failsafe until the lock is released."""
+    from pymavlink.dialects.v20 import ardupilotmega as ml
+
+    running = sim_factory(lockstep=True, speedup=1.0, airborne=True)
+    vehicle = running.sim.vehicles[0]
+    gcs.heartbeat()
+    for name, value in (("FS_GCS_ENABL", 1), ("FS_LONG_TIMEOUT", 1.0), ("FS_LONG_ACTN", 0)):
+        gcs.mav.param_set_send(1, 1, name.encode(), value, ml.MAV_PARAM_TYPE_REAL32)
+        assert gcs.wait("PARAM_VALUE", 1, cond=lambda m, n=name: m.param_id == n) is not None
+    gcs.mav.system_time_send(0, 10_000)
+    assert gcs.wait("GLOBAL_POSITION_INT", 1, timeout=5, cond=lambda m: m.time_boot_ms >= 10_000)
+    time.sleep(2.5)  # silence, held: 2.5 x FS_LONG_TIMEOUT of wall time
+    assert vehicle.failsafe.stage == 0 and running.sim.sim_time_s == 10.0
+    gcs.mav.system_time_send(0, 0xFFFFFFFF)  # released: now the silence counts
+    text = gcs.wait("STATUSTEXT", 1, timeout=5, cond=lambda m: "GCS Failsafe On" in m.text)
+    assert text is not None and vehicle.failsafe.stage == 2
