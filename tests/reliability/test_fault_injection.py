@@ -19,9 +19,13 @@ from reliability_harness import last_json  # noqa: E402
 from udp_fault_relay import FaultProfile, FaultRelay  # noqa: E402
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
+from mavlink_bridge.discovery import wait_for_vehicles  # noqa: E402
 from mavlink_bridge.guided_commands import engagement_command  # noqa: E402
+from mavlink_bridge.mission_upload import FenceCircle, upload_fence  # noqa: E402
+from mavlink_bridge.swarm_link import SwarmLink  # noqa: E402
 from mavlink_bridge.telemetry_plausibility import PlausibilityFilter  # noqa: E402
 from mavlink_bridge.vehicle_state import CommandAck, VehicleState  # noqa: E402
+from planner.geodesy import local_km_to_geodetic  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 from sim_gateway.simulator import SimOptions, Simulator  # noqa: E402
 
@@ -37,7 +41,9 @@ def _frame(msg, seq: int, sysid: int = 255, compid: int = 190) -> bytes:
 # ---------------------------------------------------------------------- the mission over a bad link
 
 
-@pytest.mark.timeout(150)
+# bounded, not timed: the watch of the final RTL flies ~500 simulated s more, which a loaded
+# 2-core machine takes well over the 150 s this test had (45 s on an idle one)
+@pytest.mark.timeout(300)
 def test_ten_uav_mission_at_20_percent_loss_and_100ms_jitter_has_no_violations(tmp_path: Path):
     scenario = load_scenario("paper-10uav")
     daemon = MissionDaemon(
@@ -83,6 +89,43 @@ def test_ten_uav_mission_at_20_percent_loss_and_100ms_jitter_has_no_violations(t
     # the simulator saw the duplicates and dropped them; no engagement was lost or doubled
     assert summary["duplicates"] > 0
     assert result["engaged_count"] == len(scenario.targets) - summary["targets_left"]
+
+
+@pytest.mark.timeout(200)
+def test_the_fence_gets_through_a_link_losing_30_percent_each_way():
+    """Finding 10: at 30 % loss the fence upload restarted the whole exchange at every stall
+    and gave up after 20 s in 2 of 3 runs. Three uploads in a row to ten vehicles must all
+    complete, each vehicle storing every circle."""
+    scenario = load_scenario("paper-10uav")
+    ids = list(range(1, scenario.uav_count + 1))
+    link = SwarmLink.open(["udpin:127.0.0.1:0"], accept_system_id=lambda s: s in ids)
+    profile = FaultProfile(loss=0.3, jitter_s=0.05)
+    relay = FaultRelay(link.endpoints[0].port, scenario.uav_count, profile, seed=10)
+    relay.start()
+    sim = start_swarmplan(
+        ["sim", "--scenario", "paper-10uav", "--boot-s", "0", "--speedup", "1",
+         "--per-vehicle-ports", str(relay.base_port), "--quiet"],
+        Path(os.devnull),
+    )  # fmt: skip
+    lat, lon = local_km_to_geodetic(
+        [t.x_km for t in scenario.threats], [t.y_km for t in scenario.threats], scenario.origin
+    )
+    circles = [
+        FenceCircle(float(la), float(lo), t.radius_km * 1e3)
+        for la, lo, t in zip(lat, lon, scenario.threats, strict=True)
+    ]
+    try:
+        wait_for_vehicles(link, ids, 60)
+        vehicles = [link.vehicles[i] for i in ids]
+        for _ in range(3):
+            upload_fence(link, vehicles, circles)
+        fence = ml.MAV_MISSION_TYPE_FENCE
+        assert all(v.mission_ack == (ml.MAV_MISSION_ACCEPTED, fence) for v in vehicles)
+    finally:
+        stop(sim)
+        relay.stop()
+        link.close()
+    assert 0.25 < relay.counters.dropped / relay.counters.received < 0.35
 
 
 # ---------------------------------------------------------------------- engagements happen once

@@ -13,6 +13,7 @@ os.environ.setdefault("MAVLINK20", "1")
 import json  # noqa: E402
 import socket  # noqa: E402
 import threading  # noqa: E402
+import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -161,3 +162,58 @@ def test_a_position_with_time_boot_ms_0xffffffff_does_not_crash_the_daemon(tmp_p
     assert result["violations"] == NO_VIOLATIONS
     assert 50 < result["plausibility"]["second_address"] <= spoofer.sent
     assert summary is not None and summary["fence_breaches"] == 0
+
+
+
+@pytest.mark.timeout(200)
+def test_a_lockstep_daemon_whose_simulator_runs_free_says_so_and_decides_nothing(tmp_path: Path):
+    """Finding 4: after the ground station's silence the simulator released lockstep (running at
+    --speedup); a --lockstep daemon (there: resumed) then flew its decisions against a
+    free-running clock (20 turn violations, no late step). Here a ground station grants 5 s and
+    goes silent, the simulator releases lockstep after 1 s, and a --lockstep daemon starts: it
+    stops in one line, exit 2, before any decision step."""
+    port = free_udp_port()
+    sim_log, daemon_log = tmp_path / "sim.log", tmp_path / "daemon.log"
+    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gcs.bind(("127.0.0.1", port))
+    gcs.settimeout(60)
+    sim = start_swarmplan(
+        ["sim", "--scenario", "paper-2uav", "--seed", "2", "--lockstep", "--speedup", "20",
+         "--lockstep-timeout", "1", "--gcs-port", str(port)],
+        sim_log,
+    )  # fmt: skip
+    daemon = None
+    try:
+        _, vehicle = gcs.recvfrom(65535)  # the first vehicle to speak: grant it 5 s, then silence
+        gcs.sendto(pack(ml.MAVLink_system_time_message(0, 5000), 255, 190), vehicle)
+        gcs.close()
+        released = lambda: "lockstep released" in sim_log.read_text(errors="replace")  # noqa: E731
+        assert _wait_for(released, 60), sim_log.read_text(errors="replace")[-2000:]
+        daemon = start_swarmplan(
+            ["daemon", "--connect", f"udpin:127.0.0.1:{port}", "--scenario", "paper-2uav",
+             "--seed", "2", "--steps", "30", "--lockstep", "--timeout", "30",
+             "--out", str(tmp_path / "out"), "--json"],
+            daemon_log,
+            stdout_pipe=True,
+        )  # fmt: skip
+        stdout, _ = daemon.communicate(timeout=150)
+    finally:
+        gcs.close()
+        if daemon is not None:
+            stop(daemon)
+        stop(sim)
+    log = daemon_log.read_text(errors="replace")
+    assert "Traceback" not in log, log[-3000:]
+    assert daemon.returncode == 2, log[-3000:]
+    assert "is not in lockstep" in log, log[-3000:]
+    result = json.loads(stdout) if stdout.strip() else {"steps": 0}
+    assert result["steps"] == 0  # not one decision against the free-running clock
+
+
+def _wait_for(predicate: Callable[[], bool], timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.1)
+    return False
