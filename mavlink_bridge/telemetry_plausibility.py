@@ -19,8 +19,9 @@ authentic"):
    the vehicle type it registered with (``out_of_range``).
 4. **Time** (``time_boot_ms`` of GLOBAL_POSITION_INT): older than the newest believed one is a
    delayed or reordered frame (``stale_positions``); ahead of it by more than the vehicle's
-   clock can have run (lockstep: past the granted horizon; paced: ``time_scale`` x the wall
-   time since, x ``clock_slack``, + ``clock_slack_ms``) is ``time_jump``.
+   clock can have run (lockstep: past the granted horizon, even a first position; paced: the
+   wall time since x its clock rate, the declared ``time_scale`` or the rate measured over its
+   time base, x ``clock_slack``, + ``clock_slack_ms``) is ``time_jump``.
 5. **Speed**: a position farther from the last believed one than ``max_ground_speed_mps`` x
    the time between them (+ ``position_slack_m``) is ``too_fast``; a sensor look farther than
    that from the vehicle's believed position at its time likewise.
@@ -120,6 +121,8 @@ class VehicleTrust:
     vehicle_type: int | None = None
     bindings: dict[int, _Binding] = field(default_factory=dict)  # by component id
     fix: _Fix | None = None
+    #: the first believed position of the current time base (its clock rate is measured from it)
+    base: _Fix | None = None
     candidates: list[_Fix] = field(default_factory=list)
     #: lockstep: positions in a row stamped past the granted horizon
     past_grant: int = 0
@@ -221,14 +224,16 @@ class PlausibilityFilter:
         trust.past_grant = 0
         fix = trust.fix
         if fix is None:
-            trust.fix = new
+            trust.fix = trust.base = new
             return True
-        verdict = self._follows(fix, new, now_s)
+        verdict = self._follows(trust, fix, new, now_s)
         if verdict is None:
             trust.fix, trust.candidates = new, []
             return True
         # not the believed time base: a new one if it is the only one left (module docstring)
-        if trust.candidates and self._follows(trust.candidates[-1], new, now_s, rebase=True):
+        if trust.candidates and self._follows(
+            trust, trust.candidates[-1], new, now_s, rebase=True
+        ):
             trust.candidates = []
         trust.candidates.append(new)
         first = trust.candidates[0]
@@ -243,17 +248,20 @@ class PlausibilityFilter:
                 f"clock restarted (time {fix.time_ms / 1e3:.1f} s -> {new.time_ms / 1e3:.1f} s, "
                 f"a reboot or reset): following its new time base"
             )
-            trust.fix, trust.candidates = new, []
+            trust.fix = trust.base = new
+            trust.candidates = []
             return True
         return self._reject(verdict)
 
-    def _follows(self, old: _Fix, new: _Fix, now_s: float, rebase: bool = False) -> str | None:
+    def _follows(
+        self, trust: VehicleTrust, old: _Fix, new: _Fix, now_s: float, rebase: bool = False
+    ) -> str | None:
         """None if ``new`` can follow ``old`` on one vehicle clock; else the rule it breaks
         (with ``rebase``: any non-None result means the candidate chain breaks)."""
         dt_ms = new.time_ms - old.time_ms
         if dt_ms < 0:
             return "stale_positions"
-        if dt_ms > self._clock_allowance_ms(old, now_s) and not rebase:
+        if dt_ms > self._clock_allowance_ms(trust, old, now_s) and not rebase:
             return "time_jump"
         if not self._reachable(old, new.lat_deg, new.lon_deg, dt_ms):
             return "too_fast"
@@ -272,14 +280,24 @@ class PlausibilityFilter:
         trust = self.vehicles.get(sysid)
         return trust is not None and trust.past_grant >= self.limits.rebase_frames
 
-    def _clock_allowance_ms(self, old: _Fix, now_s: float) -> float:
+    def _clock_allowance_ms(self, trust: VehicleTrust, old: _Fix, now_s: float) -> float:
         """How far the vehicle's clock can have run since ``old`` was believed: in lockstep to
-        the granted horizon, else ``time_scale`` x the wall time since (with slack)."""
+        the granted horizon; else the wall time since x its clock rate (the declared
+        ``time_scale`` or, if faster, the rate measured over its time base: a SITL run at a
+        --speedup the daemon was not told of is not a spoofer), with slack. Before a rate could
+        be measured (``rebase_after_s`` of its time base) anything."""
         lim = self.limits
         if lim.lockstep and self.granted_ms is not None:
             return self.granted_ms - old.time_ms
+        base, fix = trust.base, trust.fix
+        if base is None or fix is None or fix.wall_s - base.wall_s < lim.rebase_after_s:
+            return math.inf
+        measured = (fix.time_ms - base.time_ms) / 1e3 / (fix.wall_s - base.wall_s)
         allowed = (
-            max(0.0, now_s - old.wall_s) * max(lim.time_scale, 1.0) * lim.clock_slack * 1e3
+            max(0.0, now_s - old.wall_s)
+            * max(lim.time_scale, measured, 1.0)
+            * lim.clock_slack
+            * 1e3
             + lim.clock_slack_ms
         )
         if self.granted_ms is not None:
@@ -307,7 +325,7 @@ class PlausibilityFilter:
         dt_ms = int(msg.time_boot_ms) - fix.time_ms
         if dt_ms < -self.limits.oldest_look_ms:
             return self._reject("stale_positions")  # a replay of a look long past
-        if dt_ms > self._clock_allowance_ms(fix, now_s):
+        if dt_ms > self._clock_allowance_ms(trust, fix, now_s):
             return self._reject("time_jump")
         if not self._reachable(fix, msg.lat * 1e-7, msg.lon * 1e-7, dt_ms):
             return self._reject("too_fast")
