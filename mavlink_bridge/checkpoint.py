@@ -2,13 +2,18 @@
 after every decision step, so a daemon killed mid-mission (``kill -9``, a crash, a power cut)
 can be started again with ``--resume`` and carry on from the last step it finished.
 
-File format (version 1): a 64-byte header, then a pickle (protocol 5) of a :class:`Checkpoint`.
+File format (version 2): a 64-byte header, then a pickle (protocol 5) of a :class:`Checkpoint`.
 
 * header: ``MAGIC`` (16 bytes), format version (uint32), payload length (uint64), the SHA-256
   of the payload (32 bytes), 4 reserved bytes; all little-endian.
-* payload: the planner object as it is (``HapfAcoPlanner``: TPMs, pheromone maps, coverage,
-  tracks, its random generator...), the recorder, and the loop variables of
-  ``MissionDaemon._decision_loop`` named in :data:`LOOP_STATE`.
+* payload: the planner object (``HapfAcoPlanner``: TPMs, pheromone maps, coverage, tracks, its
+  random generator...) without what the scenario alone determines (:data:`DERIVED`: the safety
+  models it caches, the TPM diffusion's stencil and scratch buffers, half the bytes, taken
+  from the planner the resumed daemon builds), the recorder, and the loop variables of
+  ``MissionDaemon._decision_loop`` named in :data:`LOOP_STATE`. A 10-UAV checkpoint is about
+  5 MB (10-15 MB before: issue 12, finding 9). Not compressed: zlib at its fastest level takes
+  it to 1.4 MB but costs ~0.5 s a step on this machine, a whole decision period at 20x; the
+  TPMs, most of it, change everywhere at every step, so a delta would not be smaller.
 
 Writing: into ``PATH.tmp`` in the same folder, flushed and fsync'ed, then ``os.replace`` over
 ``PATH`` (atomic on POSIX and Windows), then the folder is fsync'ed: a reader sees the previous
@@ -24,6 +29,7 @@ saying what is wrong and what to do.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import io
 import os
@@ -37,7 +43,10 @@ from planner.errors import UserError
 from planner.scenario import Scenario
 
 MAGIC = b"SWARMPLAN-CKPT\x00\x01"
-VERSION = 1
+VERSION = 2
+#: planner attributes (``owner.attribute`` paths from the planner) determined by the scenario
+#: alone: not written; a resumed daemon takes them from the planner it builds for the mission
+DERIVED = ("_safety", "tpm.stencil", "tpm.work", "tpm.wiener_work")
 _HEADER = struct.Struct("<16sIQ32s4x")  # 64 bytes
 
 #: The decision loop's variables a checkpoint holds (see MissionDaemon._decision_loop).
@@ -153,7 +162,8 @@ class CheckpointWriter:
         if missing:
             raise ValueError(f"checkpoint of step {step} lacks {', '.join(missing)}")
         state = {name: getattr(daemon, name) for name in DAEMON_STATE}
-        checkpoint = Checkpoint(self.fingerprint, step, dict(loop), state, wall_time_s, time.time())
+        loop = dict(loop, planner=without_derived(loop["planner"]))
+        checkpoint = Checkpoint(self.fingerprint, step, loop, state, wall_time_s, time.time())
         self.bytes = write_checkpoint(self.path, checkpoint)
         self.writes += 1
 
@@ -282,6 +292,42 @@ def load_for_mission(path: str | Path, fingerprint: str, planner_cls: type) -> C
     return checkpoint
 
 
+def _split(path: str) -> tuple[list[str], str]:
+    *owners, name = path.split(".")
+    return owners, name
+
+
+def without_derived(planner: Any) -> Any:
+    """A shallow copy of ``planner`` whose :data:`DERIVED` attributes are None (the live planner
+    and its parts are untouched: every object on a path to one is copied, nothing else)."""
+    lean = copy.copy(planner)
+    for path in DERIVED:
+        owners, name = _split(path)
+        obj = lean
+        for owner in owners:
+            if not hasattr(obj, owner):
+                break
+            part = copy.copy(getattr(obj, owner))
+            setattr(obj, owner, part)
+            obj = part
+        else:
+            if hasattr(obj, name):
+                setattr(obj, name, None)
+    return lean
+
+
+def with_derived(restored: Any, fresh: Any) -> None:
+    """Put the :data:`DERIVED` attributes of ``fresh`` (built for this mission) into
+    ``restored``."""
+    for path in DERIVED:
+        owners, name = _split(path)
+        src, dst = fresh, restored
+        for owner in owners:
+            src, dst = getattr(src, owner, None), getattr(dst, owner, None)
+        if hasattr(src, name) and dst is not None:
+            setattr(dst, name, getattr(src, name))
+
+
 def restore_daemon_state(daemon: Any, checkpoint: Checkpoint) -> dict[str, Any]:
     """Put the daemon's counters back; returns the loop variables (by LOOP_STATE name)."""
     for name in DAEMON_STATE:
@@ -306,6 +352,7 @@ def resume_loop_state(daemon: Any, checkpoint: Checkpoint, fresh_planner: Any) -
     ``fresh_planner`` is the planner this code builds for the mission: the restored one must
     have the same layout (a checkpoint of another planner version is refused)."""
     check_planner_layout(checkpoint.loop["planner"], fresh_planner, daemon.options.checkpoint_path)
+    with_derived(checkpoint.loop["planner"], fresh_planner)
     break_measured_legs(checkpoint.loop["recorder"])
     daemon.say(
         f"resuming from the checkpoint of step {checkpoint.step} ({daemon.options.checkpoint_path})"

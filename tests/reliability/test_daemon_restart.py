@@ -22,6 +22,7 @@ from reliability_harness import KEY_HEX, last_json
 
 from mavlink_bridge.checkpoint import (
     MAGIC,
+    VERSION,
     Checkpoint,
     CheckpointError,
     CheckpointWriter,
@@ -194,7 +195,9 @@ def test_a_crafted_checkpoint_cannot_run_code(tmp_path: Path):
             return (os.system, ("echo pwned > " + str(tmp_path / "pwned"),))
 
     payload = pickle.dumps(Checkpoint("fp", 1, {"x": Evil()}, {}), protocol=5)
-    header = struct.pack("<16sIQ32s4x", MAGIC, 1, len(payload), hashlib.sha256(payload).digest())
+    header = struct.pack(
+        "<16sIQ32s4x", MAGIC, VERSION, len(payload), hashlib.sha256(payload).digest()
+    )
     path = tmp_path / "evil.ckpt"
     path.write_bytes(header + payload)
     with pytest.raises(CheckpointError, match="not part of a checkpoint"):
@@ -220,3 +223,51 @@ def test_daemon_cli_resume_errors_are_one_line_exit_2(tmp_path: Path):
         assert proc.returncode == 2, (extra, proc.stderr)
         assert message in proc.stderr and "Traceback" not in proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def test_a_checkpoint_holds_only_the_planners_own_state_and_resumes_the_same_decisions(
+    tmp_path: Path,
+):
+    """Finding 9: a 10-UAV checkpoint was 12.6-23 MB, fsync'ed every step (the planner's cached
+    safety models and the TPM's stencil and scratch buffers, which the scenario alone
+    determines, were half of it). Written without them and compressed, it is a few MB, and a
+    planner resumed from it (those parts taken from a freshly built one) decides exactly as the
+    one that kept flying."""
+    from mavlink_bridge.checkpoint import LOOP_STATE, check_planner_layout, with_derived
+    from planner.grid import Grid
+    from planner.hapf_aco import HapfAcoPlanner
+    from planner.scenario import load_scenario
+
+    scenario = load_scenario("paper-10uav")
+    cfg, starts = scenario.config, scenario.starts_for_seed(3)
+    grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
+    n = len(starts)
+    cells = grid.cell_of(np.array([[s.x_km, s.y_km] for s in starts], float))
+    headings = np.array([int(round(s.heading_deg / 45.0)) % 8 for s in starts])
+
+    def fly(planner: HapfAcoPlanner, cells: np.ndarray, headings: np.ndarray, steps: int):
+        decisions = []
+        for _ in range(steps):
+            d = planner.step(cells.copy(), headings.copy(), [None] * n, [None] * n)
+            cells, headings = np.asarray(d.next_cells), np.asarray(d.next_headings)
+            decisions.append((cells.copy(), headings.copy(), np.asarray(d.engage).copy()))
+        return cells, headings, decisions
+
+    planner = HapfAcoPlanner(scenario, starts, 3)
+    cells, headings, _ = fly(planner, cells, headings, 6)
+    path = tmp_path / "c.ckpt"
+    state = dict.fromkeys(LOOP_STATE, None)
+    state["planner"] = planner
+    CheckpointWriter(path, "fp").save(6, _Daemon(), state, 1.0)
+    size = path.stat().st_size
+    assert size < 6_500_000, size
+    assert planner._safety  # the live planner keeps its caches
+
+    fresh = HapfAcoPlanner(scenario, starts, 3)
+    resumed = read_checkpoint(path).loop["planner"]
+    check_planner_layout(resumed, fresh, path)
+    with_derived(resumed, fresh)  # as resume_loop_state does
+    _, _, kept = fly(planner, cells, headings, 4)
+    _, _, again = fly(resumed, cells, headings, 4)
+    for a, b in zip(kept, again, strict=True):
+        assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))

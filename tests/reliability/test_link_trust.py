@@ -21,6 +21,11 @@ import pytest  # noqa: E402
 from loopback import env, free_udp_port, start_swarmplan, stop  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
 from reliability_harness import KEY_HEX, last_json  # noqa: E402
+from udp_fault_relay import FaultProfile, FaultRelay  # noqa: E402
+
+from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
+from planner.geodesy import local_km_to_geodetic  # noqa: E402
+from planner.scenario import load_scenario  # noqa: E402
 
 SCENARIO = "paper-10uav"
 STEPS = 8
@@ -217,3 +222,80 @@ def _wait_for(predicate: Callable[[], bool], timeout_s: float) -> bool:
             return True
         time.sleep(0.1)
     return False
+
+
+@pytest.mark.timeout(200)
+def test_spoofed_and_replayed_positions_from_the_vehicles_own_address_are_not_believed(
+    tmp_path: Path,
+):
+    """Finding 7: without signing, spoofed and replayed vehicle frames were believed (results
+    falsified: threat 11, turn 58, range 31 in one run). Here the spoofer sits on the path (the
+    fault relay's socket of each vehicle, so its frames come from the vehicle's own address) and
+    sends, as vehicles 1-3, positions inside a threat stamped just after their latest time,
+    replays of their first positions, and a clock near 0xFFFFFFFF: none is believed, each is
+    counted by its rule, and the mission's account stays what the simulator itself measured."""
+    scenario = load_scenario(SCENARIO)
+    daemon = MissionDaemon(
+        scenario,
+        DaemonOptions(
+            connect=["udpin:127.0.0.1:0"], seed=5, steps=STEPS, lockstep=True,
+            discovery_timeout_s=60, rtl_watch_s=0.0,
+        ),
+    )  # fmt: skip
+    link = daemon.connect()
+    relay = FaultRelay(link.endpoints[0].port, scenario.uav_count, FaultProfile(), seed=5)
+    relay.start()
+    threat = scenario.threats[0]
+    lat, lon = local_km_to_geodetic([threat.x_km], [threat.y_km], scenario.origin)
+    inside = (round(float(lat[0]) * 1e7), round(float(lon[0]) * 1e7))
+    first_seen: dict[int, tuple[int, int, int]] = {}
+
+    def spoof(k: int) -> None:
+        sysid = 1 + k % 3
+        v = link.vehicles.get(sysid)
+        if v is None or not v.has_position:
+            return
+        here = (v.time_boot_ms, round(v.lat_deg * 1e7), round(v.lon_deg * 1e7))
+        first_seen.setdefault(sysid, here)
+        kind = k // 3 % 3
+        if kind == 0:  # teleported into the threat at the instant of its latest report
+            when, (la, lo) = v.time_boot_ms, inside
+        elif kind == 1:  # a replay of its first report
+            when, la, lo = first_seen[sysid]
+        else:  # its clock near the end of uint32: what a lockstep grant would echo
+            when, la, lo = 0xFFFFFFF0, here[1], here[2]
+        pos = ml.MAVLink_global_position_int_message(when, la, lo, 500000, 500000, 0, 0, 0, 9000)
+        relay.socks[sysid - 1].sendto(pack(pos, sysid, 1, k), relay.daemon_addr)
+
+    stop_spoofing = threading.Event()
+
+    def spoofer() -> None:
+        k = 0
+        while not stop_spoofing.wait(0.01):
+            spoof(k)
+            k += 1
+
+    sim_log = tmp_path / "sim.log"
+    sim = start_swarmplan(
+        ["sim", "--scenario", SCENARIO, "--seed", "5", "--lockstep", "--speedup", "100",
+         "--per-vehicle-ports", str(relay.base_port), "--quiet"],
+        sim_log,
+    )  # fmt: skip
+    thread = threading.Thread(target=spoofer, daemon=True)
+    thread.start()
+    try:
+        result = daemon.fly().result
+    finally:
+        stop_spoofing.set()
+        thread.join(5)
+        stop(sim)
+        relay.stop()
+    summary = last_json(sim_log)
+    trust = result["plausibility"]
+    assert result["steps"] == STEPS and result["lost_uavs"] == []
+    assert result["violations"] == NO_VIOLATIONS
+    assert trust["too_fast"] > 20 and trust["stale_positions"] > 20, trust
+    assert trust["time_jump"] > 20 and trust["clock_rebases"] == 0, trust
+    mission = result["track_audit"]["phases"]["mission"]
+    assert mission["threat_entries"] == 0
+    assert summary is not None and summary["safety"]["by_mode"]["guided"]["threat_entries"] == 0
