@@ -58,7 +58,7 @@ from mavlink_bridge.keeping_up import (
     measure_step_wall_s,
     refuse_unkeepable_time_scale,
 )
-from mavlink_bridge.lockstep_clock import LockstepClock
+from mavlink_bridge.lockstep_clock import LockstepClock, SwarmPauses
 from mavlink_bridge.mission_launch import LaunchPhase, launch_phases, run_launch
 from mavlink_bridge.mission_result import (
     ALGORITHM,
@@ -295,6 +295,7 @@ class MissionDaemon:
             options.lost_after_s,
             in_mission=lambda: self.phase == "decisions",
             say=self.say,
+            pauses=SwarmPauses() if options.lockstep else None,
         )
 
     # ------------------------------------------------------------------ the daemon's counters

@@ -21,6 +21,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from mavlink_bridge.lockstep_clock import SwarmPauses
 from mavlink_bridge.mission_result import LinkEvent, MissionAccount
 from mavlink_bridge.protocol import PLANE_MODE_GUIDED, mode_name
 from mavlink_bridge.vehicle_state import VehicleState
@@ -44,6 +45,9 @@ class LossWatch:
     in_mission: Callable[[], bool]
     say: Callable[[str], None] = lambda text: None
     reasons: dict[int, str] = field(default_factory=dict)  # UAV -> why it is lost now
+    #: lockstep: whole-swarm silences (the simulator or the machine paused, simulated time stood
+    #: still), which count as no one's silence
+    pauses: SwarmPauses | None = None
     #: UAV -> its heartbeat count when first seen disarmed / out of GUIDED
     _off_since: dict[int, int] = field(default_factory=dict)
 
@@ -72,8 +76,12 @@ class LossWatch:
         """Mark who is lost and who rejoined at ``step`` (called at every pump)."""
         now = time.monotonic() if now is None else now
         back_within_s = min(1.0, self.lost_after_s / 2)
-        for i, v in enumerate(self.vehicles()):
-            why = self.reason(i, v, now)
+        vehicles = self.vehicles()
+        if self.pauses is not None and vehicles:
+            self.pauses.note(now, max(v.last_heard_s for v in vehicles))
+        for i, v in enumerate(vehicles):
+            paused = 0.0 if self.pauses is None else self.pauses.within(v.last_heard_s, now)
+            why = self.reason(i, v, now - paused)
             if not v.lost and why is not None:
                 v.lost = True
                 self.reasons[i] = why

@@ -10,7 +10,9 @@ import os
 
 os.environ.setdefault("MAVLINK20", "1")
 
+import contextlib  # noqa: E402
 import json  # noqa: E402
+import signal  # noqa: E402
 import socket  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
@@ -299,3 +301,48 @@ def test_spoofed_and_replayed_positions_from_the_vehicles_own_address_are_not_be
     mission = result["track_audit"]["phases"]["mission"]
     assert mission["threat_entries"] == 0
     assert summary is not None and summary["safety"]["by_mode"]["guided"]["threat_entries"] == 0
+
+
+@pytest.mark.timeout(200)
+def test_a_lockstep_simulator_paused_longer_than_lost_after_loses_no_vehicle(tmp_path: Path):
+    """Under load (the project's CI on 2 cores) the whole simulator can stall for seconds. In
+    lockstep its time stands still meanwhile, yet the daemon counted wall-clock silence: every
+    vehicle was marked lost at once (seen: all 10 'silent' at step 6), and the mission flew on
+    without them. Here the simulator is SIGSTOPped for 4 s (lost_after_s 3) mid-mission: no
+    vehicle is lost and every UAV flies every step."""
+    scenario = load_scenario(SCENARIO)
+    sim_holder: list = []
+
+    def pause_at_step(status) -> None:
+        if status.step == 3:
+
+            def pause() -> None:
+                os.kill(sim_holder[0].pid, signal.SIGSTOP)
+                time.sleep(4.0)
+                os.kill(sim_holder[0].pid, signal.SIGCONT)
+
+            threading.Thread(target=pause, daemon=True).start()
+
+    daemon = MissionDaemon(
+        scenario,
+        DaemonOptions(
+            connect=["udpin:127.0.0.1:0"], seed=6, steps=STEPS, lockstep=True,
+            lost_after_s=3.0, discovery_timeout_s=60, rtl_watch_s=0.0, on_step=pause_at_step,
+        ),
+    )  # fmt: skip
+    link = daemon.connect()
+    sim = start_swarmplan(
+        ["sim", "--scenario", SCENARIO, "--seed", "6", "--lockstep", "--speedup", "100",
+         "--gcs-port", str(link.endpoints[0].port), "--quiet"],
+        tmp_path / "sim.log",
+    )  # fmt: skip
+    sim_holder.append(sim)
+    try:
+        result = daemon.fly().result
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(sim.pid, signal.SIGCONT)
+        stop(sim)
+    assert result["steps"] == STEPS
+    assert result["lost_uavs"] == [], result["link_events"]
+    assert all(len(u["track_km"]) == STEPS + 1 for u in result["uavs"])
