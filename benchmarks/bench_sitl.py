@@ -1,10 +1,11 @@
 """Fly ArduPlane SITL planes with the payload simulator over a whole mission and print its numbers.
 
 Needs ``ARDUPLANE_SITL`` (the binary; ../shared/sitl/arduplane here). Example, the issue-11
-figures of docs/sitl.md (5 planes at 10x over arduplane-3uav's 40 steps; ~8 min wall)::
+figures of docs/sitl.md (5 planes over arduplane-3uav's 40 steps; at 5x ~10 min wall; the
+daemon refuses a speedup the machine cannot keep, and says which one it can)::
 
     ARDUPLANE_SITL=../shared/sitl/arduplane nice -n 10 python benchmarks/bench_sitl.py \\
-        --planes 5 --speedup 10
+        --planes 5 --speedup 5
 
 Prints one line per number: time to ready, coverage, engaged, violations, minimum separation
 (from the telemetry at the decision steps), distance from the planned cell centre at the next
