@@ -33,6 +33,9 @@ class MoveOptions:
     slack_km: np.ndarray  # (N, C) range slack after the move (inf when L_max is)
     time_slack: np.ndarray  # (N, C) decision steps to spare to be home by the last step (or inf)
     feasible: np.ndarray  # (N, C) bool: allowed and in range (safety only if range cannot be kept)
+    #: (N, C) bool: allowed and in range, the time slack aside (``home_by_end`` is a goal that
+    #: gives way to separation: a late move home beats two UAVs in one cell)
+    safe: np.ndarray
     freedom: np.ndarray  # (N, C) int: allowed moves after this one (``SafetyModel.freedom``)
 
 
@@ -85,11 +88,13 @@ def feasible_moves(
         time_slack = np.where(
             np.isfinite(home_km), steps_left - cfg.home_reserve_steps - hops, -np.inf
         )
-    feasible = allowed & (slack >= 0) & (time_slack >= 0)
+    safe = allowed & (slack >= 0)
     # If range cannot be kept (only when the start is boxed in), keep safety only.
-    feasible = np.where(feasible.any(axis=1, keepdims=True), feasible, allowed)
+    safe = np.where(safe.any(axis=1, keepdims=True), safe, allowed)
+    feasible = safe & (time_slack >= 0)
+    feasible = np.where(feasible.any(axis=1, keepdims=True), feasible, safe)  # late: still safe
     return MoveOptions(
-        cand, cand_head, moves, step_km, home_km, slack, time_slack, feasible, freedom
+        cand, cand_head, moves, step_km, home_km, slack, time_slack, feasible, safe, freedom
     )
 
 

@@ -521,16 +521,21 @@ class HapfAcoPlanner:
         """C_c: the chosen candidate of every UAV (``claim_cells``), with one step of foresight:
         when another UAV is within two closing steps, a move into a state with a single way on
         (``MoveOptions.freedom`` 1, e.g. between a threat and the area's edge) comes after every
-        other allowed move, so two UAVs are not left one cell with no separated pair of moves."""
+        other allowed move, so two UAVs are not left one cell with no separated pair of moves.
+        Separation comes before ``home_by_end``: when no move that keeps the time slack is
+        separated, a safe move that spends it is taken (paper-10uav seed 4 met two UAVs in one
+        cell at step 239 without this)."""
         cfg, n = self.cfg, self.n
         gaps = distances + np.diag(np.full(n, np.inf))
         crowded = (gaps <= cfg.separation_sense_km + 2 * np.sqrt(2) * cfg.cell_km).any(axis=1)
         rows = np.arange(n)[:, None]
         cornered = (opts.freedom[rows, ranked] <= 1) & crowded[:, None]
-        last = cornered.astype(np.int64) + 2 * ~opts.feasible[rows, ranked]  # forbidden moves last
+        # forbidden moves last; before them, safe moves that spend the time slack (home_by_end)
+        late = ~opts.feasible[rows, ranked]
+        last = cornered.astype(np.int64) + 2 * late + 2 * ~opts.safe[rows, ranked]
         ranked = np.take_along_axis(ranked, np.argsort(last, axis=1, kind="stable"), axis=1)
         return claim_cells(
-            ranked, opts.cells, opts.feasible, positions, flying, cfg.cell_km,
+            ranked, opts.cells, opts.safe, positions, flying, cfg.cell_km,
             cfg.min_separation_km, cfg.separation_sense_km,
         )  # fmt: skip
 

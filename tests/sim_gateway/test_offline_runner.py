@@ -8,7 +8,7 @@ from sim_gateway.world import World
 
 
 @pytest.mark.parametrize(
-    ("name", "seeds", "steps"), [("paper-2uav", [1, 2], 250), ("paper-10uav", [1, 2, 3], 250)]
+    ("name", "seeds", "steps"), [("paper-2uav", [1, 2], 250), ("paper-10uav", [1, 2, 3, 4], 250)]
 )
 def test_paper_scenarios_fly_without_any_violation(name, seeds, steps):
     scenario = load_scenario(name)
