@@ -62,7 +62,7 @@ def upload_fence(
     link: SwarmLink,
     vehicles: list[VehicleState],
     circles: list[FenceCircle],
-    stall_timeout_s: float = 10.0,
+    stall_timeout_s: float = 20.0,
     retry_interval_s: float = 0.5,
 ) -> None:
     """Upload the same exclusion circles to every vehicle; raises MissionUploadError naming the

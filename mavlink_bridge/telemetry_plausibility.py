@@ -47,6 +47,8 @@ from mavlink_bridge.protocol import mavlink
 #: the largest MAV_STATE (system_status) and MAV_RESULT values a vehicle can send
 _MAX_MAV_STATE = mavlink.MAV_STATE_FLIGHT_TERMINATION
 _EARTH_RADIUS_M = 6_371_000.0
+#: the clock rate assumed before one could be measured (a SITL's --speedup is rarely above)
+UNMEASURED_RATE = 1000.0
 
 
 @dataclass(frozen=True)
@@ -285,14 +287,15 @@ class PlausibilityFilter:
         the granted horizon; else the wall time since x its clock rate (the declared
         ``time_scale`` or, if faster, the rate measured over its time base: a SITL run at a
         --speedup the daemon was not told of is not a spoofer), with slack. Before a rate could
-        be measured (``rebase_after_s`` of its time base) anything."""
+        be measured (``rebase_after_s`` of its time base) ``UNMEASURED_RATE``."""
         lim = self.limits
         if lim.lockstep and self.granted_ms is not None:
             return self.granted_ms - old.time_ms
         base, fix = trust.base, trust.fix
         if base is None or fix is None or fix.wall_s - base.wall_s < lim.rebase_after_s:
-            return math.inf
-        measured = (fix.time_ms - base.time_ms) / 1e3 / (fix.wall_s - base.wall_s)
+            measured = UNMEASURED_RATE  # its first second: any speedup a simulator runs at
+        else:
+            measured = (fix.time_ms - base.time_ms) / 1e3 / (fix.wall_s - base.wall_s)
         allowed = (
             max(0.0, now_s - old.wall_s)
             * max(lim.time_scale, measured, 1.0)
