@@ -238,17 +238,7 @@ class MissionDaemon:
             if options.prediction_horizon_steps > 0
             else None
         )
-        #: the way home around threats (RTL flies straight), and each vehicle's waypoint on it
-        self.home_routes = HomeRoutes(
-            self.grid,
-            self.envelope.threat_xy_km,
-            self.envelope.threat_radius_km,
-            self.plane,
-            margin_km=options.threat_margin_km,
-            # the turn onto the way home with the full margin: the plane may fly faster (leg
-            # timing) and turn wider than the model (0.25 km let an RTL 0.19 km into a threat)
-            turn_margin_km=options.threat_margin_km,
-        )
+        self._home_routes: HomeRoutes | None = None  # the way home around threats
         self.homing: dict[int, np.ndarray] = {}
         self.detoured: set[int] = set()  # every vehicle that was guided around threats home
         self._target_values = {t.id: float(t.value) for t in scenario.targets}
@@ -404,6 +394,25 @@ class MissionDaemon:
             self.flight_envelope = replace(
                 self.flight_envelope, model=self.plane, cells=self.envelope
             )
+
+    @property
+    def home_routes(self) -> HomeRoutes:
+        """The way home around threats (RTL flies straight) for the plane model and threat
+        margin in force (both set from the airframe at launch); the turn onto it with the full
+        margin: a plane may fly faster (leg timing) and turn wider than the model (0.25 km let
+        an RTL 0.19 km into a threat)."""
+        env, routes = self.envelope, self._home_routes
+        if (
+            routes is None
+            or routes.plane is not self.plane
+            or routes.margin_km != (env.threat_margin_km)
+        ):
+            routes = HomeRoutes(
+                self.grid, env.threat_xy_km, env.threat_radius_km, self.plane,
+                margin_km=env.threat_margin_km, turn_margin_km=env.threat_margin_km,
+            )  # fmt: skip
+            self._home_routes = routes
+        return routes
 
     # ------------------------------------------------------------------ link and clock
 

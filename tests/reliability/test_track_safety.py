@@ -75,7 +75,7 @@ radius_km = 3.0
 #: one plane sent for a known target on the far side of a threat from its home
 BEHIND_THREAT = """
 name = "behind-threat"
-steps = 40
+steps = 24
 altitude_m = 500
 [parameters]
 grid_nx = 20
