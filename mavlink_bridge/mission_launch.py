@@ -90,7 +90,11 @@ def failsafe(daemon: MissionDaemon) -> None:
 def airframe(daemon: MissionDaemon) -> None:
     """Each vehicle's flight limits (``airframe.read_airframes``): the plane model of the flight
     prediction and leg timing follows them; a scenario the airframes cannot fly is said now."""
-    frames = read_airframes(daemon.vehicles(), daemon.scenario.config, daemon.wait_sim)
+    # the answers are waited for on the wall clock, never by granting a lockstep simulator time:
+    # how long they take must not change when the vehicles arm (a seed flies one mission)
+    frames = read_airframes(
+        daemon.vehicles(), daemon.scenario.config, daemon.require_link().pump_until
+    )
     daemon.use_airframes(frames)
     for frame in frames:
         daemon.say(f"airframe {frame.describe()}")

@@ -578,11 +578,17 @@ class Simulator:
         return gate.locked
 
     def send_hold_marker(self) -> None:
-        """Lockstep hold: every vehicle sends HEARTBEAT then GLOBAL_POSITION_INT at the held
-        time, after anything it sent for this instant (the sensor look of a decision boundary)."""
+        """Lockstep hold: every vehicle sends its state at the held time, after anything it
+        sent for this instant (the sensor look of a decision boundary): SYS_STATUS and
+        GPS_RAW_INT (what a ground station's arming readiness reads), HEARTBEAT, then
+        GLOBAL_POSITION_INT. The state a ground station acts on at a hold is then that of the
+        held instant whatever the wall clock did: without the first two, whether a pre-arm
+        verdict that changed at the horizon was in before the next grant depended on the
+        once-a-second telemetry's wall timing, and the same seed armed 10-30 s apart."""
         snapshot = self.snapshot()
         for v in self.vehicles:
-            v.send(BUILDERS["HEARTBEAT"](v, snapshot))
+            for name in ("SYS_STATUS", "GPS_RAW_INT", "HEARTBEAT"):
+                v.send(BUILDERS[name](v, snapshot))
             v.send(BUILDERS["GLOBAL_POSITION_INT"](v, snapshot))
 
     def close(self) -> None:

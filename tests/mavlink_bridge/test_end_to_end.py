@@ -4,9 +4,11 @@ daemon, on a short 10-UAV mission; and a vehicle whose link is cut mid-mission b
 from __future__ import annotations
 
 import json
+import re
 import socket
 import subprocess
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +55,33 @@ def test_lockstep_demo_gives_the_same_result_for_a_seed(tmp_path):
         k: v for k, v in b.items() if k not in volatile
     }
     assert a["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
+
+
+ARMED_AT = re.compile(r"armed \d+ vehicles after [\d.]+ s \(vehicle clocks ([\d.]+)\.\.([\d.]+) s")
+
+
+@pytest.mark.timeout(120)
+def test_lockstep_launch_arms_at_one_simulated_instant_under_load(tmp_path):
+    """Three lockstep demos of one seed at once (a loaded machine): each arms its vehicles at
+    the same instant of their clocks, the end of the simulator's boot phase (20 s; the pre-arm
+    verdict of the held instant is sent with the hold marker). Before, whether the verdict that
+    changed at a horizon was in before the next grant depended on the wall clock: 120-180 s."""
+    with ThreadPoolExecutor(3) as pool:
+        runs = list(pool.map(
+            lambda name: run_swarmplan(
+                ["demo", "paper-10uav", "--seed", "4", "--steps", "2", "--no-view",
+                 "--out", str(tmp_path / name)],
+                100,
+            ),
+            ["a", "b", "c"],
+        ))  # fmt: skip
+    clocks = []
+    for proc in runs:
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        found = ARMED_AT.search(proc.stderr)
+        assert found, proc.stderr[-2000:]
+        clocks.append((float(found.group(1)), float(found.group(2))))
+    assert clocks == [(20.0, 20.0)] * 3, clocks
 
 
 @pytest.mark.timeout(120)
