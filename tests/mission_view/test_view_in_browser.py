@@ -16,6 +16,8 @@ from browser import (
 from loopback import start_swarmplan, stop
 
 STEPS = 30
+# the replay test views the live test's demo: both on one worker of pytest-xdist, in order
+pytestmark = pytest.mark.xdist_group("browser")
 
 
 @pytest.fixture(scope="module")

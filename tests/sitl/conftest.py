@@ -40,3 +40,13 @@ def sitl_swarm(sitl_binary: Path, tmp_path: Path) -> Iterator:
     yield make
     for swarm in started:
         swarm.stop()
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Under pytest-xdist (the suite's ``-n 2``), the SITL tests run one after another on one
+    worker: each starts several ArduPlane instances, and two missions at once on a 2-core machine
+    would fly late."""
+    here = Path(__file__).parent
+    for item in items:
+        if here in Path(item.fspath).parents:
+            item.add_marker(pytest.mark.xdist_group("sitl"))
