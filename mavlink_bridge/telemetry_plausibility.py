@@ -120,6 +120,7 @@ class VehicleTrust:
     """The plausibility state of one vehicle: its bound addresses, its believed clock and
     position, and the candidate new time base."""
 
+    system_id: int = 0
     vehicle_type: int | None = None
     bindings: dict[int, _Binding] = field(default_factory=dict)  # by component id
     fix: _Fix | None = None
@@ -128,6 +129,23 @@ class VehicleTrust:
     candidates: list[_Fix] = field(default_factory=list)
     #: lockstep: positions in a row stamped past the granted horizon
     past_grant: int = 0
+
+
+def _rebase_notice(sysid: int, old: _Fix, new: _Fix) -> str:
+    """What a new time base of vehicle ``sysid`` means: a clock that went back restarted; one
+    that jumped ahead with its position (an autopilot whose position estimate settles after
+    boot: ArduPlane SITL's first reports) moved on faster than it can fly."""
+    times = f"time {old.time_ms / 1e3:.1f} s -> {new.time_ms / 1e3:.1f} s"
+    if new.time_ms < old.time_ms:
+        return (
+            f"vehicle {sysid}: clock restarted ({times}, a reboot or reset): "
+            "following its new time base"
+        )
+    km = ground_distance_m(old.lat_deg, old.lon_deg, new.lat_deg, new.lon_deg) / 1e3
+    return (
+        f"vehicle {sysid}: position jumped {km:.1f} km ({times}, faster than it can fly: "
+        f"a reset, or its position estimate settling): following its new reports"
+    )
 
 
 def ground_distance_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
@@ -160,7 +178,7 @@ class PlausibilityFilter:
     def admit_address(self, sysid: int, compid: int, where: tuple[int, Any], now_s: float) -> str:
         """``"bound"`` (the component's own address), ``"moved"`` (it moves here now) or
         ``"refused"`` (a second address: the frame is dropped)."""
-        trust = self.vehicles.setdefault(sysid, VehicleTrust())
+        trust = self._trust(sysid)
         binding = trust.bindings.get(compid)
         if binding is None:
             trust.bindings[compid] = _Binding(where, now_s)
@@ -184,11 +202,17 @@ class PlausibilityFilter:
         self.counts.second_address += 1
         return "refused"
 
+    def _trust(self, sysid: int) -> VehicleTrust:
+        trust = self.vehicles.get(sysid)
+        if trust is None:
+            trust = self.vehicles[sysid] = VehicleTrust(system_id=sysid)
+        return trust
+
     # ------------------------------------------------------------------ content
 
     def admit(self, sysid: int, msg: mavlink.MAVLink_message, now_s: float) -> bool:
         """True if ``msg`` (already from the vehicle's bound address) may change its state."""
-        trust = self.vehicles.setdefault(sysid, VehicleTrust())
+        trust = self._trust(sysid)
         check = _CHECKS.get(msg.get_type())
         return True if check is None else check(self, trust, msg, now_s)
 
@@ -246,10 +270,7 @@ class PlausibilityFilter:
             and not self._past_grant(new)
         ):
             self.counts.clock_rebases += 1
-            self.notices.append(
-                f"clock restarted (time {fix.time_ms / 1e3:.1f} s -> {new.time_ms / 1e3:.1f} s, "
-                f"a reboot or reset): following its new time base"
-            )
+            self.notices.append(_rebase_notice(trust.system_id, fix, first))
             trust.fix = trust.base = new
             trust.candidates = []
             return True

@@ -216,8 +216,15 @@ def test_stale_positions_are_dropped_and_a_reboot_is_followed():
     for k, t in enumerate((200, 300, 400, 500, 600)):
         hear(t, -35.002, 0.5 + 0.3 * k)
     assert (v.time_boot_ms, trust.counts.clock_rebases) == (600, 1)
+    assert trust.notices[-1].startswith("vehicle 1: clock restarted (time 7.0 s -> 0.2 s")
     hear(700, -35.002, 2.0)
     assert v.time_boot_ms == 700
+    # an autopilot whose position estimate settles after boot (ArduPlane SITL): its reports
+    # jump 4.4 km ahead at once; followed the same way, and said as what it is
+    for k, t in enumerate((10_000, 10_200, 10_400, 10_600, 10_800)):
+        hear(t, -34.962, 2.1 + 0.3 * k)
+    assert (v.lat_deg, trust.counts.clock_rebases) == (pytest.approx(-34.962), 2)
+    assert trust.notices[-1].startswith("vehicle 1: position jumped 4.4 km (time 0.7 s -> 10.0 s")
 
 
 def _look(index: int, url: str) -> ml.MAVLink_message:
