@@ -11,8 +11,9 @@ accepts a target only if
   result's threat count measures), keeps ``threat_margin_km`` clear of every threat circle;
 * so does the loiter circle around the target: a plane that gets no newer target circles
   there, so every accepted target leaves a safe way on (the "keep going" candidate below);
-* at every predicted second it stays ``min_separation_km + separation_margin_km`` from the
-  predicted path of every UAV already settled this step.
+* at every predicted second of the next ``separation_horizon_steps`` it stays
+  ``min_separation_km + separation_margin_km`` from the predicted path of every UAV already
+  settled this step (beyond the next decision every plane gets a new target).
 
 Paths are predicted from each plane's measured speed, at the airspeed it will be sent for the
 leg (``leg_timing``: the leg to the candidate's cell in one decision step, see
@@ -73,6 +74,12 @@ class FlightEnvelope:
     #: how far ahead paths are predicted, in decision steps (a horizon in seconds would not
     #: cover one step of a scenario with longer steps)
     horizon_steps: float = 3.0
+    #: the planes' paths are kept apart over this many decision steps of the prediction: at the
+    #: next decision every plane gets a new target, so the predicted circles around this step's
+    #: targets beyond it are not what will be flown. Judged over all three steps, two ArduPlane
+    #: SITL planes whose targets were a cell or two apart were held circling (a hold is a turn
+    #: of the whole circle): 9 holds and 2-3 turn breaks in 16 steps, 1 and 1 with 1.5 steps
+    separation_horizon_steps: float = 1.5
     threat_margin_km: float = 0.25
     separation_margin_km: float = 0.3
     leg_timing: bool = True  # airspeed per leg, so each leg takes one step (flight_prediction)
@@ -339,11 +346,12 @@ class FlightEnvelope:
             dense = np.minimum(dense, chords)
         return dense
 
-    @staticmethod
-    def _separation(path: np.ndarray, settled: list[np.ndarray]) -> float:
-        """Smallest distance (km) between ``path`` and any settled path at the same instant."""
+    def _separation(self, path: np.ndarray, settled: list[np.ndarray]) -> float:
+        """Smallest distance (km) between ``path`` and any settled path at the same instant,
+        over the first ``separation_horizon_steps`` decision steps."""
         if not settled:
             return float(np.inf)
-        others = np.stack(settled)  # (K, S + 1, 2)
-        d = np.hypot(*(others - path[None]).transpose(2, 0, 1))
+        upto = int(round(max(1.0, self.separation_horizon_steps) * self.step_s)) + 1
+        others = np.stack(settled)[:, :upto]  # (K, S + 1, 2)
+        d = np.hypot(*(others - path[None, :upto]).transpose(2, 0, 1))
         return float(d.min())

@@ -60,3 +60,42 @@ def test_a_step_longer_than_thirty_seconds_keeps_going_without_index_error(paper
     path = predict_paths(envelope.model, position, np.array([np.pi / 2]), behind, 50.0)[0]
     assert (choice.next_cells[0] == grid.cell_of(path[50])).all()
     assert envelope.horizon_s >= 3 * 50.0
+
+
+def test_paths_are_kept_apart_until_the_next_decision_not_around_targets_beyond_it():
+    """Two ArduPlane-like planes (22 m/s, 65 deg bank, 80 m loiter, 50 s steps) flying at each
+    other on one row, the planner's next cells 3 km apart, their guided targets (a cell beyond
+    the next: the lead) 1 km apart: their paths stay 2 km apart or more until well after the
+    next decision, and would close to ~0.85 km only if both circled their targets. Every plane
+    gets a new target at the next decision, so the planner's cells are kept; judged over the
+    whole 3-step prediction they were replaced, and on ArduPlane SITL such replacements held
+    planes circling (turns of the whole circle)."""
+    from planner.scenario import load_scenario
+
+    scenario = load_scenario("arduplane-3uav")
+    cells = SafetyEnvelope.for_scenario(scenario, 0.33, 1.0)
+    grid = cells.grid
+    plane = PlaneModel(
+        speed_mps=22.0, bank_limit_deg=65.0, wp_loiter_radius_m=80.0, min_speed_mps=10.0,
+        max_speed_mps=30.0,
+    )  # fmt: skip
+    envelope = FlightEnvelope(cells, plane, step_s=50.0)
+    here = np.array([[1, 3], [6, 3]])  # one row, 5 km apart, far from both threats
+    headings = np.array([0, 4])  # east, west
+    proposed = here + HEADING_STEPS[headings]
+    assert np.hypot(*(grid.centre_km(proposed[0]) - grid.centre_km(proposed[1]))) >= 2.0
+
+    def choose(horizon_steps: float):
+        env = FlightEnvelope(cells, plane, step_s=50.0, separation_horizon_steps=horizon_steps)
+        return env.choose(
+            grid.centre_km(here), np.array([0.0, np.pi]), np.full(2, 22.0), here, headings,
+            proposed, headings, np.full((2, 2), np.nan), np.zeros(2), grid.centre_km(here),
+            np.ones(2, dtype=bool), 1.0,
+        )  # fmt: skip
+
+    kept = choose(envelope.separation_horizon_steps)
+    np.testing.assert_array_equal(kept.next_cells, proposed)
+    assert kept.overrides["predicted_separation"] == 0
+    assert kept.min_separation_km >= 1.0 + envelope.separation_margin_km
+    # the same pair judged over the whole prediction: the targets' circles come too close
+    assert choose(3.0).overrides["predicted_separation"] >= 1
