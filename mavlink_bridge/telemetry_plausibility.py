@@ -16,7 +16,10 @@ authentic"):
    reboot, a new socket, a TCP reconnect); the move is counted (``address_moves``).
 3. **Fields in range**: positions on Earth, altitude within ``altitude_range_m``, velocities
    below ``max_ground_speed_mps``, heading 0..359.99 deg or unknown, HEARTBEAT enums in range and
-   the vehicle type it registered with (``out_of_range``).
+   the vehicle type it registered with (``out_of_range``). Before a vehicle's first believed
+   position, one within ~100 m of latitude 0, longitude 0 is an autopilot's placeholder while
+   its position estimate has no origin (ArduPlane SITL's first ~8 s), not a place
+   (``no_position``; once a position is believed, a jump there is ``too_fast``).
 4. **Time** (``time_boot_ms`` of GLOBAL_POSITION_INT): older than the newest believed one is a
    delayed or reordered frame (``stale_positions``); ahead of it by more than the vehicle's
    clock can have run (lockstep: past the granted horizon, even a first position; paced: the
@@ -88,11 +91,16 @@ class PlausibilityCounts:
     time_jump: int = 0
     too_fast: int = 0
     stale_positions: int = 0
+    no_position: int = 0
     address_moves: int = 0
     clock_rebases: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
+
+
+#: latitude and longitude (1e-7 deg) both within this of 0: no position yet (~100 m)
+_NO_POSITION_E7 = 10_000
 
 
 @dataclass
@@ -243,6 +251,8 @@ class PlausibilityFilter:
             return self._reject("out_of_range")
         if speed > lim.max_ground_speed_mps:
             return self._reject("out_of_range")
+        if trust.fix is None and abs(msg.lat) < _NO_POSITION_E7 and abs(msg.lon) < _NO_POSITION_E7:
+            return self._reject("no_position")  # the placeholder before the first position
         new = _Fix(int(msg.time_boot_ms), msg.lat * 1e-7, msg.lon * 1e-7, now_s)
         if self._past_grant(new):
             trust.past_grant += 1  # lockstep: a clock that runs free (LockstepClock says so)

@@ -227,6 +227,34 @@ def test_stale_positions_are_dropped_and_a_reboot_is_followed():
     assert trust.notices[-1].startswith("vehicle 1: position jumped 4.4 km (time 0.7 s -> 10.0 s")
 
 
+def test_the_placeholder_before_the_first_position_is_not_a_place():
+    """ArduPlane SITL's first ~8 s of GLOBAL_POSITION_INT lie within a few metres of latitude 0,
+    longitude 0 (its position estimate has no origin yet), then at its home (these are the
+    values of a SITL run's tlog). Believed, the home was a 14,952 km jump: refused as too fast
+    and then followed with a warning of a "clock restarted" on every plane at every start."""
+    trust = PlausibilityFilter()
+    v = VehicleState(1, _Link())
+
+    def hear(time_boot_ms: int, lat_e7: int, lon_e7: int, wall_s: float) -> bool:
+        msg = ml.MAVLink_global_position_int_message(
+            time_boot_ms, lat_e7, lon_e7, 600000, 70, 0, 0, 0, 65535
+        )
+        msg._header = ml.MAVLink_header(msg.id, srcSystem=1, srcComponent=1)
+        believed = trust.admit(1, msg, wall_s)
+        if believed:
+            v.handle(msg, wall_s)
+        return believed
+
+    early = [(2045, 0, 0), (3064, 0, 0), (4045, 2130, -533), (9064, 3105, -815)]
+    assert not any(hear(ms, lat, lon, ms / 1e3) for ms, lat, lon in early)
+    assert hear(10064, -353497390, 1491927403, 10.064)
+    assert v.lat_deg == pytest.approx(-35.349739)
+    assert (trust.counts.no_position, trust.counts.clock_rebases, trust.notices) == (4, 0, [])
+    # once it has a place, a report at 0, 0 is a jump no plane can fly
+    assert not hear(11064, 0, 0, 11.064)
+    assert trust.counts.too_fast == 1
+
+
 def _look(index: int, url: str) -> ml.MAVLink_message:
     msg = ml.MAVLink_camera_image_captured_message(
         0, 0, 0, -353000000, 1490000000, 0, 0, [1, 0, 0, 0], index, 1, url.encode()
