@@ -80,6 +80,7 @@ def main() -> None:
     detail: Counter = Counter()
     seen = engaged = misses = 0
     coverage = []
+    home = []
     violations = 0
     started = time.perf_counter()
     for seed in args.seeds:
@@ -91,6 +92,7 @@ def main() -> None:
         engaged += account["totals"]["engaged"]
         misses += result["engage_misses"]
         coverage.append(result["coverage"])
+        home.append(result["returned_count"])
         violations += sum(result["violations"].values())
         for row in account["targets"]:
             if not row["seen"] or row["outcome"] == "engaged":
@@ -113,7 +115,8 @@ def main() -> None:
     print(
         f"per run: seen {seen / runs:.2f}, engaged {engaged / runs:.2f}, conversion"
         f" {engaged / max(seen, 1):.2f}, engage misses {misses / runs:.2f}, coverage"
-        f" {100 * np.mean(coverage):.1f} %, violations {violations}"
+        f" {100 * np.mean(coverage):.1f} %, home at the end {np.mean(home):.1f}"
+        f" of {scenario.uav_count}, violations {violations}"
     )
     print(f"seen, not engaged: {sum(counts.values())} in {runs} runs")
     for kind in CLASSES:

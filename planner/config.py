@@ -48,7 +48,7 @@ class PlannerConfig:
     tpm_decay_tau: float = 1.0  # tau of eq 18 for cells outside the view (open; 1 = no decay)
     confirm_threshold: float = 0.5  # cell existence probability that confirms a target (open)
     pursue_threshold: float = (
-        0.1  # existence probability worth flying back for a closer look (open)
+        0.05  # existence probability worth flying back for a closer look (open)
     )
     pursue_keep_threshold: float = 0.01  # ... below which a pursued suspect is ruled out (open)
     pursue_max_steps: int = 16  # steps a suspect below pursue_threshold is kept at most (open)

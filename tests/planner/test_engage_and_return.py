@@ -151,3 +151,48 @@ def test_the_uav_fewer_turn_limited_moves_away_takes_the_target():
         if (planner.track[:, 0] >= 0).any():
             break
     assert planner.track[1, 0] >= 0 and planner.track[0, 0] < 0, planner.track
+
+
+KNOWN_POSITION = """
+name = "prior"
+steps = 20
+[parameters]
+delta_0_km = 4.5  # a prior a little tighter than Table 1's 5 km
+[uavs]
+count = 1
+[[uavs.start]]
+x_km = 49.5
+y_km = 50.5
+heading_deg = 0
+[[targets]]
+kind = "known_position"
+x_km = 50.5
+y_km = 50.5
+value = 2
+"""
+
+
+def pursued_after_one_detection(**parameters) -> tuple[float, bool]:
+    """One strong look (within d_in) that reports b = 1 at the centre of a known-position
+    target's prior (eq 11: ~8e-3 a cell there, one detection makes it ~0.07): the belief of a
+    target within the engage radius there, and whether the UAV goes back for a closer look."""
+    scenario = parse_scenario(KNOWN_POSITION).with_config(**parameters)
+    planner = HapfAcoPlanner(scenario, scenario.starts_for_seed(0), seed=0)
+    centre = np.array([50, 50])
+    cells, headings = np.array([[49, 50]]), np.array([0])
+    planner.step(cells, headings, [look(planner, cells[0], [centre])])
+    belief = float(planner.engage_probability(np.array([0]), centre[None])[0])
+    return belief, bool(planner.track[0, 0] >= 0)
+
+
+def test_one_detection_at_a_prior_centre_is_worth_a_second_look():
+    # pursue_threshold 0.05 (docs/parameters.md: +0.9 engaged per run with 10 UAVs over 0.1)
+    belief, pursued = pursued_after_one_detection()
+    assert 0.05 <= belief < 0.1, belief
+    assert pursued, "a detection at a prior's centre was left without a second look"
+
+
+def test_at_the_earlier_threshold_it_was_passed_by():
+    belief, pursued = pursued_after_one_detection(pursue_threshold=0.1)
+    assert 0.05 <= belief < 0.1, belief
+    assert not pursued
