@@ -362,11 +362,13 @@ class HapfAcoPlanner:
         on_track = on_track[worth]
         value = self.tpm.values_at(rows_all, cells_all)
         confirmed = p >= cfg.confirm_threshold
-        # confirmed first (higher value first), then the likeliest value among the suspects
+        # confirmed first (higher value first), then the likeliest value among the suspects;
+        # among equal scores (the cells around one confirmed target, whose layer gives them one
+        # value) the likeliest cell, not the first in index order
         score = np.where(confirmed, 1.0 + value, 0.0) + np.where(
             confirmed, 0.0, p * value / (1.0 + value)
         )
-        order = np.lexsort((-score, rows_all))
+        order = np.lexsort((-p, -score, rows_all))
         sorted_rows = rows_all[order]
         first = np.concatenate(([True], sorted_rows[1:] != sorted_rows[:-1]))
         chosen = order[first]

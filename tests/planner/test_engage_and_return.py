@@ -196,3 +196,21 @@ def test_at_the_earlier_threshold_it_was_passed_by():
     belief, pursued = pursued_after_one_detection(pursue_threshold=0.1)
     assert 0.05 <= belief < 0.1, belief
     assert not pursued
+
+
+def test_the_likeliest_cell_of_a_confirmed_target_is_the_one_flown_to():
+    # Two adjacent cells confirmed (one value, one layer): the UAV goes for the likelier one,
+    # not the first in index order (the cell off the peak put the target beyond the engage
+    # radius on arrival)
+    scenario = parse_scenario(ONE_UAV)
+    planner = HapfAcoPlanner(scenario, scenario.starts_for_seed(0), seed=0)
+    west, east = np.array([50, 50]), np.array([51, 50])
+    near, heading = np.array([[49, 50]]), np.array([0])
+    for _ in range(4):
+        planner.step(near, heading, [look(planner, near[0], [west, east])])
+    off = np.array([[52, 52]])  # east within d_in (hit), west at 2.8 km (a weak miss)
+    planner.step(off, heading, [look(planner, off[0], [east])])
+    p = planner.engage_probability(np.array([0, 0]), np.stack([west, east]))
+    assert p.min() >= planner.cfg.confirm_threshold and p[1] > p[0], p
+    assert planner.track_confirmed[0]
+    assert (planner.track[0] == east).all(), planner.track[0]
