@@ -106,6 +106,7 @@ def main() -> None:
             if args.verbose:
                 print(
                     f"seed {seed} target {row['id']:2d} {row['kind']:16s} {kind:24s}"
+                    f" first seen {row['first_sighting']:3d}"
                     f" in fp {row['steps_in_footprint']:3d} det {row['detections']:3d}"
                     f" closest {near[row['id']]:.1f} km peak {row['belief_peak']:.3f}"
                     f" pursued {row['pursued_step']} confirmed {row['confirmed_step']}"
