@@ -65,6 +65,13 @@ class PlaneModel:
         tightest = self.loiter_radius_factor * self.min_turn_radius_km(speed_mps)
         return np.maximum(tightest, abs(self.wp_loiter_radius_m) / 1000.0)
 
+    def loiter_reach_km(self, speed_mps: np.ndarray | float | None = None) -> np.ndarray:
+        """How far from a loiter point a plane strays when it arrives there: a loiter diameter.
+        It flies straight at the point, passes it, and only then turns onto its circle (the
+        simulator: 2.04 km from the point at 100 m/s, its circle being 1.07 km; a GCS outage
+        took planes whose circles kept the margin into threat zones, issue 12)."""
+        return 2.0 * self.loiter_radius_km(speed_mps)
+
 
 def _wrap(angle: np.ndarray) -> np.ndarray:
     return (angle + np.pi) % (2 * np.pi) - np.pi

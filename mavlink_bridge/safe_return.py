@@ -13,9 +13,10 @@ reported). The daemon therefore sends RTL only to a plane whose way home is clea
 
 Any other plane is guided (DO_REPOSITION) to a **waypoint** on the shortest way home around
 the threats, and re-judged every decision period until RTL is clear. The way is a shortest path
-over the grid's cell centres that keep ``margin_km`` plus the plane's loiter radius from every
-threat (a plane whose ground station goes silent circles its last guided target, so each
-waypoint is a safe place to circle), joined by 8-neighbour legs that keep ``margin_km``;
+over the grid's cell centres that keep ``margin_km`` plus the plane's loiter reach (a loiter
+diameter: it passes the point before it turns onto its circle) from every threat (a plane whose
+ground station goes silent circles its last guided target, so each waypoint is a safe place to
+circle), joined by 8-neighbour legs that keep ``margin_km``;
 the waypoint sent is the farthest one along that path in straight-line reach (a leg that keeps
 ``margin_km``) of where the plane is, so the plane cuts corners the grid would make it fly.
 
@@ -69,8 +70,8 @@ class HomeRoutes:
         ix, iy = np.meshgrid(np.arange(g.nx), np.arange(g.ny), indexing="ij")
         cells = np.stack([ix.ravel(), iy.ravel()], axis=1)
         centres = g.centre_km(cells)
-        loiter_km = float(self.plane.loiter_radius_km())
-        keep = self._point_clearance(centres) >= self.margin_km + loiter_km
+        loiter_km = float(self.plane.loiter_reach_km())
+        keep = self.point_clearance(centres) >= self.margin_km + loiter_km
         self._nodes_km = centres[keep]
         index = np.full(g.nx * g.ny, -1)
         index[np.flatnonzero(keep)] = np.arange(int(keep.sum()))
@@ -84,7 +85,7 @@ class HomeRoutes:
             j[inside] = index[other[inside, 0] * g.ny + other[inside, 1]]
             i = np.flatnonzero(j >= 0)
             j = j[i]
-            clear = self._leg_clearance(self._nodes_km[i], self._nodes_km[j]) >= self.margin_km
+            clear = self.leg_clearance(self._nodes_km[i], self._nodes_km[j]) >= self.margin_km
             rows.append(i[clear])
             cols.append(j[clear])
             lengths.append(np.hypot(dx, dy) * g.cell_km * np.ones(int(clear.sum())))
@@ -95,18 +96,20 @@ class HomeRoutes:
 
     # ------------------------------------------------------------------ geometry
 
-    def _point_clearance(self, xy_km: np.ndarray) -> np.ndarray:
+    def point_clearance(self, xy_km: np.ndarray) -> np.ndarray:
+        """Per point (N, 2): distance to the nearest threat circle's edge (< 0: inside)."""
         if len(self.threat_radius_km) == 0:
             return np.full(len(xy_km), np.inf)
         d = np.hypot(*(xy_km[:, None, :] - self.threat_xy_km[None]).transpose(2, 0, 1))
         return (d - self.threat_radius_km[None]).min(axis=1)
 
-    def _leg_clearance(self, a_km: np.ndarray, b_km: np.ndarray) -> np.ndarray:
+    def leg_clearance(self, a_km: np.ndarray, b_km: np.ndarray) -> np.ndarray:
+        """Per straight leg ``a``-``b`` (..., 2): its distance to the nearest threat edge."""
         return segment_clearance(a_km, b_km, self.threat_xy_km, self.threat_radius_km)
 
     def line_clear(self, a_km: np.ndarray, b_km: np.ndarray) -> bool:
         """The straight leg ``a``-``b`` keeps ``margin_km`` from every threat."""
-        return bool(self._leg_clearance(np.asarray(a_km, float), np.asarray(b_km, float))
+        return bool(self.leg_clearance(np.asarray(a_km, float), np.asarray(b_km, float))
                     >= self.margin_km)  # fmt: skip
 
     def rtl_clear(self, xy_km: np.ndarray, course_rad: float, home_km: np.ndarray) -> bool:
@@ -118,7 +121,7 @@ class HomeRoutes:
             return False
         if len(self.threat_radius_km) == 0:
             return True
-        return bool(self._turn_clearance(xy, course_rad, home[None])[0] >= self.turn_margin_km)
+        return bool(self.turn_clearance(xy, course_rad, home[None])[0] >= self.turn_margin_km)
 
     # ------------------------------------------------------------------ routes
 
@@ -129,7 +132,7 @@ class HomeRoutes:
             return known
         assert self._nodes_km is not None and self._edges is not None
         n = len(self._nodes_km)
-        reach = self._leg_clearance(np.broadcast_to(home_km, (n, 2)), self._nodes_km)
+        reach = self.leg_clearance(np.broadcast_to(home_km, (n, 2)), self._nodes_km)
         to_home = np.flatnonzero(reach >= self.margin_km)
         length = np.hypot(*(self._nodes_km[to_home] - home_km).T)
         # node n is home; the graph is undirected, so distances from home are distances to it
@@ -163,8 +166,8 @@ class HomeRoutes:
         paths = self._from_home(home)
         n = len(self._nodes_km)
         # a plane already nearer a threat than the margin takes legs that get no nearer
-        need = min(self.margin_km, max(float(self._point_clearance(xy[None])[0]), 0.0) - 1e-6)
-        reach = self._leg_clearance(np.broadcast_to(xy, (n, 2)), self._nodes_km) >= need
+        need = min(self.margin_km, max(float(self.point_clearance(xy[None])[0]), 0.0) - 1e-6)
+        reach = self.leg_clearance(np.broadcast_to(xy, (n, 2)), self._nodes_km) >= need
         total = np.where(reach, np.hypot(*(self._nodes_km - xy).T) + paths.distance_km, np.inf)
         first = int(np.argmin(total))
         if not math.isfinite(total[first]):
@@ -172,19 +175,19 @@ class HomeRoutes:
         node = first  # then on along the way while still in straight reach
         while paths.towards[node] >= 0 and reach[paths.towards[node]]:
             node = int(paths.towards[node])
-        if course_rad is None or self._turn_clearance(xy, course_rad, self._nodes_km[[node]])[
+        if course_rad is None or self.turn_clearance(xy, course_rad, self._nodes_km[[node]])[
             0
         ] >= (self.turn_margin_km):
             return self._nodes_km[node].copy()
         # the turn onto that leg sweeps too close: the cheapest node whose turn is clear, or
         # (a plane too near a threat for any turn to keep the margin) the one whose turn keeps most
         order = np.argsort(total)[: int(np.isfinite(total).sum())][:64]
-        turns = self._turn_clearance(xy, course_rad, self._nodes_km[order])
+        turns = self.turn_clearance(xy, course_rad, self._nodes_km[order])
         clear = turns >= self.turn_margin_km
         best = int(np.argmax(clear)) if clear.any() else int(np.argmax(turns))
         return self._nodes_km[order[best]].copy()
 
-    def _turn_clearance(self, xy: np.ndarray, course_rad: float, aims: np.ndarray) -> np.ndarray:
+    def turn_clearance(self, xy: np.ndarray, course_rad: float, aims: np.ndarray) -> np.ndarray:
         """Per aim: threat clearance of the path a plane at ``xy`` flying ``course_rad`` flies
         while it turns towards the aim (half a circle at its turn rate: any turn)."""
         if len(self.threat_radius_km) == 0:
@@ -194,4 +197,4 @@ class HomeRoutes:
         paths = predict_paths(
             self.plane, np.repeat(xy[None], m, 0), np.full(m, course_rad), aims, turn_s
         )
-        return self._point_clearance(paths.reshape(-1, 2)).reshape(m, -1).min(axis=1)
+        return self.point_clearance(paths.reshape(-1, 2)).reshape(m, -1).min(axis=1)

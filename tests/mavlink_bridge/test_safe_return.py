@@ -34,7 +34,7 @@ def test_a_threat_between_plane_and_home_is_flown_around_by_safe_waypoints():
         assert legs < 10
         leg = segment_clearance(xy, w, THREAT_XY, THREAT_R)
         assert leg >= 1.0  # the leg keeps the margin ...
-        assert np.hypot(*(w - THREAT_XY[0])) - THREAT_R[0] >= 1.0 + loiter  # ... and its circle
+        assert np.hypot(*(w - THREAT_XY[0])) - THREAT_R[0] >= 1.0 + 2 * loiter  # ... its circle
         course = math.atan2(w[1] - xy[1], w[0] - xy[0])
         xy = w
     assert legs >= 1 and r.rtl_clear(xy, course, home)

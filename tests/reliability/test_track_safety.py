@@ -5,6 +5,7 @@ the simulator and the daemon (``swarmplan demo`` or ``swarmplan sim`` + ``swarmp
   account, ``track_audit``), as the simulator's own ground truth saw it;
 * a ground-station outage (the daemon stopped, then killed) near a threat takes no plane into it;
 * the flight home at the end of a mission goes around a threat RTL's straight line would cross;
+* two planes that swapped sides during the mission fly home d_min apart (one holds);
 * a daemon that falls behind the vehicles' clock holds them at safe points and says so;
 * a speedup the daemon cannot keep is refused at start, in one line.
 """
@@ -96,6 +97,33 @@ value = 1
 x_km = 10.0
 y_km = 10.0
 radius_km = 3.0
+"""
+
+#: two planes drawn to one known target from opposite sides; after 22 steps (lockstep, seed 1)
+#: they have swapped sides, and RTL's straight lines home pass 0.52 km apart head-on
+SWAPPED_SIDES = """
+name = "swapped-sides"
+steps = 22
+altitude_m = 500
+[parameters]
+grid_nx = 26
+grid_ny = 26
+[uavs]
+count = 2
+[[uavs.start]]
+x_km = 4.5
+y_km = 12.5
+heading_deg = 0
+[[uavs.start]]
+x_km = 20.5
+y_km = 12.5
+heading_deg = 180
+[[targets]]
+id = 1
+kind = "known_position"
+x_km = 12.5
+y_km = 12.5
+value = 5
 """
 
 
@@ -198,6 +226,30 @@ def test_the_flight_home_goes_around_a_threat_between_plane_and_home(tmp_path: P
     assert truth["by_mode"]["rtl"]["min_threat_margin_km"] > 0
     audit = result["track_audit"]["phases"]["rtl"]
     assert audit["threat_entries"] == 0 and audit["min_threat_margin_km"] > 0
+
+
+@pytest.mark.timeout(120)
+def test_planes_whose_ways_home_cross_fly_home_apart(tmp_path: Path):
+    """The mission ends with each plane on the other's side, their homes 16 km apart: RTL's
+    straight lines home pass within d_min head-on (they did: 0.52 km, in the track account and
+    the simulator's truth). One plane circles a safe point until the other has passed."""
+    scenario = tmp_path / "swapped.toml"
+    scenario.write_text(SWAPPED_SIDES)
+    done = run_swarmplan(
+        ["demo", str(scenario), "--out", str(tmp_path / "out"), "--no-view", "--json"],
+        timeout=110,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads(done.stdout)
+    (ax, _), (bx, _) = (u["track_km"][-1] for u in result["uavs"])
+    assert ax > 12.5 > bx  # the premise: the planes did end on each other's side
+    d_min = result["min_separation_limit_km"]
+    rtl = result["track_audit"]["phases"]["rtl"]
+    assert rtl["separation_breaches"] == 0 and rtl["min_separation_km"] >= d_min, rtl
+    truth = result["simulator_truth"]["by_mode"]["rtl"]
+    assert truth["separation_breaches"] == 0 and truth["min_separation_km"] >= d_min
+    assert len(result["held_for_separation_home"]) == 1
+    assert result["rtl_sent_to"] == [1, 2]  # the held plane was sent home once clear
 
 
 @pytest.mark.timeout(150)

@@ -1,0 +1,180 @@
+"""The flight home kept d_min apart: which plane flies home now and which waits, and where.
+
+ArduPlane's RTL flies the straight line to home at one altitude (RTL_ALTITUDE, the same for
+every plane of a mission), so two planes whose lines home cross fly into each other unless
+someone says otherwise (issue 12: two planes 20 m apart on the way home in the simulator;
+ArduPlane SITL planes converging on their homes breached separation once in four runs). The
+safe return (``safe_return.py``) keeps every way home clear of the threats (C_t); this module
+keeps the planes on it apart (C_c, d_min of eq. 4's constraint set), in time as well as space:
+
+* every plane's next stretch home is a :class:`Homeward` leg: straight from where it is to an
+  aim (its home, or the safe return's waypoint around a threat) at cruise speed, then circling
+  the aim;
+* two legs **conflict** when at some instant the planes would be closer than d_min plus what each
+  may stray from its line: ``slack_km`` on the way (the turn onto the line, a wider turn than
+  the model), the circle's reach at the aim (a plane that arrives flying straight at its loiter
+  point overshoots it by up to a loiter diameter). Timing is uncertain (a plane held to cruise
+  may fly slower or faster, commands arrive late), so a plane at instant t is compared with the
+  other one anywhere in ``t +- (tolerance_s + tolerance_frac * t)``;
+* :meth:`ReturnSeparation.plan` takes the legs that are set (planes already in RTL: nobody can
+  hold them any more) and the planes still waiting for their way home, nearest aim first: a
+  plane whose leg conflicts with none set flies it (and is set), any other **holds**: it is
+  guided to the nearest point whose loiter circle keeps the threat margin and whose leg there
+  conflicts with none set, and circles there until a later decision period finds its way clear.
+  Two planes both circling their own homes are not compared: where homes are is the
+  scenario's choice, not the flight home's.
+
+All geometry is in the mission's local km; times are the vehicles' seconds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mavlink_bridge.safe_return import HomeRoutes
+
+
+@dataclass(frozen=True)
+class Homeward:
+    """One plane's next stretch home as predicted: straight to ``aim_km`` at ``speed_kmps``,
+    then circling it (straying ``circle_km`` from it); ``at_home``: the aim is its home."""
+
+    system_id: int
+    start_km: np.ndarray  # (2,)
+    aim_km: np.ndarray  # (2,)
+    speed_kmps: float
+    circle_km: float
+    at_home: bool
+
+    @property
+    def arrival_s(self) -> float:
+        return float(np.hypot(*(self.aim_km - self.start_km))) / max(self.speed_kmps, 1e-6)
+
+    def positions(self, t_s: np.ndarray) -> np.ndarray:
+        """(len(t_s), 2) where the plane is at each instant (at the aim once arrived)."""
+        frac = np.clip(t_s / max(self.arrival_s, 1e-9), 0.0, 1.0)
+        return self.start_km[None] + frac[:, None] * (self.aim_km - self.start_km)[None]
+
+
+@dataclass
+class ReturnSeparation:
+    """Deconflicts the planes' flights home (see the module's docstring)."""
+
+    routes: HomeRoutes  # the threats, their margin and the plane model
+    d_min_km: float  # d_min of C_c
+    slack_km: float  # what a plane may stray from its straight line on the way
+    tolerance_s: float = 10.0  # timing uncertainty: fixed part ...
+    tolerance_frac: float = 0.15  # ... and the part growing with the time ahead
+    sample_s: float = 2.0  # instants compared, this far apart (at 100 m/s: 0.2 km)
+    hold_rings_km: tuple[float, ...] = (0.0, 2.0, 4.0, 6.0, 8.0)
+    hold_directions: int = 16
+
+    def circle_km(self) -> float:
+        """How far a plane strays from the point it circles: its loiter diameter (it arrives
+        flying straight at the point, passes it, and only then turns onto its circle)."""
+        return float(self.routes.plane.loiter_reach_km())
+
+    def leg(self, system_id: int, xy_km: np.ndarray, aim_km: np.ndarray, at_home: bool) -> Homeward:
+        return Homeward(
+            system_id,
+            np.asarray(xy_km, float),
+            np.asarray(aim_km, float),
+            self.routes.plane.speed_mps / 1e3,
+            self.circle_km(),
+            at_home,
+        )
+
+    def clearance_km(self, a: Homeward, b: Homeward) -> float:
+        """The smallest distance between ``a`` and ``b`` less what both may stray, over every
+        pair of instants within the timing tolerance (< ``d_min_km``: they conflict)."""
+        horizon = max(a.arrival_s, b.arrival_s)
+        horizon = horizon * (1 + self.tolerance_frac) + self.tolerance_s + self.sample_s
+        t = np.arange(0.0, horizon + self.sample_s, self.sample_s)
+        pa, pb = a.positions(t), b.positions(t)
+        gap = np.hypot(*(pa[:, None, :] - pb[None, :, :]).transpose(2, 0, 1))
+        arrived_a, arrived_b = t >= a.arrival_s, t >= b.arrival_s
+        stray_a = np.where(arrived_a, a.circle_km, self.slack_km)
+        stray_b = np.where(arrived_b, b.circle_km, self.slack_km)
+        clear = gap - stray_a[:, None] - stray_b[None, :]
+        window = self.tolerance_s + self.tolerance_frac * np.maximum(t[:, None], t[None, :])
+        compared = np.abs(t[:, None] - t[None, :]) <= window
+        if a.at_home and b.at_home:  # both circling their homes: the scenario's geometry
+            compared &= ~(arrived_a[:, None] & arrived_b[None, :])
+        if not compared.any():
+            return math.inf
+        return float(clear[compared].min())
+
+    def conflicts(self, leg: Homeward, others: list[Homeward]) -> bool:
+        return any(self.clearance_km(leg, o) < self.d_min_km for o in others)
+
+    def hold_point(
+        self,
+        leg: Homeward,
+        course_rad: float,
+        others: list[Homeward],
+        previous: np.ndarray | None = None,
+    ) -> np.ndarray | None:
+        """The nearest point for the plane of ``leg`` to circle until its way home is clear:
+        the circle keeps the threat margin (the loiter diameter from the point), the leg there
+        and the turn onto it keep it too, and that leg conflicts with none of ``others``;
+        ``previous`` (the point it circles now) first, so a holding plane is not moved while its
+        point stays good; ``None`` if no candidate does."""
+        xy = leg.start_km
+        angles = np.arange(self.hold_directions) * (2 * math.pi / self.hold_directions)
+        ring = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        points = [xy[None]] + [xy[None] + r * ring for r in self.hold_rings_km if r > 0]
+        if previous is not None:
+            points.insert(0, np.asarray(previous, float)[None])
+        candidates = np.concatenate(points)
+        routes = self.routes
+        keep = routes.point_clearance(candidates) >= routes.margin_km + self.circle_km()
+        keep &= routes.leg_clearance(np.broadcast_to(xy, candidates.shape), candidates) >= (
+            routes.margin_km
+        )
+        candidates = candidates[keep]
+        if len(candidates) == 0:
+            return None
+        turns = routes.turn_clearance(xy, course_rad, candidates)
+        candidates = candidates[turns >= routes.turn_margin_km]
+        for point in candidates:  # nearest first (the rings are in order)
+            hold = self.leg(leg.system_id, xy, point, at_home=False)
+            if not self.conflicts(hold, others):
+                return point.copy()
+        return None
+
+    def plan(
+        self,
+        set_legs: list[Homeward],
+        waiting: list[tuple[Homeward, float]],
+        keep: dict[int, np.ndarray] | None = None,
+    ) -> ReturnPlan:
+        """Which of the ``waiting`` planes (their leg home and their course) must hold, and
+        where. ``set_legs`` are flights nobody can change any more; ``keep``: the points planes
+        hold at now (kept while good). A plane that conflicts and finds no hold point flies
+        its leg (``unresolved``: the daemon says so)."""
+        keep = keep or {}
+        fixed = list(set_legs)
+        plan = ReturnPlan()
+        for leg, course in sorted(waiting, key=lambda lc: (lc[0].arrival_s, lc[0].system_id)):
+            if not self.conflicts(leg, fixed):
+                fixed.append(leg)
+                continue
+            point = self.hold_point(leg, course, fixed, keep.get(leg.system_id))
+            if point is None:
+                plan.unresolved.append(leg.system_id)
+                fixed.append(leg)
+                continue
+            plan.holds[leg.system_id] = point
+            fixed.append(self.leg(leg.system_id, leg.start_km, point, at_home=False))
+        return plan
+
+
+@dataclass
+class ReturnPlan:
+    """What :meth:`ReturnSeparation.plan` decided for the planes waiting for their way home."""
+
+    holds: dict[int, np.ndarray] = field(default_factory=dict)  # system id -> point to circle
+    unresolved: list[int] = field(default_factory=list)  # conflicting, and no hold point found
