@@ -12,7 +12,7 @@ ground truth (``safety`` in its summary). Per-decision-step violations are print
 
 * ``loss``: 10 / 20 / 30 % loss each way (plus 0-100 ms jitter, 2 % duplicated, 2 % reordered,
   ``tests/reliability/udp_fault_relay.py``), in lockstep and paced at 1x, 5x and 20x; one run
-  each.
+  each (``--losses 20,30 --paces 20``: only those).
 * ``outage``: the daemon is stopped (SIGSTOP) after its 3rd step for 3, 10, 30 and 120 s of wall
   time, the vehicles paced at ``--outage-speedup`` (default 20x: 60 s to 40 min of flight
   without a ground station), then
@@ -184,6 +184,10 @@ def main() -> int:
     parser.add_argument("--runs", type=int, default=10, help="runs per outage length")
     parser.add_argument("--steps", type=int, default=8)
     parser.add_argument("--outages", default="3,10,30,120", help="outage lengths, wall s")
+    parser.add_argument("--losses", default="10,20,30", help="loss each way, percent")
+    parser.add_argument(
+        "--paces", default="lockstep,1,5,20", help="lockstep and/or speedups of the loss runs"
+    )
     parser.add_argument(
         "--outage-speedup", type=float, default=20.0,
         help="the vehicles' speedup in the outage runs (a loaded machine's daemon refuses 20x)",
@@ -198,9 +202,10 @@ def main() -> int:
     rows: list[dict] = []
     if args.part in ("loss", "all"):
         print("\n### Link loss\n\n" + HEADER, flush=True)
-        for loss in (0.1, 0.2, 0.3):
+        paces = [None if p == "lockstep" else float(p) for p in args.paces.split(",")]
+        for loss in (float(x) / 100 for x in args.losses.split(",")):
             profile = FaultProfile(loss=loss, jitter_s=0.1, duplicate=0.02, reorder=0.02)
-            for speedup in (None, 1.0, 5.0, 20.0):
+            for speedup in paces:
                 pace = "lockstep" if speedup is None else f"paced {speedup:g}x"
                 name = f"loss {loss:.0%} {pace}"
                 figures = fly(work, name.replace(" ", "_").replace("%", ""), args.steps,
