@@ -99,11 +99,12 @@ y_km = 10.0
 radius_km = 3.0
 """
 
-#: two planes drawn to one known target from opposite sides; after 22 steps (lockstep, seed 1)
-#: they have swapped sides, and RTL's straight lines home pass 0.52 km apart head-on
+#: two planes drawn to one known target from opposite sides; after 38 steps (lockstep, seed 1)
+#: they have swapped sides south of it, and RTL's straight lines home cross (0.30 km apart).
+#: The premise depends on the planner's flight: the test checks it first
 SWAPPED_SIDES = """
 name = "swapped-sides"
-steps = 22
+steps = 38
 altitude_m = 500
 [parameters]
 grid_nx = 26
@@ -231,8 +232,8 @@ def test_the_flight_home_goes_around_a_threat_between_plane_and_home(tmp_path: P
 @pytest.mark.timeout(120)
 def test_planes_whose_ways_home_cross_fly_home_apart(tmp_path: Path):
     """The mission ends with each plane on the other's side, their homes 16 km apart: RTL's
-    straight lines home pass within d_min head-on (they did: 0.52 km, in the track account and
-    the simulator's truth). One plane circles a safe point until the other has passed."""
+    straight lines home cross (the planes passed 0.30 km apart, in the track account and the
+    simulator's truth). One plane circles a safe point until the other has passed."""
     scenario = tmp_path / "swapped.toml"
     scenario.write_text(SWAPPED_SIDES)
     done = run_swarmplan(
@@ -242,7 +243,8 @@ def test_planes_whose_ways_home_cross_fly_home_apart(tmp_path: Path):
     assert done.returncode == 0, done.stderr[-2000:]
     result = json.loads(done.stdout)
     (ax, _), (bx, _) = (u["track_km"][-1] for u in result["uavs"])
-    assert ax > 12.5 > bx  # the premise: the planes did end on each other's side
+    # the premise (the planner's flight): the planes did end on each other's side
+    assert ax > 12.5 > bx, "the mission no longer swaps the planes: choose another step count"
     d_min = result["min_separation_limit_km"]
     rtl = result["track_audit"]["phases"]["rtl"]
     assert rtl["separation_breaches"] == 0 and rtl["min_separation_km"] >= d_min, rtl
