@@ -13,9 +13,11 @@ keeps the planes on it apart (C_c, d_min of eq. 4's constraint set), in time as 
 * two legs **conflict** when at some instant the planes would be closer than d_min plus what each
   may stray from its line: ``slack_km`` on the way (the turn onto the line, a wider turn than
   the model), the circle's reach at the aim (a plane that arrives flying straight at its loiter
-  point overshoots it by up to a loiter diameter). Timing is uncertain (a plane held to cruise
-  may fly slower or faster, commands arrive late), so a plane at instant t is compared with the
-  other one anywhere in ``t +- (tolerance_s + tolerance_frac * t)``;
+  point overshoots it by up to a loiter diameter), and never more than it has flown by then
+  (two planes 2 km apart now, as the mission leaves them, are not a conflict by themselves).
+  Timing is uncertain (a plane held to cruise may fly slower or faster, commands arrive late),
+  so a plane at instant t is compared with the other one anywhere in
+  ``t +- (tolerance_s + tolerance_frac * t)``;
 * :meth:`ReturnSeparation.plan` takes the legs that are set (planes already in RTL: nobody can
   hold them any more) and the planes still waiting for their way home, nearest aim first: a
   plane whose leg conflicts with none set flies it (and is set), any other **holds**: it is
@@ -96,8 +98,12 @@ class ReturnSeparation:
         pa, pb = a.positions(t), b.positions(t)
         gap = np.hypot(*(pa[:, None, :] - pb[None, :, :]).transpose(2, 0, 1))
         arrived_a, arrived_b = t >= a.arrival_s, t >= b.arrival_s
-        stray_a = np.where(arrived_a, a.circle_km, self.slack_km)
-        stray_b = np.where(arrived_b, b.circle_km, self.slack_km)
+        # no plane strays from its line further than it has flown (planes near each other now
+        # are not a conflict by themselves), nor, on the way, further than ``slack_km``
+        way_a = np.minimum(self.slack_km, a.speed_kmps * t)
+        way_b = np.minimum(self.slack_km, b.speed_kmps * t)
+        stray_a = np.where(arrived_a, np.minimum(a.circle_km, a.speed_kmps * t), way_a)
+        stray_b = np.where(arrived_b, np.minimum(b.circle_km, b.speed_kmps * t), way_b)
         clear = gap - stray_a[:, None] - stray_b[None, :]
         window = self.tolerance_s + self.tolerance_frac * np.maximum(t[:, None], t[None, :])
         compared = np.abs(t[:, None] - t[None, :]) <= window
