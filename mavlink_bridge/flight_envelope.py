@@ -27,7 +27,8 @@ and the loiter circle is the one flown at that airspeed.
 Candidates, in order: the cell-level envelope's choice; with leg timing, the same cell at cruise
 speed (a slower plane turns and circles tighter: near a threat the planner's cell is kept and
 flown late rather than replaced, and that is not counted as a replacement); the other cells
-reachable within phi_max that pass the cell-level rules, nearest the planner's cell first; the
+reachable within phi_max that pass the cell-level rules, those with a safe way on
+(``SafetyEnvelope.viable``) first, each group nearest the planner's cell first; the
 target the plane already flies to (keep going); the centre of its current cell (circle here).
 The first safe one is sent; when none is, the one that breaks the rules least. UAVs settle in
 index order; one left without a safe candidate re-opens the choice of the settled UAV it comes
@@ -289,8 +290,8 @@ class FlightEnvelope:
             c = cell + HEADING_STEPS[h]
             if np.array_equal(c, proposed) or env.static_reason(cell, c, flown_km, home_km):
                 continue
-            others.append((float(np.hypot(*(c - proposed))), h, c))
-        for _, h, c in sorted(others, key=lambda t: t[0]):
+            others.append((not env.viable(c, h), float(np.hypot(*(c - proposed))), h, c))
+        for *_, h, c in sorted(others, key=lambda t: t[:2]):
             out.append(_Candidate(c, h, env.aim_point_km(cell, c, lead)))
         if np.all(np.isfinite(previous_aim)):
             out.append(_Candidate(cell, heading, np.asarray(previous_aim, float), derived=True))

@@ -12,8 +12,10 @@ A proposed move (current cell -> next cell) is safe when
   ``max_range_km`` (constraint C_r).
 
 An unsafe move is replaced by the safe move closest to it among the turns the airframe can make
-in one step (``max_turn_deg``); if none is safe, by the reachable cell farthest from the threats
-(holding, i.e. circling, only when no move is better).
+in one step (``max_turn_deg``), first among those that land where a turn-limited path goes on
+safely for ever (``viable``: not a row along the area's edge heading out of it, nor a pocket
+against a threat, judged with this envelope's threats and margin); if none is safe, by the
+reachable cell farthest from the threats (holding, i.e. circling, only when no move is better).
 Every replacement is reported with its reason.
 """
 
@@ -21,10 +23,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
-from planner.constraints import segment_clearance
+from planner.constraints import SafetyModel, segment_clearance
 from planner.grid import HEADING_STEPS, Grid, turn_options
 from planner.scenario import Scenario
 
@@ -78,6 +81,19 @@ class SafetyEnvelope:
             max_range_km=cfg.max_range_km,
             max_turn_deg=cfg.max_turn_deg,
         )
+
+    @cached_property
+    def _kernel(self) -> SafetyModel:
+        return SafetyModel(
+            self.grid, self.threat_xy_km, self.threat_radius_km, self.threat_margin_km,
+            self.max_turn_deg,
+        )  # fmt: skip
+
+    def viable(self, cell: np.ndarray, heading: int) -> bool:
+        """Arrived at ``cell`` with ``heading``, some turn-limited path stays in the area and
+        ``threat_margin_km`` clear of every threat for ever (the planner's viability kernel,
+        planner/constraints.py, over this envelope's threats and margin)."""
+        return bool(self.grid.inside(cell)) and bool(self._kernel.viable[heading, cell[0], cell[1]])
 
     # ------------------------------------------------------------------ single rules
 
@@ -172,8 +188,10 @@ class SafetyEnvelope:
         home_km: np.ndarray,
         others: np.ndarray,
     ) -> tuple[np.ndarray, int]:
-        """The safe reachable cell nearest the proposed one, else the current cell (hold)."""
-        best: tuple[float, np.ndarray, int] | None = None
+        """The safe reachable cell nearest the proposed one, a viable one first (a safe cell on
+        the area's edge heading out of it leaves only holds next), else the current cell
+        (hold)."""
+        best: tuple[tuple[bool, float], np.ndarray, int] | None = None
         for turn in turn_options(self.max_turn_deg):
             h = int((heading + turn) % 8)
             candidate = cell + HEADING_STEPS[h]
@@ -181,9 +199,9 @@ class SafetyEnvelope:
                 continue
             if not self.separated(candidate, others):
                 continue
-            miss = float(np.hypot(*(candidate - proposed)))
-            if best is None or miss < best[0]:
-                best = (miss, candidate, h)
+            rank = (not self.viable(candidate, h), float(np.hypot(*(candidate - proposed))))
+            if best is None or rank < best[0]:
+                best = (rank, candidate, h)
         if best is not None:
             return best[1], best[2]
         return self._escape(cell, heading)

@@ -8,7 +8,7 @@ import numpy as np
 from mavlink_bridge.flight_envelope import FlightEnvelope
 from mavlink_bridge.flight_prediction import PlaneModel
 from mavlink_bridge.safety_envelope import SafetyEnvelope
-from planner.grid import HEADING_STEPS
+from planner.grid import HEADING_STEPS, Grid
 
 
 def test_head_on_pair_both_give_way_when_the_second_alone_cannot(paper10):
@@ -132,3 +132,23 @@ def test_a_target_whose_circle_it_accepts_is_safe_as_the_simulator_flies_it():
                 nearest = min(nearest, float(np.hypot(*(here - threat))) - radius)
             assert nearest >= 1.0, (gap_km, approach, nearest)
     assert accepted >= 4  # aims far enough out are accepted
+
+
+def test_a_replaced_move_goes_where_the_plane_can_fly_on_not_into_a_dead_end():
+    """A plane one row below the area's north edge, heading north-east; its planner's move is
+    refused (another plane's next cell 1 km away). The nearest safe replacement, the edge row
+    heading north, leaves no turn-limited move inside the area at the next step, only holds
+    (circles: turn breaks, 6 in 16 steps of one ArduPlane SITL mission); the envelope takes
+    the safe move with a way on instead."""
+    grid = Grid(12, 12, 1.0)
+    env = SafetyEnvelope(grid, np.empty((0, 2)), np.empty(0), 0.33, 1.0, 1.0)
+    here, north_east, north = np.array([4, 10]), 1, 2
+    assert not env.viable(np.array([4, 11]), north) and env.viable(np.array([5, 11]), north_east)
+    decision = env.check(
+        np.array([[1, 11], here]), np.array([0, north_east]),
+        np.array([[2, 11], [3, 11]]), np.array([0, 3]),
+        np.zeros(2), grid.centre_km(np.array([[1, 1], [4, 1]])), np.ones(2, dtype=bool),
+    )  # fmt: skip
+    assert [o.reason for o in decision.overrides] == ["separation"]
+    np.testing.assert_array_equal(decision.next_cells[1], [5, 11])
+    assert decision.next_headings[1] == north_east
