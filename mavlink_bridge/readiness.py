@@ -137,8 +137,11 @@ def arm_when_ready(
         ]
         if due:
             for cmd in send([arm_command(v) for v in due], arm_attempts):
+                # accepted or not, the next try waits: an accepted arm shows in the vehicle's
+                # next heartbeat (without the pause, a paced 20x mission sent one vehicle 160
+                # arm commands in the second before its heartbeat said armed)
+                next_arm[cmd.vehicle.system_id] = time.monotonic() + ARM_RETRY_S
                 if not cmd.accepted and not cmd.vehicle.armed:
-                    next_arm[cmd.vehicle.system_id] = time.monotonic() + ARM_RETRY_S
                     refusals[cmd.vehicle.system_id] = (
                         result_name(cmd.ack.result) if cmd.ack else "no answer"
                     )
