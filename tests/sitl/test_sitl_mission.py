@@ -37,15 +37,17 @@ def test_three_planes_with_the_payload_simulator_search_look_and_engage(sitl_bin
     engaged = sorted(e["target_id"] for e in result["engagements"])
     assert engaged, run.explain()
     assert engaged == payload["targets_engaged"], (engaged, payload)
-    # safety at the decision steps and along every position report. Not the turn rule: it is the
-    # planner's grid rule judged on the flown positions at the decision steps, and a real plane
-    # that circles a held cell or cuts a corner breaks it (0-5 in 16 steps here; docs/sitl.md)
+    # safety at the decision steps and along every position report, the flight home included.
+    # The turn rule is the planner's grid rule judged on the flown positions at the decision
+    # steps: a plane held circling breaks it. Holds came from the envelope's predicted
+    # separation around targets never circled and from replacements into dead ends (0-6 breaks
+    # in 16 steps); with both fixed 0 in 3 runs, and one run with the first fix alone had 1:
+    # two planes' legs crossing at one instant, one had to circle (docs/sitl.md)
     v = result["violations"]
     assert (v["threat"], v["separation"], v["range"]) == (0, 0, 0), run.explain()
-    # along every position report of the mission (the flight home is ArduPlane's RTL: planes
-    # converging on their homes breached separation once in four runs; docs/sitl.md)
-    audit = result["track_audit"]["phases"]["mission"]
-    assert audit["threat_entries"] == 0 and audit["separation_breaches"] == 0, audit
+    assert v["turn"] <= 1, run.explain()
+    for phase, audit in result["track_audit"]["phases"].items():
+        assert audit["threat_entries"] == 0 and audit["separation_breaches"] == 0, (phase, audit)
     # every plane sent home: RTL, or guided around the threats where the straight line crosses
     home = set(result["rtl_sent_to"]) | set(result["guided_home_around_threats"])
     assert sorted(home) == [1, 2, 3], result["rtl_not_sent"]
