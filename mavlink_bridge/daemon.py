@@ -733,7 +733,8 @@ class MissionDaemon:
             self.unresolved.add(sid)
             self.say(
                 f"warning: vehicle {sid}'s way home may come within d_min of another plane's "
-                "and no safe point to hold at was found: it flies on"
+                "and no hold clears it (that plane circles its home on the way, or no safe "
+                "point to hold at was found): it flies on"
             )
         return plan.holds
 

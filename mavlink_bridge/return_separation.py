@@ -165,7 +165,15 @@ class ReturnSeparation:
         fixed = list(set_legs)
         plan = ReturnPlan()
         for leg, course in sorted(waiting, key=lambda lc: (lc[0].arrival_s, lc[0].system_id)):
-            if not self.conflicts(leg, fixed):
+            blocking = [o for o in fixed if self.clearance_km(leg, o) < self.d_min_km]
+            if not blocking:
+                fixed.append(leg)
+                continue
+            if all(o.at_home and o.arrival_s <= self.sample_s for o in blocking):
+                # only planes already circling their homes are in the way: they stay there,
+                # so holding would never clear it (a plane held for one circled until the
+                # watch of the flight home ended)
+                plan.unresolved.append(leg.system_id)
                 fixed.append(leg)
                 continue
             point = self.hold_point(leg, course, fixed, keep.get(leg.system_id))

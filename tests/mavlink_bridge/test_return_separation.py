@@ -49,3 +49,19 @@ def test_the_later_plane_holds_at_a_safe_point_clear_of_the_other_way():
     home = s.leg(1, np.array([28.0, 28.0]), np.array([28.0, 28.0]), at_home=True)
     later = s.leg(2, point, np.array([20.0, 28.5]), at_home=True)
     assert s.plan([home], [(later, 0.0)]).holds == {}
+
+
+def test_a_plane_circling_its_home_on_anothers_way_is_not_waited_for():
+    """Plane 1 circles its home, which lies on plane 2's way home: it stays there, so holding
+    plane 2 would never clear the conflict (it circled until the watch of the flight home
+    ended, 7 minutes at real time). Plane 2 flies on, and the daemon says so."""
+    s = separation()
+    home_1 = np.array([24.0, 24.0])
+    circling = s.leg(1, home_1, home_1, at_home=True)
+    way = s.leg(2, np.array([20.0, 20.0]), np.array([28.0, 28.0]), at_home=True)
+    assert s.clearance_km(way, circling) < 1.0
+    plan = s.plan([circling], [(way, 0.0)])
+    assert plan.holds == {} and plan.unresolved == [2]
+    # a plane still on its way is waited for: once it is home the way may clear
+    flying = s.leg(1, np.array([28.0, 20.0]), np.array([20.0, 28.0]), at_home=True)
+    assert list(s.plan([flying], [(way, 0.0)]).holds) == [2]
