@@ -117,6 +117,7 @@ def arm(daemon: MissionDaemon) -> None:
         wait=daemon.wait_sim,
         progress=daemon.say,
         arm_attempts=daemon.options.launch_command_attempts,
+        listen=daemon.require_link().pump_until,
     )
     clocks = [v.clock_ms / 1000.0 for v in daemon.vehicles()]
     daemon.say(

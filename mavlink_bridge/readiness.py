@@ -25,6 +25,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 from mavlink_bridge.guided_commands import Command, arm_command, request_message_command
 from mavlink_bridge.protocol import mavlink, result_name
@@ -35,8 +36,11 @@ PREARM_BIT = mavlink.MAV_SYS_STATUS_PREARM_CHECK
 GPS_BIT = mavlink.MAV_SYS_STATUS_SENSOR_GPS
 #: ask again for HOME_POSITION after this long without it (wall s)
 HOME_REQUEST_PERIOD_S = 3.0
-#: pause between arm attempts of a vehicle that refused (wall s)
+#: pause between arm attempts of a vehicle that refused, or accepted and is not armed yet (wall s)
 ARM_RETRY_S = 1.0
+#: how long an accepted arm waits for the heartbeat that shows it, without granting time to a
+#: lockstep simulator (wall s)
+ARM_CONFIRM_S = 1.0
 
 
 class NotReadyError(UserError):
@@ -97,11 +101,14 @@ def arm_when_ready(
     progress: Callable[[str], None] | None = None,
     progress_period_s: float = 5.0,
     arm_attempts: int = 5,
+    listen: Callable[[Callable[[], bool], float], bool] | None = None,
 ) -> None:
     """Arm every vehicle once it is ready (module docstring), retrying refusals, within
     ``window_s`` wall seconds. ``send(commands, attempts)`` sends commands (each up to
     ``attempts`` times) and collects their ACKs;
-    ``wait(done, timeout_s)`` pumps the link (and grants time to a lockstep simulator).
+    ``wait(done, timeout_s)`` pumps the link (and grants time to a lockstep simulator);
+    ``listen(done, timeout_s)`` pumps it without granting time (by default ``wait``): an
+    accepted arm shows in the heartbeat of the same instant.
 
     Raises NotReadyError naming every vehicle not armed at the end, what it lacks and its
     newest PreArm reasons."""
@@ -136,10 +143,13 @@ def arm_when_ready(
             if not v.armed and readiness_of(v).ready and now >= next_arm.get(v.system_id, 0.0)
         ]
         if due:
-            for cmd in send([arm_command(v) for v in due], arm_attempts):
-                # accepted or not, the next try waits: an accepted arm shows in the vehicle's
-                # next heartbeat (without the pause, a paced 20x mission sent one vehicle 160
-                # arm commands in the second before its heartbeat said armed)
+            sent = send([arm_command(v) for v in due], arm_attempts)
+            accepted = [cmd.vehicle for cmd in sent if cmd.accepted]
+            if accepted:  # the heartbeat that shows it, at the same instant of a lockstep clock
+                (listen or wait)(partial(_all_armed, accepted), ARM_CONFIRM_S)
+            for cmd in sent:
+                # accepted or not, the next try waits (without the pause, a paced 20x mission
+                # sent one vehicle 160 arm commands in the second before its heartbeat said armed)
                 next_arm[cmd.vehicle.system_id] = time.monotonic() + ARM_RETRY_S
                 if not cmd.accepted and not cmd.vehicle.armed:
                     refusals[cmd.vehicle.system_id] = (
@@ -152,6 +162,10 @@ def arm_when_ready(
     if done():
         return
     raise NotReadyError(_failure_line(vehicles, window_s, started, refusals))
+
+
+def _all_armed(vehicles: list[VehicleState]) -> bool:
+    return all(v.armed for v in vehicles)
 
 
 def _newly_ready(vehicles: list[VehicleState], next_arm: dict[int, float]) -> bool:
