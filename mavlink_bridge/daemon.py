@@ -45,13 +45,11 @@ from mavlink_bridge.checkpoint import (
 )
 from mavlink_bridge.decision_step import DecisionStep, LoopState, course_heading
 from mavlink_bridge.flight_envelope import FlightEnvelope
+from mavlink_bridge.flight_home import FlightHome, return_to_launch, watch_rtl
 from mavlink_bridge.flight_prediction import PlaneModel
 from mavlink_bridge.guided_commands import (
     Command,
-    change_speed_command,
-    reposition_command,
     send_commands,
-    set_mode_command,
 )
 from mavlink_bridge.keeping_up import (
     HoldWhenLate,
@@ -72,10 +70,7 @@ from mavlink_bridge.mission_result import (
     mavlink_extra,
 )
 from mavlink_bridge.pacing import STEP_DEADLINE_SHARE, DecisionInstant, PacingChoice, PacingContext
-from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
-from mavlink_bridge.return_home import HomeWatch, rtl_line, rtl_recipients
-from mavlink_bridge.return_separation import Homeward, ReturnSeparation
-from mavlink_bridge.safe_return import HomeRoutes
+from mavlink_bridge.protocol import mavlink
 from mavlink_bridge.safety_envelope import SafetyEnvelope
 from mavlink_bridge.swarm_link import SwarmLink
 from mavlink_bridge.telemetry_plausibility import PlausibilityFilter, PlausibilityLimits
@@ -239,15 +234,7 @@ class MissionDaemon:
             if options.prediction_horizon_steps > 0
             else None
         )
-        self._home_routes: HomeRoutes | None = None  # the way home around threats
-        self.homing: dict[int, np.ndarray] = {}
-        self.detoured: set[int] = set()  # every vehicle that was guided around threats home
-        #: the flight home kept d_min apart (return_separation.py), when the daemon stays to
-        #: watch it: vehicles circling a hold point until their way home is clear of the others'
-        self.separate_returns = False
-        self.holding: dict[int, np.ndarray] = {}
-        self.held: set[int] = set()  # every vehicle that held for another's way home
-        self.unresolved: set[int] = set()  # ... and those that found no point to hold at
+        self.flight_home = FlightHome()  # who flies home how (flight_home.py)
         self._target_values = {t.id: float(t.value) for t in scenario.targets}
         self.fingerprint = mission_fingerprint(scenario, options.seed, self.n, self.steps)
         self.checkpoints = (
@@ -402,36 +389,6 @@ class MissionDaemon:
                 self.flight_envelope, model=self.plane, cells=self.envelope
             )
 
-    @property
-    def home_routes(self) -> HomeRoutes:
-        """The way home around threats (RTL flies straight) for the plane model and threat
-        margin in force (both set from the airframe at launch); the turn onto it with the full
-        margin: a plane may fly faster (leg timing) and turn wider than the model (0.25 km let
-        an RTL 0.19 km into a threat)."""
-        env, routes = self.envelope, self._home_routes
-        if (
-            routes is None
-            or routes.plane is not self.plane
-            or routes.margin_km != (env.threat_margin_km)
-        ):
-            routes = HomeRoutes(
-                self.grid, env.threat_xy_km, env.threat_radius_km, self.plane,
-                margin_km=env.threat_margin_km, turn_margin_km=env.threat_margin_km,
-            )  # fmt: skip
-            self._home_routes = routes
-        return routes
-
-    @property
-    def return_separation(self) -> ReturnSeparation:
-        """The flight home kept d_min apart, judged with the way home's threat margin and the
-        plane model in force; a plane may stray its loiter radius from its line on the way."""
-        routes = self.home_routes
-        return ReturnSeparation(
-            routes,
-            self.scenario.config.min_separation_km,
-            slack_km=float(self.plane.loiter_radius_km()),
-        )
-
     # ------------------------------------------------------------------ link and clock
 
     def connect(self) -> SwarmLink:
@@ -537,49 +494,6 @@ class MissionDaemon:
     def time_scale(self) -> float:
         return max(self.options.time_scale, 1e-6)
 
-    def watch_rtl(self) -> None:
-        """Listen on (in lockstep: grant time) until every vehicle still heard circles its home
-        (``return_home.HomeWatch``), for the continuous account of the flight home
-        (``rtl_watch_s``)."""
-        vehicles = [v for v in self.vehicles() if not v.lost and v.home is not None]
-        if not vehicles:
-            return
-        near_km = float(self.plane.loiter_radius_km()) + 0.5
-        watch = HomeWatch(vehicles, near_km, self.plane.speed_mps)
-        limit_s = watch.limit_s(self.options.rtl_watch_s)
-        if limit_s <= 0:
-            return
-        # planes flying a safe way home (safe_return.py) or holding for another's
-        # (return_separation.py) are re-judged once per decision period; the time a plane holds
-        # is added to the watch (at most once more its length)
-        period_s = self.scenario.config.step_s
-        waited_s = extra_s = 0.0
-        while waited_s < limit_s + extra_s:
-            left_s = limit_s + extra_s - waited_s
-            guiding = bool(self.homing or self.holding)
-            chunk_s = min(period_s, left_s) if guiding else left_s
-            if self.clock is not None:
-                done = self.wait_sim(watch.home, chunk_s)
-            else:
-                done = self.require_link().pump_until(watch.home, chunk_s / self.time_scale)
-            waited_s += chunk_s
-            if self.holding:
-                extra_s = min(limit_s, extra_s + chunk_s)
-            if done and not (self.homing or self.holding):
-                return
-            guided = self.homing.keys() | self.holding.keys()
-            flying = [v for v in vehicles if not v.lost and v.system_id in guided]
-            self.send(self.homeward_commands(flying, announce=False))
-        still = [v for v in vehicles if not v.lost and v.system_id in self.holding]
-        if still:
-            self.say(
-                "warning: the watch of the flight home ends with vehicle(s) "
-                f"{', '.join(str(v.system_id) for v in still)} still holding: RTL sent"
-            )
-            for v in still:
-                self.holding.pop(v.system_id)
-            self.send([set_mode_command(v, PLANE_MODE_RTL) for v in still])
-
     def finish(self, ended: str) -> MissionReport:
         """The one exit path: RTL to every airborne vehicle still reachable (never to a grounded,
         disarmed one), say to whom, release a lockstep simulator, close the link and the tlog,
@@ -591,11 +505,12 @@ class MissionDaemon:
         sent_to: list[int] = []
         skipped: dict[int, str] = {}
         # an interrupted daemon does not stay to watch the flight home, so holds no plane
-        self.separate_returns = ended == "completed"
+        flight = self.flight_home
+        flight.separate = ended == "completed"
         try:
-            sent_to, skipped = self.return_to_launch()
+            sent_to, skipped = return_to_launch(self)
             if ended == "completed":  # (an interrupted daemon does not stay to watch)
-                self.watch_rtl()
+                watch_rtl(self)
         except Exception as exc:  # noqa: BLE001 - the cleanup goes on whatever happens
             self.say(f"warning: RTL could not be sent to every vehicle ({exc})")
         self.audit.end()  # the account ends with the watch, before the simulator runs free
@@ -607,136 +522,15 @@ class MissionDaemon:
             self.state = None
             result = self.result_so_far(f"{ended} (no flight result: {exc})", where)
         # a vehicle guided around threats got its RTL during the watch, once the way was clear
-        later = (self.detoured | self.held) - set(self.homing) - set(self.holding)
+        later = (flight.detoured | flight.held) - set(flight.homing) - set(flight.holding)
         result["rtl_sent_to"] = sorted(set(sent_to) | later)
-        result["guided_home_around_threats"] = sorted(self.detoured)
-        result["held_for_separation_home"] = sorted(self.held)
+        result["guided_home_around_threats"] = sorted(flight.detoured)
+        result["held_for_separation_home"] = sorted(flight.held)
         result["rtl_not_sent"] = {str(k): why for k, why in sorted(skipped.items())}
         result["track_audit"] = self.audit.summary()
         self.close()
         self.report = MissionReport(result, self.events)
         return self.report
-
-    def return_to_launch(self) -> tuple[list[int], dict[int, str]]:
-        """RTL (at cruise speed) to every airborne vehicle still reachable whose way home is clear
-        of threats; one whose is not is guided around them (``homeward_commands``, re-judged by
-        ``watch_rtl``). Returns the system ids RTL was sent to and, for every vehicle not
-        reachable or not flying, why not; says both, and warns of every vehicle that did not
-        accept."""
-        if self.link is None:
-            return [], {}
-        flying, skipped = rtl_recipients(self.link.vehicles.values(), self.options.lost_after_s)
-        if self.stages is not None:
-            self.stages.end_leg_timing(flying)  # home at cruise speed
-        elif self.options.leg_timing and flying:
-            cruise = self.plane.speed_mps
-            self.send([change_speed_command(v, cruise) for v in flying])
-        # RTL where the way home is clear, else guided around the threats (safe_return.py)
-        results = self.send(self.homeward_commands(flying, announce=True))
-        for c in results:
-            if not c.accepted:
-                self.say(f"warning: {c.describe_failure()}")
-        rtl = [c for c in results if c.command == mavlink.MAV_CMD_DO_SET_MODE]
-        sent = [c.vehicle.system_id for c in rtl]
-        accepted = [c.vehicle.system_id for c in rtl if c.accepted]
-        line = rtl_line(sent, accepted, skipped)
-        if self.homing:
-            around = ", ".join(str(i) for i in sorted(self.homing))
-            line += f"; guided home around the threats: {around}"
-        if self.holding:
-            holding = ", ".join(str(i) for i in sorted(self.holding))
-            line += f"; holding for the others' way home: {holding}"
-        self.say(line)
-        return sent, skipped
-
-    def homeward_commands(self, vehicles: list[VehicleState], announce: bool) -> list[Command]:
-        """Per vehicle: RTL when its way home is clear (``HomeRoutes.rtl_clear``), else a
-        DO_REPOSITION to the next safe waypoint (sent again only when the waypoint changes);
-        when the daemon stays to watch the flight home, a vehicle whose way would come within
-        d_min of another's holds at a safe point until it is clear (``hold_for_separation``)."""
-        commands: list[Command] = []
-        ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]] = {}
-        for v in vehicles:
-            if v.home is not None and v.has_position:
-                xy = self.local_km(v.lat_deg, v.lon_deg)
-                home = self.local_km(v.home[0], v.home[1])
-                course = math.atan2(v.vn_mps, v.ve_mps)
-                waypoint = None
-                if not self.home_routes.rtl_clear(xy, course, home):
-                    waypoint = self.home_routes.waypoint(xy, home, course)
-                ways[v.system_id] = (xy, home, course, waypoint)
-        holds = self.hold_for_separation(vehicles, ways) if self.separate_returns else {}
-        for v in vehicles:
-            waypoint = ways[v.system_id][3] if v.system_id in ways else None
-            was_holding = self.holding.pop(v.system_id, None)
-            hold = holds.get(v.system_id)
-            if hold is not None:
-                self.holding[v.system_id] = hold
-                self.homing.pop(v.system_id, None)
-                if was_holding is None or not np.allclose(was_holding, hold):
-                    commands.append(self.reposition_to(v, hold))
-                continue
-            before = self.homing.get(v.system_id)
-            if waypoint is None:
-                self.homing.pop(v.system_id, None)
-                if before is not None or was_holding is not None or announce:
-                    commands.append(set_mode_command(v, PLANE_MODE_RTL))
-                continue
-            self.homing[v.system_id] = waypoint
-            self.detoured.add(v.system_id)
-            if before is not None and np.allclose(before, waypoint):
-                continue
-            if before is None:
-                self.say(
-                    f"vehicle {v.system_id} flies home around the threats (RTL's straight line "
-                    f"would cross one): guided via ({waypoint[0]:.1f}, {waypoint[1]:.1f}) km"
-                )
-            commands.append(self.reposition_to(v, waypoint))
-        return commands
-
-    def reposition_to(self, v: VehicleState, xy_km: np.ndarray) -> Command:
-        lat, lon = local_km_to_geodetic(xy_km[:1], xy_km[1:], self.scenario.origin)
-        return reposition_command(v, float(lat[0]), float(lon[0]), self.scenario.altitude_m)
-
-    def hold_for_separation(
-        self,
-        vehicles: list[VehicleState],
-        ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]],
-    ) -> dict[int, np.ndarray]:
-        """The vehicles (of ``vehicles``) that must hold for another's way home, and where
-        (``ReturnSeparation.plan``): every other airborne vehicle heard is flying RTL straight
-        home, which nobody holds any more; a vehicle already holding keeps its point while it
-        is still good. Says who holds, and who conflicts with no hold point found."""
-        separation = self.return_separation
-        deciding = {v.system_id for v in vehicles}
-        set_legs: list[Homeward] = []
-        for o in self.vehicles():
-            if o.system_id in deciding or o.lost or not o.airborne or o.home is None:
-                continue
-            if not o.has_position:
-                continue
-            xy, home = self.local_km(o.lat_deg, o.lon_deg), self.local_km(o.home[0], o.home[1])
-            set_legs.append(separation.leg(o.system_id, xy, home, at_home=True))
-        waiting = []
-        for sid, (xy, home, course, waypoint) in ways.items():
-            aim = home if waypoint is None else waypoint
-            waiting.append((separation.leg(sid, xy, aim, at_home=waypoint is None), course))
-        plan = separation.plan(set_legs, waiting, keep=self.holding)
-        for sid, point in plan.holds.items():
-            if sid not in self.holding:
-                self.held.add(sid)
-                self.say(
-                    f"vehicle {sid} holds at ({point[0]:.1f}, {point[1]:.1f}) km: its way home "
-                    f"would come within d_min of another plane's"
-                )
-        for sid in set(plan.unresolved) - self.unresolved:
-            self.unresolved.add(sid)
-            self.say(
-                f"warning: vehicle {sid}'s way home may come within d_min of another plane's "
-                "and no hold clears it (that plane circles its home on the way, or no safe "
-                "point to hold at was found): it flies on"
-            )
-        return plan.holds
 
     def result_so_far(self, ended: str, phase: str) -> dict[str, Any]:
         """The result of what was flown: the recorder's (every recorded step), with the MAVLink

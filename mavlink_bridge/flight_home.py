@@ -1,0 +1,254 @@
+"""The flight home at the end of a mission, after RTL went out: each plane's way home clear of
+the threats (RTL's straight line where it is clear, else guided around them: safe_return.py),
+kept d_min from the other planes' ways (a plane circles a safe hold point until its way is
+clear: return_separation.py), and the watch of the flight home, so that it is in the
+continuous safety account (return_home.HomeWatch). The daemon's exit path (``finish``) calls
+``return_to_launch`` and, after a completed mission, ``watch_rtl``; what happened is kept in
+the daemon's :class:`FlightHome`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mavlink_bridge.guided_commands import (
+    Command,
+    change_speed_command,
+    reposition_command,
+    set_mode_command,
+)
+from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
+from mavlink_bridge.return_home import HomeWatch, rtl_line, rtl_recipients
+from mavlink_bridge.return_separation import Homeward, ReturnSeparation
+from mavlink_bridge.safe_return import HomeRoutes
+from mavlink_bridge.vehicle_state import VehicleState
+from planner.geodesy import local_km_to_geodetic
+
+if TYPE_CHECKING:
+    from mavlink_bridge.daemon import MissionDaemon
+
+
+@dataclass
+class FlightHome:
+    """Who flies home how: guided around the threats (``homing``: the waypoint it flies to
+    now; ``detoured``: every one that was), holding for another's way home (``holding``: the
+    point it circles; ``held``: every one that did; ``unresolved``: no hold cleared its way)."""
+
+    homing: dict[int, np.ndarray] = field(default_factory=dict)
+    detoured: set[int] = field(default_factory=set)
+    #: keep the ways home d_min apart: only when the daemon stays to watch the flight home
+    separate: bool = False
+    holding: dict[int, np.ndarray] = field(default_factory=dict)
+    held: set[int] = field(default_factory=set)
+    unresolved: set[int] = field(default_factory=set)
+    routes: HomeRoutes | None = None  # the way home around threats, for the plane model in force
+
+
+def home_routes(daemon: MissionDaemon) -> HomeRoutes:
+    """The way home around threats (RTL flies straight) for the plane model and threat
+    margin in force (both set from the airframe at launch); the turn onto it with the full
+    margin: a plane may fly faster (leg timing) and turn wider than the model (0.25 km let
+    an RTL 0.19 km into a threat)."""
+    flight = daemon.flight_home
+    env, routes = daemon.envelope, flight.routes
+    if (
+        routes is None
+        or routes.plane is not daemon.plane
+        or routes.margin_km != (env.threat_margin_km)
+    ):
+        routes = HomeRoutes(
+            daemon.grid, env.threat_xy_km, env.threat_radius_km, daemon.plane,
+            margin_km=env.threat_margin_km, turn_margin_km=env.threat_margin_km,
+        )  # fmt: skip
+        flight.routes = routes
+    return routes
+
+
+def return_separation(daemon: MissionDaemon) -> ReturnSeparation:
+    """The flight home kept d_min apart, judged with the way home's threat margin and the
+    plane model in force; a plane may stray its loiter radius from its line on the way."""
+    routes = home_routes(daemon)
+    return ReturnSeparation(
+        routes,
+        daemon.scenario.config.min_separation_km,
+        slack_km=float(daemon.plane.loiter_radius_km()),
+    )
+
+
+def watch_rtl(daemon: MissionDaemon) -> None:
+    """Listen on (in lockstep: grant time) until every vehicle still heard circles its home
+    (``return_home.HomeWatch``), for the continuous account of the flight home
+    (``rtl_watch_s``)."""
+    flight = daemon.flight_home
+    vehicles = [v for v in daemon.vehicles() if not v.lost and v.home is not None]
+    if not vehicles:
+        return
+    near_km = float(daemon.plane.loiter_radius_km()) + 0.5
+    watch = HomeWatch(vehicles, near_km, daemon.plane.speed_mps)
+    limit_s = watch.limit_s(daemon.options.rtl_watch_s)
+    if limit_s <= 0:
+        return
+    # planes flying a safe way home (safe_return.py) or holding for another's
+    # (return_separation.py) are re-judged once per decision period; the time a plane holds
+    # is added to the watch (at most once more its length)
+    period_s = daemon.scenario.config.step_s
+    waited_s = extra_s = 0.0
+    while waited_s < limit_s + extra_s:
+        left_s = limit_s + extra_s - waited_s
+        guiding = bool(flight.homing or flight.holding)
+        chunk_s = min(period_s, left_s) if guiding else left_s
+        if daemon.clock is not None:
+            done = daemon.wait_sim(watch.home, chunk_s)
+        else:
+            done = daemon.require_link().pump_until(watch.home, chunk_s / daemon.time_scale)
+        waited_s += chunk_s
+        if flight.holding:
+            extra_s = min(limit_s, extra_s + chunk_s)
+        if done and not (flight.homing or flight.holding):
+            return
+        guided = flight.homing.keys() | flight.holding.keys()
+        flying = [v for v in vehicles if not v.lost and v.system_id in guided]
+        daemon.send(homeward_commands(daemon, flying, announce=False))
+    still = [v for v in vehicles if not v.lost and v.system_id in flight.holding]
+    if still:
+        daemon.say(
+            "warning: the watch of the flight home ends with vehicle(s) "
+            f"{', '.join(str(v.system_id) for v in still)} still holding: RTL sent"
+        )
+        for v in still:
+            flight.holding.pop(v.system_id)
+        daemon.send([set_mode_command(v, PLANE_MODE_RTL) for v in still])
+
+
+def return_to_launch(daemon: MissionDaemon) -> tuple[list[int], dict[int, str]]:
+    """RTL (at cruise speed) to every airborne vehicle still reachable whose way home is clear
+    of threats; one whose is not is guided around them (``homeward_commands``, re-judged by
+    ``watch_rtl``). Returns the system ids RTL was sent to and, for every vehicle not
+    reachable or not flying, why not; says both, and warns of every vehicle that did not
+    accept."""
+    flight = daemon.flight_home
+    if daemon.link is None:
+        return [], {}
+    flying, skipped = rtl_recipients(daemon.link.vehicles.values(), daemon.options.lost_after_s)
+    if daemon.stages is not None:
+        daemon.stages.end_leg_timing(flying)  # home at cruise speed
+    elif daemon.options.leg_timing and flying:
+        cruise = daemon.plane.speed_mps
+        daemon.send([change_speed_command(v, cruise) for v in flying])
+    # RTL where the way home is clear, else guided around the threats (safe_return.py)
+    results = daemon.send(homeward_commands(daemon, flying, announce=True))
+    for c in results:
+        if not c.accepted:
+            daemon.say(f"warning: {c.describe_failure()}")
+    rtl = [c for c in results if c.command == mavlink.MAV_CMD_DO_SET_MODE]
+    sent = [c.vehicle.system_id for c in rtl]
+    accepted = [c.vehicle.system_id for c in rtl if c.accepted]
+    line = rtl_line(sent, accepted, skipped)
+    if flight.homing:
+        around = ", ".join(str(i) for i in sorted(flight.homing))
+        line += f"; guided home around the threats: {around}"
+    if flight.holding:
+        holding = ", ".join(str(i) for i in sorted(flight.holding))
+        line += f"; holding for the others' way home: {holding}"
+    daemon.say(line)
+    return sent, skipped
+
+
+def homeward_commands(
+    daemon: MissionDaemon, vehicles: list[VehicleState], announce: bool) -> list[Command]:
+    """Per vehicle: RTL when its way home is clear (``HomeRoutes.rtl_clear``), else a
+    DO_REPOSITION to the next safe waypoint (sent again only when the waypoint changes);
+    when the daemon stays to watch the flight home, a vehicle whose way would come within
+    d_min of another's holds at a safe point until it is clear (``hold_for_separation``)."""
+    flight = daemon.flight_home
+    commands: list[Command] = []
+    ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]] = {}
+    for v in vehicles:
+        if v.home is not None and v.has_position:
+            xy = daemon.local_km(v.lat_deg, v.lon_deg)
+            home = daemon.local_km(v.home[0], v.home[1])
+            course = math.atan2(v.vn_mps, v.ve_mps)
+            waypoint = None
+            if not home_routes(daemon).rtl_clear(xy, course, home):
+                waypoint = home_routes(daemon).waypoint(xy, home, course)
+            ways[v.system_id] = (xy, home, course, waypoint)
+    holds = hold_for_separation(daemon, vehicles, ways) if flight.separate else {}
+    for v in vehicles:
+        waypoint = ways[v.system_id][3] if v.system_id in ways else None
+        was_holding = flight.holding.pop(v.system_id, None)
+        hold = holds.get(v.system_id)
+        if hold is not None:
+            flight.holding[v.system_id] = hold
+            flight.homing.pop(v.system_id, None)
+            if was_holding is None or not np.allclose(was_holding, hold):
+                commands.append(reposition_to(daemon, v, hold))
+            continue
+        before = flight.homing.get(v.system_id)
+        if waypoint is None:
+            flight.homing.pop(v.system_id, None)
+            if before is not None or was_holding is not None or announce:
+                commands.append(set_mode_command(v, PLANE_MODE_RTL))
+            continue
+        flight.homing[v.system_id] = waypoint
+        flight.detoured.add(v.system_id)
+        if before is not None and np.allclose(before, waypoint):
+            continue
+        if before is None:
+            daemon.say(
+                f"vehicle {v.system_id} flies home around the threats (RTL's straight line "
+                f"would cross one): guided via ({waypoint[0]:.1f}, {waypoint[1]:.1f}) km"
+            )
+        commands.append(reposition_to(daemon, v, waypoint))
+    return commands
+
+
+def reposition_to(
+    daemon: MissionDaemon, v: VehicleState, xy_km: np.ndarray) -> Command:
+    lat, lon = local_km_to_geodetic(xy_km[:1], xy_km[1:], daemon.scenario.origin)
+    return reposition_command(v, float(lat[0]), float(lon[0]), daemon.scenario.altitude_m)
+
+
+def hold_for_separation(
+    daemon: MissionDaemon,
+    vehicles: list[VehicleState],
+    ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]],
+) -> dict[int, np.ndarray]:
+    """The vehicles (of ``vehicles``) that must hold for another's way home, and where
+    (``ReturnSeparation.plan``): every other airborne vehicle heard is flying RTL straight
+    home, which nobody holds any more; a vehicle already holding keeps its point while it
+    is still good. Says who holds, and who conflicts with no hold point found."""
+    flight = daemon.flight_home
+    separation = return_separation(daemon)
+    deciding = {v.system_id for v in vehicles}
+    set_legs: list[Homeward] = []
+    for o in daemon.vehicles():
+        if o.system_id in deciding or o.lost or not o.airborne or o.home is None:
+            continue
+        if not o.has_position:
+            continue
+        xy, home = daemon.local_km(o.lat_deg, o.lon_deg), daemon.local_km(o.home[0], o.home[1])
+        set_legs.append(separation.leg(o.system_id, xy, home, at_home=True))
+    waiting = []
+    for sid, (xy, home, course, waypoint) in ways.items():
+        aim = home if waypoint is None else waypoint
+        waiting.append((separation.leg(sid, xy, aim, at_home=waypoint is None), course))
+    plan = separation.plan(set_legs, waiting, keep=flight.holding)
+    for sid, point in plan.holds.items():
+        if sid not in flight.holding:
+            flight.held.add(sid)
+            daemon.say(
+                f"vehicle {sid} holds at ({point[0]:.1f}, {point[1]:.1f}) km: its way home "
+                f"would come within d_min of another plane's"
+            )
+    for sid in set(plan.unresolved) - flight.unresolved:
+        flight.unresolved.add(sid)
+        daemon.say(
+            f"warning: vehicle {sid}'s way home may come within d_min of another plane's "
+            "and no hold clears it (that plane circles its home on the way, or no safe "
+            "point to hold at was found): it flies on"
+        )
+    return plan.holds
