@@ -108,22 +108,22 @@ steps = 16
 altitude_m = 500
 [parameters]
 grid_nx = 26
-grid_ny = 5
+grid_ny = 3
 [uavs]
 count = 2
 [[uavs.start]]
 x_km = 4.5
-y_km = 2.5
+y_km = 1.5
 heading_deg = 0
 [[uavs.start]]
 x_km = 20.5
-y_km = 2.5
+y_km = 1.5
 heading_deg = 180
 [[targets]]
 id = 1
 kind = "known_position"
 x_km = 12.5
-y_km = 2.5
+y_km = 1.5
 value = 5
 """
 
@@ -231,12 +231,13 @@ def test_the_flight_home_goes_around_a_threat_between_plane_and_home(tmp_path: P
 
 @pytest.mark.timeout(120)
 def test_planes_whose_ways_home_cross_fly_home_apart(tmp_path: Path):
-    """Two planes fly at each other along a 5 km wide corridor and pass; the mission ends with
-    each on the other's side, their homes 16 km apart on one line: RTL's straight lines home
-    meet (without the fix they passed 0.85 km apart, in the track account and the simulator's
-    truth alike). One plane circles a safe point until the other has passed. In so narrow an
-    area the planes swap whatever the planner's scoring does (in a 26 km square they did in 22
-    and then 38 steps, until planner and envelope changes turned them away)."""
+    """Two planes fly at each other along a 3 km wide corridor, too narrow to turn back in, and
+    pass; the mission ends with each on the other's side, their homes 16 km apart on one line:
+    RTL's straight lines home meet (without the fix they passed 0.97 km apart, in the track
+    account and the simulator's truth alike; 3.17 km with it). One plane circles a safe point
+    until the other has passed. In a wider area whether they swap depends on the planner's
+    scoring and on the instant they arm (in a 26 km square and a 5 km corridor they stopped
+    swapping after planner, envelope and arming changes)."""
     scenario = tmp_path / "swapped.toml"
     scenario.write_text(SWAPPED_SIDES)
     done = run_swarmplan(
