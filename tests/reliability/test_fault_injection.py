@@ -117,10 +117,13 @@ def test_the_fence_gets_through_a_link_losing_30_percent_each_way():
     try:
         wait_for_vehicles(link, ids, 60)
         vehicles = [link.vehicles[i] for i in ids]
+        # each upload returns only once every vehicle answered MISSION_ACK ACCEPTED for the
+        # fence (any other answer, or a stall, raises MissionUploadError naming the vehicle).
+        # The vehicles' last MISSION_ACK is not asserted: an exchange restarted because its
+        # ACK came late (not lost) is abandoned by the vehicle with OPERATION_CANCELLED after
+        # the upload ended, which keeps the fence it stored (sim_gateway/mission_protocol.py)
         for _ in range(3):
             upload_fence(link, vehicles, circles)
-        fence = ml.MAV_MISSION_TYPE_FENCE
-        assert all(v.mission_ack == (ml.MAV_MISSION_ACCEPTED, fence) for v in vehicles)
     finally:
         stop(sim)
         relay.stop()
