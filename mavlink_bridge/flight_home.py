@@ -159,12 +159,14 @@ def return_to_launch(daemon: MissionDaemon) -> tuple[list[int], dict[int, str]]:
 
 
 def homeward_commands(
-    daemon: MissionDaemon, vehicles: list[VehicleState], announce: bool) -> list[Command]:
+    daemon: MissionDaemon, vehicles: list[VehicleState], announce: bool
+) -> list[Command]:
     """Per vehicle: RTL when its way home is clear (``HomeRoutes.rtl_clear``), else a
     DO_REPOSITION to the next safe waypoint (sent again only when the waypoint changes);
     when the daemon stays to watch the flight home, a vehicle whose way would come within
     d_min of another's holds at a safe point until it is clear (``hold_for_separation``)."""
     flight = daemon.flight_home
+    routes = home_routes(daemon)
     commands: list[Command] = []
     ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]] = {}
     for v in vehicles:
@@ -173,8 +175,8 @@ def homeward_commands(
             home = daemon.local_km(v.home[0], v.home[1])
             course = math.atan2(v.vn_mps, v.ve_mps)
             waypoint = None
-            if not home_routes(daemon).rtl_clear(xy, course, home):
-                waypoint = home_routes(daemon).waypoint(xy, home, course)
+            if not routes.rtl_clear(xy, course, home):
+                waypoint = routes.waypoint(xy, home, course)
             ways[v.system_id] = (xy, home, course, waypoint)
     holds = hold_for_separation(daemon, vehicles, ways) if flight.separate else {}
     for v in vehicles:
@@ -206,8 +208,8 @@ def homeward_commands(
     return commands
 
 
-def reposition_to(
-    daemon: MissionDaemon, v: VehicleState, xy_km: np.ndarray) -> Command:
+def reposition_to(daemon: MissionDaemon, v: VehicleState, xy_km: np.ndarray) -> Command:
+    """DO_REPOSITION of ``v`` to ``xy_km`` (mission frame) at the scenario's altitude."""
     lat, lon = local_km_to_geodetic(xy_km[:1], xy_km[1:], daemon.scenario.origin)
     return reposition_command(v, float(lat[0]), float(lon[0]), daemon.scenario.altitude_m)
 

@@ -99,9 +99,9 @@ y_km = 10.0
 radius_km = 3.0
 """
 
-#: two planes drawn to one known target from opposite sides; after 38 steps (lockstep, seed 1)
-#: they have swapped sides south of it, and RTL's straight lines home cross (0.30 km apart).
-#: The premise depends on the planner's flight: the test checks it first
+#: two planes flying at each other along a 3 km wide corridor, too narrow to turn back in:
+#: after 16 steps (lockstep, seed 1) each is on the other's side, and RTL's straight lines home
+#: meet (0.97 km apart without the flight home's separation). The test checks the swap first
 SWAPPED_SIDES = """
 name = "swapped-sides"
 steps = 16
