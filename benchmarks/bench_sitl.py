@@ -10,7 +10,9 @@ daemon refuses a speedup the machine cannot keep, and says which one it can)::
 Prints one line per number: time to ready, coverage, engaged, violations, minimum separation
 (from the telemetry at the decision steps), distance from the planned cell centre at the next
 decision (mean / 95th percentile / worst), looks, late steps, decision-step length on the
-vehicles' clock (mean, min, max, worst drift from step_s) and wall time; ``--json`` prints them
+vehicles' clock (mean, min, max, worst drift from step_s), the safety account along every
+position report per phase (mission / hold / failsafe / RTL), the vehicles lost and back, who was
+sent home, the machine's load average (start, mean, max) and wall time; ``--json`` prints them
 as one JSON object instead. Every process it starts is stopped at the end.
 """
 
@@ -18,8 +20,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -50,6 +54,13 @@ def main() -> int:
     step_s = load_scenario(args.scenario).config.step_s
     # boot + take-off + the steps + the flight home, on the vehicles' clock, and a margin
     timeout = args.timeout or 120 + (400 + cfg_steps * step_s) / args.speedup * 1.5
+    loads, done = [os.getloadavg()[0]], threading.Event()
+
+    def sample_load() -> None:  # the machine is shared: its load beside the run, every 10 s
+        while not done.wait(10.0):
+            loads.append(os.getloadavg()[0])
+
+    threading.Thread(target=sample_load, daemon=True).start()
     with tempfile.TemporaryDirectory(prefix="bench-sitl-") as tmp:
         workdir = args.keep or Path(tmp)
         run = fly_sitl_mission(
@@ -57,6 +68,13 @@ def main() -> int:
             steps=args.steps, seed=args.seed, timeout_s=timeout,
         )  # fmt: skip
         numbers = measure(run)
+    done.set()
+    loads.append(os.getloadavg()[0])
+    numbers["load_average"] = {  # 1-minute averages
+        "start": round(loads[0], 1),
+        "mean": round(sum(loads) / len(loads), 1),
+        "max": round(max(loads), 1),
+    }
     if args.json:
         print(json.dumps(numbers))
     else:

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
+from mavlink_bridge.mission_result import lost_vehicle_lines
 from mavlink_bridge.signing import KEY_ENV, load_signing_key
 from mission_view.view_session import add_view_arguments
 from planner.errors import UserError
@@ -223,9 +224,8 @@ def print_summary(result: dict, out: Path, files: list[Path]) -> None:
     the files are."""
     if result.get("steps"):
         print(format_summary(result))
-    lost = result.get("lost_uavs") or []
-    if lost:
-        print(f"lost vehicles   {', '.join(str(i + 1) for i in lost)} (system ids)")
+    for line in lost_vehicle_lines(result):
+        print(line)
     ended = result.get("ended", "completed")
     if ended != "completed":
         print(f"ended           {ended} (in phase {result.get('ended_in_phase', '?')})")

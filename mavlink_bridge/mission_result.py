@@ -85,7 +85,7 @@ class LookTimes:
 class LinkEvent:
     step: int
     uav: int
-    event: str  # "lost" or "rejoined"
+    event: str  # "lost", "back" (heard again but not fit to rejoin: disarmed, ...), "rejoined"
     wall_s: float
     reason: str = ""  # why it was lost ("silent 3.2 s", "link closed", "disarmed", ...)
 
@@ -129,6 +129,32 @@ def link_event_rows(events: list[LinkEvent]) -> list[dict[str, Any]]:
             row["reason"] = e.reason
         rows.append(row)
     return rows
+
+
+def lost_vehicle_lines(result: dict[str, Any]) -> list[str]:
+    """The lost vehicles of a result, each with what happened to it (``link_events``) and, when it
+    was not sent home, why (``rtl_not_sent``): for the summary a person reads."""
+    lost = result.get("lost_uavs") or []
+    if not lost:
+        return []
+    lines = [f"lost vehicles   {', '.join(str(i + 1) for i in lost)} (system ids)"]
+    for uav in lost:
+        said = []
+        for e in result.get("link_events") or []:
+            if e["uav"] == uav:
+                reason = f" ({e['reason']})" if e.get("reason") else ""
+                said.append(f"{e['event']} at step {e['step']}{reason}")
+        last = next(
+            (e["event"] for e in reversed(result.get("link_events") or []) if e["uav"] == uav),
+            None,
+        )
+        if last == "back":
+            said.append("not launched again mid-mission")
+        why_not = (result.get("rtl_not_sent") or {}).get(str(uav + 1))
+        if why_not:
+            said.append(f"no RTL: {why_not}")
+        lines.append(f"  vehicle {uav + 1:<5d} {'; '.join(said)}")
+    return lines
 
 
 def mavlink_extra(

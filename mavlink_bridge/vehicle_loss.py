@@ -13,6 +13,15 @@ A lost vehicle is inactive to the planner and gets no commands; the others go on
 when it is heard again (within ``min(1, lost_after_s / 2)`` s), its link is up, and, in the
 loop, it is armed and in GUIDED. Both events are said and kept (``MissionAccount.events``,
 ``LinkEvent`` with the reason).
+
+A vehicle lost with its link or to silence that is heard again, but disarmed or out of GUIDED,
+is **back but still lost**, said once with what it is now (``LinkEvent`` "back"): an autopilot
+that rebooted mid-mission (an ArduPlane SITL instance restarted) comes back disarmed on the
+ground. The daemon does not launch it again: a take-off into a swarm in flight is not judged by
+the flight envelope (it plans legs of airborne planes, not a climb-out through their paths).
+Armed and in GUIDED again (flown up by its pilot), it rejoins. Silence is counted in wall
+seconds because a silent vehicle has no clock of its own to count with: its last report's
+``time_boot_ms`` stands still, and the other vehicles' clocks are not its own.
 """
 
 from __future__ import annotations
@@ -25,6 +34,21 @@ from mavlink_bridge.lockstep_clock import SwarmPauses
 from mavlink_bridge.mission_result import LinkEvent, MissionAccount
 from mavlink_bridge.protocol import PLANE_MODE_GUIDED, mode_name
 from mavlink_bridge.vehicle_state import VehicleState
+
+#: the reasons a vehicle went away (rather than being in the wrong state)
+GONE = ("link ", "silent ")
+
+
+def paced_lost_after_s(speedup: float) -> float:
+    """Wall seconds of silence before a vehicle counts as lost, for a simulator paced at
+    ``speedup`` on this machine (``swarmplan demo --speedup``): 200 s of the vehicles' clock, but
+    at least 1 wall s and at most 10. The cap: at 1x, 200 s of
+    silence is a third of a mission planned for a vehicle that may be gone, while a stall of the
+    shared machine (the simulator, the daemon and the live view on one machine) lasts seconds of
+    wall time at any speedup; 10 s rides out the stalls measured under load (the paced tests use
+    ``--lost-after 10`` at 20x). The daemon's own default, 3 wall s, does not scale: against
+    aircraft and SITL a silence is a link's or a machine's, both wall time."""
+    return max(1.0, min(10.0, 200.0 / speedup))
 
 
 def link_down(v: VehicleState) -> str | None:
@@ -88,6 +112,20 @@ class LossWatch:
                 reason = "silent" if why.startswith("silent") else why
                 self.account.events.append(LinkEvent(step, i, "lost", now, reason))
                 self.say(f"vehicle {v.system_id} lost at step {step} ({why}); the others go on")
+            elif (
+                v.lost
+                and why is not None
+                and self.reasons.get(i, "").startswith(GONE)
+                and not why.startswith(GONE)
+                and v.silent_for(now) < back_within_s
+            ):
+                self.reasons[i] = why
+                self.account.events.append(LinkEvent(step, i, "back", now, why))
+                self.say(
+                    f"vehicle {v.system_id} is back at step {step} but {why}: it stays lost (a "
+                    f"plane is not launched into the swarm in flight; it rejoins armed and in "
+                    f"GUIDED)"
+                )
             elif v.lost and why is None and v.silent_for(now) < back_within_s:
                 v.lost = False
                 self.reasons.pop(i, None)

@@ -16,6 +16,8 @@ from pathlib import Path
 
 from mavlink_bridge.cli import add_leg_timing_arguments
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, MissionInterrupted, StepStatus
+from mavlink_bridge.mission_result import lost_vehicle_lines
+from mavlink_bridge.vehicle_loss import paced_lost_after_s
 from mavlink_bridge.view_feed import DaemonViewFeed
 from mission_view.replay_file import replay_path
 from mission_view.truth_receiver import TruthReceiver
@@ -182,7 +184,7 @@ def main(args: argparse.Namespace) -> int:
         discovery_timeout_s=30.0,
         ready_timeout_s=60.0,
         takeoff_timeout_s=60.0,
-        lost_after_s=3.0 if lockstep else max(1.0, 200.0 / args.speedup),
+        lost_after_s=3.0 if lockstep else paced_lost_after_s(args.speedup),
         time_scale=RELEASED_SPEEDUP if lockstep else args.speedup,
         lockstep=lockstep,
         leg_timing=args.leg_timing,
@@ -259,9 +261,8 @@ def main(args: argparse.Namespace) -> int:
         print(format_summary(result))
     if result.get("target_account"):
         print(format_account(result["target_account"]))
-    lost = result.get("lost_uavs") or []
-    if lost:
-        print(f"lost vehicles   {', '.join(str(i + 1) for i in lost)} (system ids)")
+    for line in lost_vehicle_lines(result):
+        print(line)
     others = [
         p for p in (out / "mission.tlog", sim_log, truth_path, replay_path(out)) if p.exists()
     ]

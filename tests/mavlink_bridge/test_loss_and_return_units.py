@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 
-from mavlink_bridge.mission_result import MissionAccount
+from mavlink_bridge.mission_result import MissionAccount, link_event_rows, lost_vehicle_lines
 from mavlink_bridge.protocol import PLANE_MODE_GUIDED, PLANE_MODE_RTL, mavlink
 from mavlink_bridge.return_home import HomeWatch, rtl_line, rtl_recipients
 from mavlink_bridge.vehicle_link import VehicleLink, parse_endpoint
@@ -119,6 +119,45 @@ def test_each_vehicle_is_lost_for_its_own_reason_and_rejoins_when_back():
     ]
     assert said[0] == "vehicle 2 lost at step 1 (disarmed); the others go on"
     assert "vehicle 2 rejoined at step 3" in said
+
+
+def test_a_plane_back_from_a_reboot_disarmed_stays_lost_and_the_result_says_so():
+    """An autopilot that rebooted mid-mission (its TCP link closed, then up again) comes back
+    disarmed on the ground: said once as back but still lost (not launched again into a swarm in
+    flight), in the events and in the summary's lines; armed and in GUIDED it rejoins."""
+    plane = _vehicle(1)
+    _heartbeat(plane, ARMED, PLANE_MODE_GUIDED)
+    said: list[str] = []
+    account = MissionAccount()
+    watch = LossWatch(lambda: [plane], account, 3.0, in_mission=lambda: True, say=said.append)
+    plane.link.endpoint.went_away("connection closed by the vehicle")
+    watch.watch(2, now=0.5)
+    plane.link.endpoint.closed_reason = None  # reconnected: the rebooted autopilot speaks
+    for k in range(3):
+        _heartbeat(plane, DISARMED, 0, 5.0 + k)
+        watch.watch(4 + k, now=5.0 + k)
+    assert plane.lost and watch.reasons[0] == "disarmed"
+    events = [(e.step, e.event, e.reason) for e in account.events]
+    assert events[1:] == [(4, "back", "disarmed")]
+    assert said[-1] == (
+        "vehicle 1 is back at step 4 but disarmed: it stays lost (a plane is not launched into "
+        "the swarm in flight; it rejoins armed and in GUIDED)"
+    )
+    result = {
+        "lost_uavs": [0],
+        "link_events": link_event_rows(account.events),
+        "rtl_not_sent": {"1": "on the ground, disarmed"},
+    }
+    assert lost_vehicle_lines(result) == [
+        "lost vehicles   1 (system ids)",
+        "  vehicle 1     lost at step 2 (link tcp:127.0.0.1:5760: connection closed by the "
+        "vehicle); back at step 4 (disarmed); not launched again mid-mission; no RTL: on the "
+        "ground, disarmed",
+    ]
+    # flown up and switched to GUIDED by its pilot: it rejoins
+    _heartbeat(plane, ARMED, PLANE_MODE_GUIDED, 9.0)
+    watch.watch(8, now=9.0)
+    assert not plane.lost and account.events[-1].event == "rejoined"
 
 
 def test_rtl_goes_to_airborne_reachable_vehicles_only():

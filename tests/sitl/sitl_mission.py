@@ -9,8 +9,10 @@ simulator's summary. Every process it started is stopped on the way out, whateve
 ``measure`` turns a run into the numbers docs/sitl.md reports: time to ready (wall s from the
 daemon's start to ``armed N vehicles``; the arm phase's own wall time and the vehicles' clocks,
 s since boot, when they were armed), distance of each plane from its planned cell centre at
-the next decision, looks, engagements, violations, and the decision steps' length on the
-vehicles' clock (the daemon's ``look_times_ms``: each step's look time stamp).
+the next decision, looks, engagements, violations, the safety account along every position
+report per phase (``track_audit``: mission, hold, failsafe, RTL), the vehicles lost and back
+(``link_events``), who was sent home, and the decision steps' length on the vehicles' clock
+(the daemon's ``look_times_ms``: each step's look time stamp).
 """
 
 from __future__ import annotations
@@ -210,6 +212,22 @@ def measure(run: SitlMissionRun) -> dict:
         "looks": (run.payload or {}).get("looks_sent"),
         "targets_engaged_truth": (run.payload or {}).get("targets_engaged"),
     }
+    # the safety account along every position report, per phase (mission, hold, failsafe, RTL)
+    audit = r.get("track_audit") or {}
+    for phase, f in [("all", audit.get("all")), *(audit.get("phases") or {}).items()]:
+        if f:
+            numbers[f"track_{phase}"] = (
+                f"threat entries {f['threat_entries']}, separation breaches "
+                f"{f['separation_breaches']}, min separation {f['min_separation_km']} km, "
+                f"min threat margin {f['min_threat_margin_km']} km"
+            )
+    numbers["lost"] = [
+        f"vehicle {e['system_id']} {e['event']} at step {e['step']}"
+        + (f" ({e['reason']})" if e.get("reason") else "")
+        for e in r.get("link_events") or []
+    ]
+    numbers["rtl_sent_to"] = r.get("rtl_sent_to")
+    numbers["rtl_not_sent"] = r.get("rtl_not_sent")
     armed = next((line for _, line in run.daemon.lines if ARMED.search(line)), None)
     if armed is not None:
         found = ARMED.search(armed)
