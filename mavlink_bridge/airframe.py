@@ -36,6 +36,7 @@ from mavlink_bridge.flight_prediction import PlaneModel
 from mavlink_bridge.protocol import AUTOPILOT_COMPONENT_ID, mavlink
 from mavlink_bridge.vehicle_state import VehicleState
 from planner.config import PlannerConfig
+from planner.errors import UserError
 
 #: field -> the parameter names that may hold it, newest first, with the scale to SI units
 ARDUPILOT_NAMES: dict[str, tuple[tuple[str, float], ...]] = {
@@ -167,6 +168,30 @@ def read_airframes(
             request_params(v, names)
         wait(lambda: all(not missing(v) for v in vehicles), RESEND_S)
     return [airframe_from_params(v, cfg) for v in vehicles]
+
+
+def scenario_plane_model(
+    cfg: PlannerConfig,
+    airspeed_range_mps: tuple[float, float] | None = None,
+    bank_limit_deg: float | None = None,
+) -> PlaneModel:
+    """The plane model flown until the airframes are read at launch (then
+    :func:`fleet_plane_model`): the scenario's speed v, leg timing over ``airspeed_range_mps``
+    (default v .. 1.5 v), ``bank_limit_deg`` (default 45 deg). A range that does not hold v is
+    refused in one line."""
+    v = cfg.speed_mps
+    slowest, fastest = airspeed_range_mps or (v, 1.5 * v)
+    if not 0 < slowest <= v <= fastest:
+        raise UserError(
+            f"airspeed range {slowest:g}..{fastest:g} m/s must hold the scenario's speed "
+            f"{v:g} m/s (--airspeed-range MIN:MAX with MIN <= speed <= MAX)"
+        )
+    return PlaneModel(
+        speed_mps=v,
+        bank_limit_deg=bank_limit_deg or 45.0,
+        min_speed_mps=slowest,
+        max_speed_mps=fastest,
+    )
 
 
 def fleet_plane_model(

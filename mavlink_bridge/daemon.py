@@ -34,6 +34,7 @@ from mavlink_bridge.airframe import (
     MAX_THREAT_MARGIN_KM,
     Airframe,
     fleet_plane_model,
+    scenario_plane_model,
     threat_margin_km,
 )
 from mavlink_bridge.checkpoint import (
@@ -46,7 +47,6 @@ from mavlink_bridge.checkpoint import (
 from mavlink_bridge.decision_step import DecisionStep, LoopState, course_heading
 from mavlink_bridge.flight_envelope import FlightEnvelope
 from mavlink_bridge.flight_home import FlightHome, return_to_launch, watch_rtl
-from mavlink_bridge.flight_prediction import PlaneModel
 from mavlink_bridge.guided_commands import (
     Command,
     send_commands,
@@ -209,18 +209,8 @@ class MissionDaemon:
         self.look_times = LookTimes()
         self.tlog: TlogWriter | None = None
         self.link: SwarmLink | None = None
-        slowest, fastest = options.airspeed_range_mps or (cfg.speed_mps, 1.5 * cfg.speed_mps)
-        if not 0 < slowest <= cfg.speed_mps <= fastest:
-            raise UserError(
-                f"airspeed range {slowest:g}..{fastest:g} m/s must hold the scenario's speed "
-                f"{cfg.speed_mps:g} m/s (--airspeed-range MIN:MAX with MIN <= speed <= MAX)"
-            )
-        self.plane = PlaneModel(
-            speed_mps=cfg.speed_mps,
-            bank_limit_deg=options.bank_limit_deg or 45.0,
-            min_speed_mps=slowest,
-            max_speed_mps=fastest,
-        )
+        #: the airframe flown (airframe.py): the scenario's until the vehicles' are read
+        self.plane = scenario_plane_model(cfg, options.airspeed_range_mps, options.bank_limit_deg)
         self.flight_envelope = (
             FlightEnvelope(
                 self.envelope,
