@@ -41,7 +41,10 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=None, help="default: the scenario's")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--timeout", type=float, default=None, help="wall s (default: ample)")
-    parser.add_argument("--keep", type=Path, default=None, help="keep the run's files here")
+    parser.add_argument(
+        "--keep", type=Path, default=None,
+        help="keep the run's files here (out/: result.json, mission.tlog; daemon.log, payload.log)",
+    )  # fmt: skip
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     binary = sitl_binary_from_env()

@@ -31,6 +31,7 @@ from pathlib import Path
 
 os.environ.setdefault("MAVLINK20", "1")
 
+import numpy as np  # noqa: E402
 from loopback import env, stop  # noqa: E402
 from sitl_harness import SitlSwarm, homes_for_scenario  # noqa: E402
 
@@ -178,6 +179,10 @@ def fly_sitl_mission(
         finally:
             for proc in reversed(procs):
                 stop(proc, 10.0)
+    # what each printed, with the wall time of each line, beside the run's files
+    for name, printed in (("daemon", daemon_printed), ("payload", payload_printed)):
+        lines = (f"{t:8.1f}  {line}\n" for t, line in printed.lines)
+        (workdir / f"{name}.log").write_text("".join(lines))
     result_path = out / "result.json"
     result = json.loads(result_path.read_text()) if result_path.is_file() else None
     summary = None
@@ -249,6 +254,7 @@ def measure(run: SitlMissionRun) -> dict:
         numbers["miss_km_max"] = round(misses[-1], 3)
     # the decision instants on the vehicles' clock: each step's look time stamp (the daemon's)
     instants = [ms for _, ms in r.get("look_times_ms") or []]
+    numbers.update(turn_breaks_by_step_length(r, run.step_s))
     gaps = [(b - a) / 1000.0 for a, b in zip(instants[1:], instants[2:], strict=False)]
     if gaps:  # from step 1 on: step 0 is the first instant after take-off, not a period
         numbers["step_s_vehicle_mean"] = round(sum(gaps) / len(gaps), 2)
@@ -256,3 +262,33 @@ def measure(run: SitlMissionRun) -> dict:
         numbers["step_s_vehicle_max"] = round(max(gaps), 2)
         numbers["step_drift_s_max"] = round(max(abs(g - run.step_s) for g in gaps), 2)
     return numbers
+
+
+def turn_breaks_by_step_length(result: dict, step_s: float, tolerance_deg: float = 15.0) -> dict:
+    """The turn rule's breaks (the recorder's C_m on the flown positions at the decision steps,
+    with the daemon's default tolerance) split by the length of the two steps around them: both
+    within 10 % of ``step_s`` (a regular step), or not (a step after a stall of the machine, or
+    the short one catching up after it, where a plane circled its target meanwhile)."""
+    times = dict(result.get("look_times_ms") or [])
+    limit = result.get("max_turn_deg", 45.0) + tolerance_deg
+    regular = irregular = 0
+    for uav in result.get("uavs", []):
+        track = np.asarray(uav.get("track_km") or [], float).reshape(-1, 2)
+        legs = np.diff(track, axis=0)
+        for k in range(1, len(legs)):
+            if not (np.hypot(*legs[k - 1]) > 1e-9 and np.hypot(*legs[k]) > 1e-9):
+                continue
+            a, b = (math.atan2(leg[1], leg[0]) for leg in (legs[k - 1], legs[k]))
+            turn = math.degrees(abs((b - a + math.pi) % (2 * math.pi) - math.pi))
+            if turn <= limit:
+                continue
+            spans = [
+                (times[j] - times[j - 1]) / 1000.0
+                for j in (k, k + 1)
+                if j in times and j - 1 in times and j - 1 > 0
+            ]
+            if all(abs(span - step_s) <= 0.1 * step_s for span in spans):
+                regular += 1
+            else:
+                irregular += 1
+    return {"turn_breaks_regular_steps": regular, "turn_breaks_around_stalls": irregular}
