@@ -25,11 +25,17 @@ during the mission: CIRCLE, RTL after a fence breach, a GCS failsafe) and ``rtl`
 return). Each phase is reported on its own, and all together.
 
 Clocks: the reports carry each vehicle's ``time_boot_ms``. Vehicles of one simulator share one
-clock; separate autopilots (SITL instances, aircraft) booted at different times. Each vehicle's
-offset to the daemon's clock is estimated as the smallest (arrival time x time scale - report
-time) over its reports (the least-delayed report); offsets that agree within
-``shared_clock_tolerance_s`` are taken as one shared clock (a simulator, or lockstep, where wall
-time says nothing).
+clock; separate autopilots (SITL instances, aircraft) booted at different times, and their
+clocks drift apart: SITL instances on a loaded machine run below their speedup by different
+amounts (5 ArduPlane SITL planes at 10x, load average 11-15: 58-310 s apart after 65 min of
+their clocks). Each vehicle's offset to the daemon's clock is estimated, over every
+``drift_window_s`` of its clock, as the smallest (arrival time x time scale - report time) of its
+reports there (the least-delayed report), and followed piecewise linearly between windows.
+Vehicles whose offsets agree within ``shared_clock_tolerance_s`` (the median over the windows of
+the largest disagreement) are taken as one shared clock (a simulator, or lockstep, where wall
+time says nothing). A single offset per vehicle, the smallest over the whole flight, took the
+drifting SITL clocks for one shared clock: planes 1.8 km apart at every instant were judged on
+reports a minute apart, 0.74 km apart (a separation breach that never happened).
 """
 
 from __future__ import annotations
@@ -57,7 +63,8 @@ class _Track:
     x_km: list[float] = field(default_factory=list)
     y_km: list[float] = field(default_factory=list)
     phase: list[int] = field(default_factory=list)  # index into PHASES
-    arrival_offset_s: float = math.inf  # min(arrival wall x time scale - report time)
+    #: per report: arrival wall x time scale - report time (NaN: no arrival time)
+    arrival_offsets_s: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -116,6 +123,7 @@ class TrackAudit:
         min_separation_km: float,
         max_gap_s: float = 10.0,
         shared_clock_tolerance_s: float = 1.0,
+        drift_window_s: float = 30.0,
         project: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
     ) -> None:
         """``project``: the reports are (lat, lon) degrees, turned into the mission frame (km)
@@ -126,6 +134,7 @@ class TrackAudit:
         self.min_separation_km = float(min_separation_km)
         self.max_gap_s = float(max_gap_s)
         self.shared_clock_tolerance_s = float(shared_clock_tolerance_s)
+        self.drift_window_s = float(drift_window_s)
         self.project = project
         self.tracks = [_Track() for _ in range(n)]
         self.phase = "launch"
@@ -180,27 +189,50 @@ class TrackAudit:
         track.x_km.append(float(xy_km[0]))
         track.y_km.append(float(xy_km[1]))
         track.phase.append(PHASES.index(phase))
-        if arrival_scaled_s is not None:
-            track.arrival_offset_s = min(track.arrival_offset_s, arrival_scaled_s - t_s)
+        offset = math.nan if arrival_scaled_s is None else arrival_scaled_s - t_s
+        track.arrival_offsets_s.append(float(offset))
         self.reports += 1
 
     # ------------------------------------------------------------------ judging
 
-    def clock_offsets_s(self) -> np.ndarray:
-        """Per vehicle: seconds to add to its clock to reach the common time base."""
-        raw = np.array([t.arrival_offset_s for t in self.tracks], float)
-        known = np.isfinite(raw)
-        if not known.any():
-            return np.zeros(self.n)
-        reference = float(np.median(raw[known]))
-        offsets = np.where(known, raw - reference, 0.0)
-        if np.all(np.abs(offsets) <= self.shared_clock_tolerance_s):
-            return np.zeros(self.n)  # one shared clock (a simulator): no correction
-        return offsets
-
-    def _arrays(self, uav: int, offset_s: float) -> tuple[np.ndarray, ...]:
+    def _offset_knots(self, uav: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Vehicle ``uav``'s clock offset, per ``drift_window_s`` of its clock: the report there
+        with the smallest arrival offset (its time, that offset); None without arrival times."""
         tr = self.tracks[uav]
-        t = np.asarray(tr.t_s, float) + offset_s
+        t = np.asarray(tr.t_s, float)
+        off = np.asarray(tr.arrival_offsets_s, float)
+        known = np.isfinite(off)
+        if not known.any():
+            return None
+        t, off = t[known], off[known]
+        window = np.floor((t - t.min()) / self.drift_window_s).astype(np.int64)
+        order = np.lexsort((off, window))  # by window, then offset: each window's least first
+        first = order[np.concatenate([[True], np.diff(window[order]) != 0])]
+        first = first[np.argsort(t[first], kind="stable")]
+        return t[first], off[first]
+
+    def clock_offsets(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per vehicle: (knot times on its clock, seconds to add there) to reach the common time
+        base, followed linearly between knots; all zero for one shared clock."""
+        zero = (np.zeros(1), np.zeros(1))
+        knots = [self._offset_knots(i) for i in range(self.n)]
+        known = [k for k in knots if k is not None]
+        if not known:
+            return [zero] * self.n
+        reference = float(np.median([k[1].min() for k in known]))
+        shifted = [zero if k is None else (k[0], k[1] - reference) for k in knots]
+        # do the offsets agree at the knots' instants (each vehicle's curve read there)?
+        at = np.unique(np.concatenate([k[0] for k in known]))
+        curves = np.array([np.interp(at, k[0], k[1]) for k in known])
+        disagreement = np.abs(curves - np.median(curves, axis=0)).max(axis=0)
+        if float(np.median(disagreement)) <= self.shared_clock_tolerance_s:
+            return [zero] * self.n  # one shared clock (a simulator): no correction
+        return shifted
+
+    def _arrays(self, uav: int, offset: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, ...]:
+        tr = self.tracks[uav]
+        t = np.asarray(tr.t_s, float)
+        t = t + np.interp(t, offset[0], offset[1])
         order = np.argsort(t, kind="stable")
         t = t[order]
         a, b = np.asarray(tr.x_km, float)[order], np.asarray(tr.y_km, float)[order]
@@ -213,10 +245,10 @@ class TrackAudit:
 
     def summary(self) -> dict:
         """The figures of every phase and of the whole flight (``result["track_audit"]``)."""
-        offsets = self.clock_offsets_s()
+        offsets = self.clock_offsets()
         figures = {name: PhaseFigures() for name in PHASES}
         overall = PhaseFigures()
-        tracks = [self._arrays(i, float(offsets[i])) for i in range(self.n)]
+        tracks = [self._arrays(i, offsets[i]) for i in range(self.n)]
         unobserved = 0.0
         for t, xy, phase in tracks:
             if len(t) == 0:
@@ -245,7 +277,9 @@ class TrackAudit:
             "reports": int(sum(len(t) for t, _, _ in tracks)),  # distinct instants
             "max_gap_s": self.max_gap_s,
             "unobserved_uav_s": round(unobserved, 1),
-            "clock_offsets_s": [round(float(o), 3) for o in offsets],
+            "clock_offsets_s": [round(float(np.median(o[1])), 3) for o in offsets],
+            # how far each clock drifted from the common base over the flight (s)
+            "clock_drift_s": [round(float(o[1][-1] - o[1][0]), 3) for o in offsets],
             "all": overall.as_dict(),
             "phases": {
                 name: figures[name].as_dict() for name in PHASES if figures[name].observed_s > 0

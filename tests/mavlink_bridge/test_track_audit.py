@@ -84,6 +84,35 @@ def test_separate_clocks_are_aligned_by_arrival():
     assert s["all"]["min_separation_km"] < 1e-6
 
 
+def test_clocks_drifting_apart_are_aligned_by_arrival_all_along():
+    """Two SITL instances booted together whose clocks drift apart (vehicle 0 starved: 0.8 s of
+    its clock per scaled second). They cross the origin on perpendicular lines 200 s apart (2.8 km
+    at the closest); both clocks read 800 s there, so aligned by the clocks they would collide
+    (as a single offset per vehicle, equal at boot, had them)."""
+    a = audit(threats=())
+    a.set_phase("mission")
+    for k in range(2001):
+        wall = float(k)
+        a.add(0, 0.8 * wall, (0.0, -20.0 + 0.02 * wall), arrival_scaled_s=wall + 0.01)
+        a.add(1, wall, (-16.0 + 0.02 * wall, 0.0), arrival_scaled_s=wall + 0.01)
+    s = a.summary()
+    assert s["all"]["separation_breaches"] == 0
+    assert abs(s["all"]["min_separation_km"] - 4.0 / 2**0.5) < 0.01
+    assert abs(s["clock_drift_s"][0] - 400.0) < 10.0 and s["clock_drift_s"][1] == 0.0
+
+
+def test_a_shared_clock_with_late_reports_gets_no_correction():
+    """One simulator's clock for both, reports arriving 0.01-0.5 s late: no offset at all."""
+    a = audit(threats=())
+    rng = np.random.default_rng(1)
+    for k in range(600):
+        for uav in (0, 1):
+            a.add(uav, float(k), (0.02 * k, 2.0 * uav), arrival_scaled_s=k + rng.uniform(0.01, 0.5))
+    s = a.summary()
+    assert s["clock_offsets_s"] == [0.0, 0.0] and s["clock_drift_s"] == [0.0, 0.0]
+    assert abs(s["all"]["min_separation_km"] - 2.0) < 1e-9
+
+
 def test_a_report_belongs_to_the_phase_of_its_own_time_not_of_its_arrival():
     """In lockstep a grant's reports arrive whenever the machine gets to them: one stamped
     before the phase changed, taken in after, is still the earlier phase's. The account ends
