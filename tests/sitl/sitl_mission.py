@@ -256,7 +256,13 @@ def measure(run: SitlMissionRun) -> dict:
     instants = [ms for _, ms in r.get("look_times_ms") or []]
     numbers.update(turn_breaks_by_step_length(r, run.step_s))
     gaps = [(b - a) / 1000.0 for a, b in zip(instants[1:], instants[2:], strict=False)]
-    if gaps:  # from step 1 on: step 0 is the first instant after take-off, not a period
+    # each plane's clock drift from the wall clock x the speedup (the track audit's estimate):
+    # SITL instances starved by a loaded machine run below their speedup by different amounts,
+    # and a step's look stamps (each plane's own clock) then no longer make one time line
+    numbers["clock_drift_s"] = audit.get("clock_drift_s")
+    if gaps and min(gaps) < 0:
+        numbers["step_s_vehicle"] = "n/a: the planes' clocks drifted apart (clock_drift_s)"
+    elif gaps:  # from step 1 on: step 0 is the first instant after take-off, not a period
         numbers["step_s_vehicle_mean"] = round(sum(gaps) / len(gaps), 2)
         numbers["step_s_vehicle_min"] = round(min(gaps), 2)
         numbers["step_s_vehicle_max"] = round(max(gaps), 2)
