@@ -281,16 +281,21 @@ def turn_breaks_by_step_length(result: dict, step_s: float, tolerance_deg: float
     for uav in result.get("uavs", []):
         track = np.asarray(uav.get("track_km") or [], float).reshape(-1, 2)
         legs = np.diff(track, axis=0)
-        for k in range(1, len(legs)):
-            if not (np.hypot(*legs[k - 1]) > 1e-9 and np.hypot(*legs[k]) > 1e-9):
+        last = None  # the last leg flown (as the recorder: a standstill keeps it)
+        for k in range(len(legs)):
+            if np.hypot(*legs[k]) <= 1e-9:
                 continue
-            a, b = (math.atan2(leg[1], leg[0]) for leg in (legs[k - 1], legs[k]))
+            if last is None:
+                last = k
+                continue
+            a, b = (math.atan2(leg[1], leg[0]) for leg in (legs[last], legs[k]))
             turn = math.degrees(abs((b - a + math.pi) % (2 * math.pi) - math.pi))
+            previous, last = last, k
             if turn <= limit:
                 continue
             spans = [
                 (times[j] - times[j - 1]) / 1000.0
-                for j in (k, k + 1)
+                for j in (previous + 1, k + 1)
                 if j in times and j - 1 in times and j - 1 > 0
             ]
             if all(abs(span - step_s) <= 0.1 * step_s for span in spans):
