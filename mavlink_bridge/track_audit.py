@@ -28,9 +28,10 @@ Clocks: the reports carry each vehicle's ``time_boot_ms``. Vehicles of one simul
 clock; separate autopilots (SITL instances, aircraft) booted at different times, and their
 clocks drift apart: SITL instances on a loaded machine run below their speedup by different
 amounts (5 ArduPlane SITL planes at 10x, load average 11-15: 58-310 s behind 10x the wall
-clock after ~65 min of their clocks, up to 250 s apart). Each vehicle's offset to the daemon's clock is estimated, over every
-``drift_window_s`` of its clock, as the smallest (arrival time x time scale - report time) of its
-reports there (the least-delayed report), and followed piecewise linearly between windows.
+clock after ~65 min of their clocks, up to 250 s apart). Each vehicle's offset to the daemon's
+clock is estimated, over every ``drift_window_s`` of its clock, as the smallest (arrival time
+x time scale - report time) of its reports there (the least-delayed report), and followed
+piecewise linearly between windows.
 Vehicles whose offsets agree within ``shared_clock_tolerance_s`` (the median over the windows of
 the largest disagreement) are taken as one shared clock (a simulator, or lockstep, where wall
 time says nothing). A single offset per vehicle, the smallest over the whole flight, took the
