@@ -1,8 +1,8 @@
 """Fly ArduPlane SITL planes with the payload simulator over a whole mission and print its numbers.
 
 Needs ``ARDUPLANE_SITL`` (the binary; ../shared/sitl/arduplane here). Example, the issue-11
-figures of docs/sitl.md (5 planes over arduplane-3uav's 40 steps; at 5x ~10 min wall; the
-daemon refuses a speedup the machine cannot keep, and says which one it can)::
+figures of docs/sitl.md (5 planes over arduplane-3uav's 40 steps; at 5x ~9-10 min wall, at 10x
+~6-7; the daemon refuses a speedup the machine cannot keep, and says which one it can)::
 
     ARDUPLANE_SITL=../shared/sitl/arduplane nice -n 10 python benchmarks/bench_sitl.py \\
         --planes 5 --speedup 5

@@ -147,6 +147,7 @@ def fly_sitl_mission(
     out = workdir / "out"
     daemon_printed, payload_printed = Printed(), Printed()
     procs: list[subprocess.Popen] = []
+    readers: list[threading.Thread] = []
     # the threat zones the daemon uploads are enforced (with no zone, ArduPlane refuses to arm
     # with FENCE_ENABLE 1: "Fences enabled, but none selected")
     sitl_params = {"FENCE_ENABLE": int(bool(loaded.threats)), **(params or {})}
@@ -163,22 +164,25 @@ def fly_sitl_mission(
                      *swarm.payload_args()]
                 )  # fmt: skip
                 procs.append(payload)
-                _read_lines(payload, payload_printed, started)
+                readers.append(_read_lines(payload, payload_printed, started))
             daemon = _start(
                 ["daemon", "--scenario", spec, "--seed", str(seed), "--time-scale", f"{speedup:g}",
                  "--out", str(out), "--no-view", *(["--steps", str(steps)] if steps else []),
                  *swarm.connect_args(), *(daemon_args or [])]
             )  # fmt: skip
             procs.append(daemon)
-            reader = _read_lines(daemon, daemon_printed, started)
+            readers.append(_read_lines(daemon, daemon_printed, started))
             try:
                 returncode = daemon.wait(timeout_s)
             except subprocess.TimeoutExpired:
                 returncode = None
-            reader.join(5)
         finally:
             for proc in reversed(procs):
                 stop(proc, 10.0)
+            # every line read, the payload simulator's summary at its exit included (read
+            # right after the stop, it was missing now and then)
+            for reader in readers:
+                reader.join(5)
     # what each printed, with the wall time of each line, beside the run's files
     for name, printed in (("daemon", daemon_printed), ("payload", payload_printed)):
         lines = (f"{t:8.1f}  {line}\n" for t, line in printed.lines)
