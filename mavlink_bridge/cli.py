@@ -62,7 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--lost-after",
         type=positive_float,
         default=3.0,
-        help="seconds of silence before a vehicle counts as lost (default 3)",
+        help="wall seconds of silence before a vehicle counts as lost (wall time: a silent "
+        "vehicle has no clock of its own; default 3)",
     )
     parser.add_argument(
         "--threat-margin-km",
