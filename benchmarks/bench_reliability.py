@@ -12,7 +12,7 @@ ground truth (``safety`` in its summary). Per-decision-step violations are print
 
 * ``loss``: 10 / 20 / 30 % loss each way (plus 0-100 ms jitter, 2 % duplicated, 2 % reordered,
   ``tests/reliability/udp_fault_relay.py``), in lockstep and paced at 1x, 5x and 20x; one run
-  each (``--losses 20,30 --paces 20``: only those).
+  each per relay seed (``--losses 20,30 --paces 20 --seeds 1,2,3``: only those).
 * ``outage``: the daemon is stopped (SIGSTOP) after its 3rd step for 3, 10, 30 and 120 s of wall
   time, the vehicles paced at ``--outage-speedup`` (default 20x: 60 s to 40 min of flight
   without a ground station), then
@@ -100,6 +100,7 @@ def fly(
     speedup: float | None,
     profile: FaultProfile | None = None,
     outage_s: float = 0.0,
+    seed: int = 1,
 ) -> dict:
     """One mission; returns the row's figures. ``speedup`` None: lockstep."""
     run = work / name
@@ -110,7 +111,7 @@ def fly(
     pace = ["--lockstep", "--speedup", "100"] if speedup is None else ["--speedup", f"{speedup:g}"]
     sim_args = ["sim", "--scenario", str(scenario), "--boot-s", "2", "--quiet", *pace]
     if profile is not None:
-        relay = FaultRelay(port, 3, profile, seed=1)
+        relay = FaultRelay(port, 3, profile, seed=seed)
         relay.start()
         sim_args += ["--per-vehicle-ports", str(relay.base_port)]
     else:
@@ -189,6 +190,9 @@ def main() -> int:
         "--paces", default="lockstep,1,5,20", help="lockstep and/or speedups of the loss runs"
     )
     parser.add_argument(
+        "--seeds", default="1", help="the fault relay's seeds: one loss run per seed (1,2,3)"
+    )
+    parser.add_argument(
         "--outage-speedup", type=float, default=20.0,
         help="the vehicles' speedup in the outage runs (a loaded machine's daemon refuses 20x)",
     )  # fmt: skip
@@ -206,13 +210,14 @@ def main() -> int:
         for loss in (float(x) / 100 for x in args.losses.split(",")):
             profile = FaultProfile(loss=loss, jitter_s=0.1, duplicate=0.02, reorder=0.02)
             for speedup in paces:
-                pace = "lockstep" if speedup is None else f"paced {speedup:g}x"
-                name = f"loss {loss:.0%} {pace}"
-                figures = fly(work, name.replace(" ", "_").replace("%", ""), args.steps,
-                              speedup, profile)  # fmt: skip
-                figures["name"] = name
-                rows.append(figures)
-                print(row(figures), flush=True)
+                for seed in (int(x) for x in args.seeds.split(",")):
+                    pace = "lockstep" if speedup is None else f"paced {speedup:g}x"
+                    name = f"loss {loss:.0%} {pace}" + (f" seed {seed}" if seed != 1 else "")
+                    figures = fly(work, name.replace(" ", "_").replace("%", ""), args.steps,
+                                  speedup, profile, seed=seed)  # fmt: skip
+                    figures["name"] = name
+                    rows.append(figures)
+                    print(row(figures), flush=True)
     if args.part in ("outage", "all"):
         print(f"\n### GCS outages (daemon stopped after step 3, vehicles at "
               f"{args.outage_speedup:g}x)\n\n" + HEADER)  # fmt: skip

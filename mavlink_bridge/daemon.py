@@ -46,7 +46,12 @@ from mavlink_bridge.checkpoint import (
 )
 from mavlink_bridge.decision_step import DecisionStep, LoopState, course_heading
 from mavlink_bridge.flight_envelope import FlightEnvelope
-from mavlink_bridge.flight_home import FlightHome, return_to_launch, watch_rtl
+from mavlink_bridge.flight_home import (
+    FlightHome,
+    guide_stray_returns,
+    return_to_launch,
+    watch_rtl,
+)
 from mavlink_bridge.guided_commands import (
     Command,
     send_commands,
@@ -220,6 +225,8 @@ class MissionDaemon:
                 threat_margin_km=options.predicted_threat_margin_km,
                 separation_margin_km=options.predicted_separation_margin_km,
                 leg_timing=options.leg_timing,
+                # paced: a lost target is resent until the step's deadline (lossy links)
+                command_delay_s=0.0 if options.lockstep else STEP_DEADLINE_SHARE * cfg.step_s,
             )
             if options.prediction_horizon_steps > 0
             else None
@@ -677,6 +684,8 @@ class MissionDaemon:
                 self.audit.set_phase("mission")
                 sent = self.send(batch.commands, deadline=instant.deadline)
                 stages.account(state, step, batch, sent, flight)
+            # planes their fence (or a failsafe) switched to RTL through a zone: guided out
+            self.send(guide_stray_returns(self), deadline=instant.deadline)
             self.look_times.note(step, state.positions_ms, inputs.active)
             self.tell_listeners(state, inputs, plan, flight, late)
             if self.checkpoints is not None:  # atomically, after every step

@@ -91,6 +91,11 @@ class FlightEnvelope:
     #: also keep clear the circle a plane would fly where it is (a failsafe or RC loss that
     #: switches it to CIRCLE) at every predicted second of the coming decision period
     failsafe_circle: bool = True
+    #: paced time: how late (s of the vehicles' clock) a guided target may reach its plane (a
+    #: lost command is resent until the step's deadline, ``pacing.STEP_DEADLINE_SHARE`` of a
+    #: period); meanwhile the plane flies on to its previous target. 0 in lockstep (the
+    #: simulated time waits for the commands)
+    command_delay_s: float = 0.0
 
     @property
     def horizon_s(self) -> float:
@@ -168,8 +173,16 @@ class FlightEnvelope:
                 np.asarray(decision_positions_km, dtype=float)[row_uav].reshape(-1, 2),
                 elapsed[row_uav],
             ),
-            self._loiter_clearance(aims, commanded),
+            self._loiter_clearance(aims, np.maximum(speeds_now, commanded)),
         )
+        if rows:
+            clearance = np.minimum(
+                clearance,
+                self._lossy_link_clearance(
+                    positions_km, courses_rad, speeds_mps, previous_aims_km, row_uav, aims,
+                    commanded,
+                ),
+            )  # fmt: skip
         if self.failsafe_circle:
             clearance = np.minimum(
                 clearance, self._failsafe_circle_clearance(paths, np.maximum(speeds_now, commanded))
@@ -297,6 +310,67 @@ class FlightEnvelope:
             out.append(_Candidate(cell, heading, np.asarray(previous_aim, float), derived=True))
         out.append(_Candidate(cell, heading, env.grid.centre_km(cell), derived=True))
         return out
+
+    def _lossy_link_clearance(
+        self,
+        positions_km: np.ndarray,
+        courses_rad: np.ndarray,
+        speeds_mps: np.ndarray,
+        previous_aims_km: np.ndarray,
+        row_uav: np.ndarray,
+        aims_km: np.ndarray,
+        commanded_mps: np.ndarray,
+    ) -> np.ndarray:
+        """Distance (km) to the nearest threat edge of each candidate's path flown as a lossy
+        link may deliver it: its DO_CHANGE_SPEED lost (the plane keeps the airspeed it flies
+        now: at 150 m/s it turns on a 2.29 km radius, not the 1.02 km of 100 m/s), and, in paced
+        time, its DO_REPOSITION arriving ``command_delay_s`` late, after the plane flew on to
+        its previous target meanwhile (each with and without the new airspeed). The stretch
+        flown to the previous target before the late command is not counted: no choice of this
+        step changes it."""
+        held = np.asarray(speeds_mps, dtype=float)[row_uav]
+        starts = np.asarray(positions_km, dtype=float)[row_uav].reshape(-1, 2)
+        courses = np.asarray(courses_rad, dtype=float)[row_uav]
+        variants = [(starts, courses, held, held)]
+        delay_s = round(self.command_delay_s)
+        previous = np.asarray(previous_aims_km, dtype=float)
+        if delay_s >= 1:
+            known = np.all(np.isfinite(previous), axis=1)
+            on_way = predict_paths(
+                self.model, positions_km, courses_rad, np.where(known[:, None], previous,
+                np.asarray(positions_km, dtype=float)), delay_s, speed_mps=speeds_mps,
+            )  # fmt: skip
+            late_xy = on_way[:, -1]
+            move = on_way[:, -1] - on_way[:, -2]
+            late_course = np.where(
+                np.hypot(move[:, 0], move[:, 1]) > 0,
+                np.arctan2(move[:, 1], move[:, 0]),
+                np.asarray(courses_rad, dtype=float),
+            )
+            late_known = known[row_uav]
+            late_starts = np.where(late_known[:, None], late_xy[row_uav], starts)
+            late_courses = np.where(late_known, late_course[row_uav], courses)
+            variants += [
+                (late_starts, late_courses, held, commanded_mps),
+                (late_starts, late_courses, held, held),
+            ]
+        m = len(aims_km)
+        flown = predict_paths(
+            self.model,
+            np.concatenate([v[0] for v in variants]),
+            np.concatenate([v[1] for v in variants]),
+            np.tile(aims_km, (len(variants), 1)),
+            self.horizon_s,
+            speed_mps=np.concatenate([v[2] for v in variants]),
+            commanded_mps=np.concatenate([v[3] for v in variants]),
+        )
+        env = self.cells
+        if len(env.threat_radius_km) == 0:
+            return np.full(m, np.inf)
+        dense = segment_clearance(
+            flown[:, :-1], flown[:, 1:], env.threat_xy_km, env.threat_radius_km
+        ).min(axis=1)
+        return dense.reshape(len(variants), m).min(axis=0)
 
     def _loiter_clearance(self, aims_km: np.ndarray, speeds_mps: np.ndarray) -> np.ndarray:
         """Distance (km) from the loiter circle around each aim, flown at ``speeds_mps`` and

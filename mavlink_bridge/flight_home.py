@@ -25,6 +25,7 @@ from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
 from mavlink_bridge.return_home import HomeWatch, rtl_line, rtl_recipients
 from mavlink_bridge.return_separation import Homeward, ReturnSeparation
 from mavlink_bridge.safe_return import HomeRoutes
+from mavlink_bridge.vehicle_loss import link_down
 from mavlink_bridge.vehicle_state import VehicleState
 from planner.geodesy import local_km_to_geodetic
 
@@ -46,6 +47,9 @@ class FlightHome:
     held: set[int] = field(default_factory=set)
     unresolved: set[int] = field(default_factory=set)
     routes: HomeRoutes | None = None  # the way home around threats, for the plane model in force
+    #: planes switched to RTL during the mission whose line home crossed a threat, guided out
+    #: (``guide_stray_returns``)
+    strays: set[int] = field(default_factory=set)
 
 
 def home_routes(daemon: MissionDaemon) -> HomeRoutes:
@@ -122,6 +126,43 @@ def watch_rtl(daemon: MissionDaemon) -> None:
         for v in still:
             flight.holding.pop(v.system_id)
         daemon.send([set_mode_command(v, PLANE_MODE_RTL) for v in still])
+
+
+def guide_stray_returns(daemon: MissionDaemon) -> list[Command]:
+    """During the mission: a plane its autopilot switched to RTL (a fence breach: ArduPlane's
+    FENCE_ACTION 1, the simulator's default; a failsafe; a pilot) flies the straight line home,
+    through the zone the fence guards when home lies beyond it, and once its heartbeats show
+    it out of GUIDED it is lost to the planner (``vehicle_loss.py``) and gets no more targets
+    (issue 12: 0.27 km deep at 30 % loss, 20x). Every plane seen in RTL whose way home is not
+    clear (``HomeRoutes.rtl_clear``) is guided (DO_REPOSITION, which switches it to GUIDED) to
+    the next waypoint of the safe way home, one that gets no deeper into a zone it is in; in
+    GUIDED it is (or rejoins) the planner's again at the next step, and the flight envelope
+    guides it on. A plane whose line home is clear flies its RTL home. Said once per plane;
+    returns the commands to send (one per such plane at each decision step)."""
+    routes = home_routes(daemon)
+    commands: list[Command] = []
+    for v in daemon.vehicles():
+        if not (v.custom_mode == PLANE_MODE_RTL and v.armed and v.airborne):
+            continue
+        if v.home is None or not v.has_position or v.link is None or link_down(v) is not None:
+            continue
+        xy = daemon.local_km(v.lat_deg, v.lon_deg)
+        home = daemon.local_km(v.home[0], v.home[1])
+        course = math.atan2(v.vn_mps, v.ve_mps)
+        if routes.rtl_clear(xy, course, home):
+            continue
+        waypoint = routes.waypoint(xy, home, course)
+        if waypoint is None:
+            continue
+        if v.system_id not in daemon.flight_home.strays:
+            daemon.flight_home.strays.add(v.system_id)
+            daemon.say(
+                f"vehicle {v.system_id} is in RTL during the mission (a fence breach or a "
+                f"failsafe) and its line home crosses a threat: guided out via "
+                f"({waypoint[0]:.1f}, {waypoint[1]:.1f}) km"
+            )
+        commands.append(reposition_to(daemon, v, waypoint))
+    return commands
 
 
 def return_to_launch(daemon: MissionDaemon) -> tuple[list[int], dict[int, str]]:

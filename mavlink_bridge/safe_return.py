@@ -151,8 +151,8 @@ class HomeRoutes:
     ) -> np.ndarray | None:
         """The next safe waypoint (km) on the shortest way from ``xy_km`` home around the
         threats, and one whose turn from ``course_rad`` (if given) keeps ``turn_margin_km``;
-        ``None`` when RTL is clear (or no way is known: a plane inside a threat circle, cut
-        off by threats, is left to RTL)."""
+        ``None`` when RTL is clear (or no way is known: a plane cut off by threats is left to
+        RTL). A plane inside a threat circle takes legs that get no deeper: the way out."""
         xy, home = np.asarray(xy_km, float), np.asarray(home_km, float)
         if self.line_clear(xy, home) and (
             course_rad is None or self.rtl_clear(xy, course_rad, home)
@@ -165,8 +165,9 @@ class HomeRoutes:
             return None
         paths = self._from_home(home)
         n = len(self._nodes_km)
-        # a plane already nearer a threat than the margin takes legs that get no nearer
-        need = min(self.margin_km, max(float(self.point_clearance(xy[None])[0]), 0.0) - 1e-6)
+        # a plane already nearer a threat than the margin (or inside it: a fence breach) takes
+        # legs that get no nearer
+        need = min(self.margin_km, float(self.point_clearance(xy[None])[0]) - 1e-6)
         reach = self.leg_clearance(np.broadcast_to(xy, (n, 2)), self._nodes_km) >= need
         total = np.where(reach, np.hypot(*(self._nodes_km - xy).T) + paths.distance_km, np.inf)
         first = int(np.argmin(total))

@@ -5,6 +5,7 @@ the simulator and the daemon (``swarmplan demo`` or ``swarmplan sim`` + ``swarmp
   account, ``track_audit``), as the simulator's own ground truth saw it;
 * a ground-station outage (the daemon stopped, then killed) near a threat takes no plane into it;
 * the flight home at the end of a mission goes around a threat RTL's straight line would cross;
+* a plane switched to RTL mid-mission (a fence breach's action) is guided out, not through;
 * two planes that swapped sides during the mission fly home d_min apart (one holds);
 * a daemon that falls behind the vehicles' clock holds them at safe points and says so;
 * a speedup the daemon cannot keep is refused at start, in one line.
@@ -13,6 +14,7 @@ the simulator and the daemon (``swarmplan demo`` or ``swarmplan sim`` + ``swarmp
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import time
@@ -20,6 +22,7 @@ from pathlib import Path
 
 import pytest
 from loopback import free_udp_port, run_swarmplan, start_swarmplan, stop
+from pymavlink import mavutil
 from reliability_harness import last_json
 
 from mavlink_bridge.checkpoint import CheckpointError, read_checkpoint
@@ -227,6 +230,60 @@ def test_the_flight_home_goes_around_a_threat_between_plane_and_home(tmp_path: P
     assert truth["by_mode"]["rtl"]["min_threat_margin_km"] > 0
     audit = result["track_audit"]["phases"]["rtl"]
     assert audit["threat_entries"] == 0 and audit["min_threat_margin_km"] > 0
+
+
+@pytest.mark.timeout(120)
+def test_a_plane_switched_to_rtl_mid_mission_is_guided_out_not_through(tmp_path: Path):
+    """Mid-mission the plane's autopilot switches it to RTL, as ArduPlane's fence action does
+    after a breach (here a third party's DO_SET_MODE while the lockstep daemon is held). It is
+    north of a threat, its home south: RTL's straight line crosses the zone (0.27 km deep at
+    30 % loss, 20x, issue 12: the plane, lost to the planner for leaving GUIDED, got no more
+    targets). The daemon guides it out around the threat at its next step."""
+    scenario = tmp_path / "behind.toml"
+    scenario.write_text(BEHIND_THREAT)
+    port = free_udp_port()
+    sim_log, daemon_log = tmp_path / "sim.log", tmp_path / "daemon.log"
+    sim = start_swarmplan(
+        ["sim", "--scenario", str(scenario), "--lockstep", "--speedup", "100",
+         "--gcs-port", str(port), "--boot-s", "2", "--quiet"],
+        sim_log,
+    )  # fmt: skip
+    daemon = start_swarmplan(
+        ["daemon", "--connect", f"udpin:127.0.0.1:{port}", "--scenario", str(scenario),
+         "--lockstep", "--out", str(tmp_path / "out"), "--timeout", "30"],
+        daemon_log,
+    )  # fmt: skip
+    pilot = None
+    try:
+        found = _wait(lambda: re.search(r"from 127\.0\.0\.1 ports (\d+)", sim_log.read_text()),
+                      30, [sim])  # fmt: skip
+        assert found, sim_log.read_text()[-2000:]
+        vehicle_port = re.search(r"ports (\d+)", sim_log.read_text()).group(1)
+        pilot = mavutil.mavlink_connection(f"udpout:127.0.0.1:{vehicle_port}", source_system=240)
+        # at step 18 the plane is north of the threat (lockstep, seed 1: (14.8, 16.6) km). The
+        # daemon is held meanwhile (simulated time waits), so it hears the plane's heartbeats in
+        # RTL before its next step
+        assert _wait(lambda: "step   18/" in daemon_log.read_text(), 90, [sim, daemon])
+        daemon.send_signal(signal.SIGSTOP)
+        for _ in range(5):
+            pilot.mav.command_long_send(
+                1, 1, mavutil.mavlink.MAV_CMD_DO_SET_MODE, 0,
+                mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 11, 0, 0, 0, 0, 0,
+            )  # fmt: skip
+            time.sleep(0.1)
+        time.sleep(2.0)  # two heartbeats in RTL
+        daemon.send_signal(signal.SIGCONT)
+        daemon.wait(90)
+    finally:
+        if pilot is not None:
+            pilot.close()
+        stop(daemon)
+        stop(sim)
+    log = daemon_log.read_text()
+    assert "vehicle 1 is in RTL during the mission" in log, log[-3000:]
+    truth = last_json(sim_log)["safety"]
+    assert truth["threat_entries"] == 0, truth
+    assert truth["by_mode"]["rtl"]["min_threat_margin_km"] > 0
 
 
 @pytest.mark.timeout(120)
