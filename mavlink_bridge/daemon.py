@@ -608,6 +608,7 @@ class MissionDaemon:
             leg_timing=self.options.leg_timing,
             max_refusals=self.options.max_refusals,
             predict_from_now=self.clock is None,
+            clock_rate=self.time_scale,
             send=self.send,
             say=self.say,
             target_values=self._target_values,

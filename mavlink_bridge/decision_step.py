@@ -22,6 +22,7 @@ from step to step is one :class:`LoopState` (what a checkpoint holds, ``checkpoi
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
@@ -29,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from mavlink_bridge.flight_envelope import FlightChoice, FlightEnvelope
-from mavlink_bridge.flight_prediction import PlaneModel, leg_speed_mps
+from mavlink_bridge.flight_prediction import PlaneModel, leg_speed_mps, predict_paths
 from mavlink_bridge.guided_commands import (
     Command,
     CommandRefusedError,
@@ -200,6 +201,10 @@ class DecisionStep:
     max_refusals: int = 5
     #: lockstep: the planes hold at the decision instant; paced: they fly on while it is planned
     predict_from_now: bool = True
+    #: paced: the vehicles' seconds per wall second (their speedup), to tell how old a plane's
+    #: latest position report is on its own clock
+    clock_rate: float = 1.0
+    wall_clock: Callable[[], float] = time.monotonic
     send: Callable[[list[Command]], list[Command]] = lambda commands: commands
     say: Callable[[str], None] = lambda text: None
     target_values: dict[int, float] = field(default_factory=dict)
@@ -306,20 +311,8 @@ class DecisionStep:
         (``positions``, measured at the vehicle's ``positions_ms``); in paced time the plane has
         flown on while the step was planned."""
         n, lead = self.n, self.lead_steps
-        speeds = np.full(n, self.plane.speed_mps)
-        courses = np.empty(n)
+        positions, courses, speeds, elapsed_s = self.where_now(state, active)
         decision_positions = state.positions
-        positions = np.array(state.positions, dtype=float, copy=True)
-        elapsed_s = np.zeros(n)
-        for i, v in enumerate(self.vehicles):
-            if self.predict_from_now and v.has_position and active[i]:
-                positions[i] = self.local_km(v.lat_deg, v.lon_deg)
-                elapsed_s[i] = max(0.0, (v.time_boot_ms - state.positions_ms[i]) / 1e3)
-            if math.hypot(v.vn_mps, v.ve_mps) > 1.0:
-                courses[i] = math.atan2(v.vn_mps, v.ve_mps)  # course over ground, from east
-                speeds[i] = math.hypot(v.vn_mps, v.ve_mps)
-            else:
-                courses[i] = int(state.headings[i]) * math.pi / 4
         if self.flight_envelope is None:
             aims = np.array(
                 [
@@ -345,6 +338,48 @@ class DecisionStep:
             next_headings, previous, state.flown_km, state.home_km, active, lead,
             decision_positions, elapsed_s,
         )  # fmt: skip
+
+    def where_now(
+        self, state: LoopState, active: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Each plane's position, course (rad from east) and speed now, and the seconds since
+        the decision instant (when it was at ``state.positions``). In lockstep that is the
+        decision instant. In paced time it is its latest position report, flown on along the
+        way to the target it last accepted for as long as that report is old on its clock (the
+        wall time since it came in x ``clock_rate``, at most two decision periods): at 30 %
+        loss and 20x the latest report of a plane was 10 s old at a decision, and paths
+        predicted from it as if it were now started a kilometre behind the plane."""
+        n = self.n
+        speeds = np.full(n, self.plane.speed_mps)
+        courses = np.empty(n)
+        positions = np.array(state.positions, dtype=float, copy=True)
+        elapsed_s = np.zeros(n)
+        stale_s = np.zeros(n)
+        now = self.wall_clock()
+        cap_s = 2.0 * self.scenario.config.step_s
+        for i, v in enumerate(self.vehicles):
+            if self.predict_from_now and v.has_position and active[i]:
+                positions[i] = self.local_km(v.lat_deg, v.lon_deg)
+                stale_s[i] = min(cap_s, max(0.0, (now - v.position_s) * self.clock_rate))
+                elapsed_s[i] = max(0.0, (v.time_boot_ms - state.positions_ms[i]) / 1e3)
+            if math.hypot(v.vn_mps, v.ve_mps) > 1.0:
+                courses[i] = math.atan2(v.vn_mps, v.ve_mps)  # course over ground, from east
+                speeds[i] = math.hypot(v.vn_mps, v.ve_mps)
+            else:
+                courses[i] = int(state.headings[i]) * math.pi / 4
+        aims = np.array([t if t is not None else (np.nan, np.nan) for t in state.last_target])
+        late = np.flatnonzero((stale_s >= 1.0) & np.all(np.isfinite(aims), axis=1))
+        if len(late):
+            ahead = predict_paths(
+                self.plane, positions[late], courses[late], aims[late],
+                float(stale_s[late].max()), speed_mps=speeds[late],
+            )  # fmt: skip
+            at = np.round(stale_s[late]).astype(int)
+            here, before = ahead[np.arange(len(late)), at], ahead[np.arange(len(late)), at - 1]
+            positions[late] = here
+            courses[late] = np.arctan2(here[:, 1] - before[:, 1], here[:, 0] - before[:, 0])
+            elapsed_s[late] += at
+        return positions, courses, speeds, elapsed_s
 
     # ------------------------------------------------------------------ 4. record
 

@@ -260,10 +260,10 @@ def hold_for_separation(
     vehicles: list[VehicleState],
     ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]],
 ) -> dict[int, np.ndarray]:
-    """The vehicles (of ``vehicles``) that must hold for another's way home, and where
-    (``ReturnSeparation.plan``): every other airborne vehicle heard is flying RTL straight
-    home, which nobody holds any more; a vehicle already holding keeps its point while it
-    is still good. Says who holds, and who conflicts with no hold point found."""
+    """The vehicles (of ``vehicles``) that must hold for another's way home, or detour around
+    it, and where (``ReturnSeparation.plan``): every other airborne vehicle heard is flying
+    RTL straight home, which nobody holds any more; a vehicle already holding keeps its point
+    while it is still good. Says who holds or detours, and who conflicts with neither found."""
     flight = daemon.flight_home
     separation = return_separation(daemon)
     deciding = {v.system_id for v in vehicles}
@@ -283,15 +283,15 @@ def hold_for_separation(
     for sid, point in plan.holds.items():
         if sid not in flight.holding:
             flight.held.add(sid)
+            how = "flies home via" if sid in plan.detours else "holds at"
             daemon.say(
-                f"vehicle {sid} holds at ({point[0]:.1f}, {point[1]:.1f}) km: its way home "
+                f"vehicle {sid} {how} ({point[0]:.1f}, {point[1]:.1f}) km: its way home "
                 f"would come within d_min of another plane's"
             )
     for sid in set(plan.unresolved) - flight.unresolved:
         flight.unresolved.add(sid)
         daemon.say(
             f"warning: vehicle {sid}'s way home may come within d_min of another plane's "
-            "and no hold clears it (that plane circles its home on the way, or no safe "
-            "point to hold at was found): it flies on"
+            "and no hold or detour clears it: it flies on"
         )
     return plan.holds

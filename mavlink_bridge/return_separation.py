@@ -22,7 +22,10 @@ keeps the planes on it apart (C_c, d_min of eq. 4's constraint set), in time as 
   hold them any more) and the planes still waiting for their way home, nearest aim first: a
   plane whose leg conflicts with none set flies it (and is set), any other **holds**: it is
   guided to the nearest point whose loiter circle keeps the threat margin and whose leg there
-  conflicts with none set, and circles there until a later decision period finds its way clear.
+  conflicts with none set, and circles there until a later decision period finds its way clear;
+  where no hold point clears it, or only planes circling their homes are in the way (they stay
+  there: no wait clears it), it **detours**: it is guided through the nearest point whose way
+  (there, then on to its aim) conflicts with none set, re-judged every decision period.
   Two planes both circling their own homes are not compared: where homes are is the
   scenario's choice, not the flight home's.
 
@@ -41,8 +44,9 @@ from mavlink_bridge.safe_return import HomeRoutes
 
 @dataclass(frozen=True)
 class Homeward:
-    """One plane's next stretch home as predicted: straight to ``aim_km`` at ``speed_kmps``,
-    then circling it (straying ``circle_km`` from it); ``at_home``: the aim is its home."""
+    """One plane's next stretch home as predicted: straight to ``aim_km`` at ``speed_kmps``
+    (through ``via_km`` first, when it detours), then circling it (straying ``circle_km`` from
+    it); ``at_home``: the aim is its home."""
 
     system_id: int
     start_km: np.ndarray  # (2,)
@@ -50,15 +54,33 @@ class Homeward:
     speed_kmps: float
     circle_km: float
     at_home: bool
+    via_km: np.ndarray | None = None  # (2,) a detour point flown through on the way
+
+    @property
+    def length_km(self) -> float:
+        if self.via_km is None:
+            return float(np.hypot(*(self.aim_km - self.start_km)))
+        return float(np.hypot(*(self.via_km - self.start_km))) + float(
+            np.hypot(*(self.aim_km - self.via_km))
+        )
 
     @property
     def arrival_s(self) -> float:
-        return float(np.hypot(*(self.aim_km - self.start_km))) / max(self.speed_kmps, 1e-6)
+        return self.length_km / max(self.speed_kmps, 1e-6)
 
     def positions(self, t_s: np.ndarray) -> np.ndarray:
         """(len(t_s), 2) where the plane is at each instant (at the aim once arrived)."""
-        frac = np.clip(t_s / max(self.arrival_s, 1e-9), 0.0, 1.0)
-        return self.start_km[None] + frac[:, None] * (self.aim_km - self.start_km)[None]
+        flown = np.clip(np.asarray(t_s, float) * self.speed_kmps, 0.0, self.length_km)
+        corners = [self.start_km] + ([] if self.via_km is None else [self.via_km]) + [self.aim_km]
+        out = np.repeat(self.start_km[None], len(flown), axis=0)
+        done = 0.0
+        for a, b in zip(corners[:-1], corners[1:], strict=True):
+            length = float(np.hypot(*(b - a)))
+            frac = np.clip((flown - done) / max(length, 1e-9), 0.0, 1.0)
+            here = flown >= done
+            out[here] = a[None] + frac[here, None] * (b - a)[None]
+            done += length
+        return out
 
 
 @dataclass
@@ -73,13 +95,23 @@ class ReturnSeparation:
     sample_s: float = 2.0  # instants compared, this far apart (at 100 m/s: 0.2 km)
     hold_rings_km: tuple[float, ...] = (0.0, 2.0, 4.0, 6.0, 8.0)
     hold_directions: int = 16
+    #: detour points (``detour_point``), this far from the plane: far enough to pass a home
+    #: circle off the line by d_min plus the circle's reach and the plane's stray (~4.2 km)
+    detour_rings_km: tuple[float, ...] = (3.0, 5.0, 7.0, 9.0, 12.0)
 
     def circle_km(self) -> float:
         """How far a plane strays from the point it circles: its loiter diameter (it arrives
         flying straight at the point, passes it, and only then turns onto its circle)."""
         return float(self.routes.plane.loiter_reach_km())
 
-    def leg(self, system_id: int, xy_km: np.ndarray, aim_km: np.ndarray, at_home: bool) -> Homeward:
+    def leg(
+        self,
+        system_id: int,
+        xy_km: np.ndarray,
+        aim_km: np.ndarray,
+        at_home: bool,
+        via_km: np.ndarray | None = None,
+    ) -> Homeward:
         return Homeward(
             system_id,
             np.asarray(xy_km, float),
@@ -87,6 +119,7 @@ class ReturnSeparation:
             self.routes.plane.speed_mps / 1e3,
             self.circle_km(),
             at_home,
+            None if via_km is None else np.asarray(via_km, float),
         )
 
     def clearance_km(self, a: Homeward, b: Homeward) -> float:
@@ -151,6 +184,45 @@ class ReturnSeparation:
                 return point.copy()
         return None
 
+    def detour_point(
+        self,
+        leg: Homeward,
+        course_rad: float,
+        others: list[Homeward],
+        previous: np.ndarray | None = None,
+    ) -> np.ndarray | None:
+        """A point for the plane of ``leg`` to fly through on its way to its aim, around what
+        is in the way (another plane circling its home on the line, or flying home near it):
+        its circle keeps the threat margin (if the ground station goes silent the plane
+        circles it), both legs and the turn onto the first keep it too, and the way through it
+        conflicts with none of ``others``; ``previous`` (the point it flies to now) first, then
+        the shortest way; ``None`` if no candidate does."""
+        xy, aim = leg.start_km, leg.aim_km
+        angles = np.arange(self.hold_directions) * (2 * math.pi / self.hold_directions)
+        ring = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        candidates = np.concatenate([xy[None] + r * ring for r in self.detour_rings_km])
+        total = np.hypot(*(candidates - xy).T) + np.hypot(*(aim - candidates).T)
+        candidates = candidates[np.argsort(total, kind="stable")]
+        if previous is not None:
+            candidates = np.concatenate([np.asarray(previous, float)[None], candidates])
+        routes = self.routes
+        keep = routes.point_clearance(candidates) >= routes.margin_km + self.circle_km()
+        keep &= routes.leg_clearance(np.broadcast_to(xy, candidates.shape), candidates) >= (
+            routes.margin_km
+        )
+        keep &= routes.leg_clearance(candidates, np.broadcast_to(aim, candidates.shape)) >= (
+            routes.margin_km
+        )
+        candidates = candidates[keep]
+        if len(candidates) == 0:
+            return None
+        turns = routes.turn_clearance(xy, course_rad, candidates)
+        for point in candidates[turns >= routes.turn_margin_km]:
+            way = self.leg(leg.system_id, xy, aim, leg.at_home, via_km=point)
+            if not self.conflicts(way, others):
+                return point.copy()
+        return None
+
     def plan(
         self,
         set_legs: list[Homeward],
@@ -169,20 +241,24 @@ class ReturnSeparation:
             if not blocking:
                 fixed.append(leg)
                 continue
-            if all(o.at_home and o.arrival_s <= self.sample_s for o in blocking):
-                # only planes already circling their homes are in the way: they stay there,
-                # so holding would never clear it (a plane held for one circled until the
-                # watch of the flight home ended)
-                plan.unresolved.append(leg.system_id)
-                fixed.append(leg)
+            previous = keep.get(leg.system_id)
+            # planes already circling their homes stay there, so holding would never clear
+            # the way (a plane held for one circled until the watch of the flight home ended):
+            # only a detour around their circles does
+            circling = all(o.at_home and o.arrival_s <= self.sample_s for o in blocking)
+            point = None if circling else self.hold_point(leg, course, fixed, previous)
+            if point is not None:
+                plan.holds[leg.system_id] = point
+                fixed.append(self.leg(leg.system_id, leg.start_km, point, at_home=False))
                 continue
-            point = self.hold_point(leg, course, fixed, keep.get(leg.system_id))
+            point = self.detour_point(leg, course, fixed, previous)
             if point is None:
                 plan.unresolved.append(leg.system_id)
                 fixed.append(leg)
                 continue
             plan.holds[leg.system_id] = point
-            fixed.append(self.leg(leg.system_id, leg.start_km, point, at_home=False))
+            plan.detours.append(leg.system_id)
+            fixed.append(self.leg(leg.system_id, leg.start_km, leg.aim_km, leg.at_home, point))
         return plan
 
 
@@ -190,5 +266,7 @@ class ReturnSeparation:
 class ReturnPlan:
     """What :meth:`ReturnSeparation.plan` decided for the planes waiting for their way home."""
 
-    holds: dict[int, np.ndarray] = field(default_factory=dict)  # system id -> point to circle
-    unresolved: list[int] = field(default_factory=list)  # conflicting, and no hold point found
+    holds: dict[int, np.ndarray] = field(default_factory=dict)  # system id -> point to fly to
+    #: of ``holds``, the planes that fly through their point on the way (a detour), not wait
+    detours: list[int] = field(default_factory=list)
+    unresolved: list[int] = field(default_factory=list)  # conflicting, no hold or detour found

@@ -136,3 +136,31 @@ def test_a_vehicle_without_a_camera_gets_one_warning_and_no_more_engagement_requ
     unanswered.attempts = 5
     assert not stages.without_camera(1, unanswered)
     assert stages.counters.cameraless == [0] and len(said) == 1
+
+
+def test_a_stale_position_is_flown_on_to_where_the_plane_is_now(paper10):
+    """Paced at 20x over a 30 % loss link, a plane's latest position report was 10 s old on its
+    clock at a decision: paths predicted from it as if it were now started 1 km behind the
+    plane (issue 12: a plane inside a threat's margin). The report is flown on along the way
+    to the target the plane last accepted, for as long as the report is old on its clock."""
+    starts = paper10.starts_for_seed(1)[:1]
+    grid = Grid(paper10.config.grid_nx, paper10.config.grid_ny, paper10.config.cell_km)
+    here = np.array([[starts[0].x_km + 2.0, starts[0].y_km]])
+    lat, lon = local_km_to_geodetic(here[:, 0], here[:, 1], paper10.origin)
+    vehicle = _heard(1, lat[0], lon[0], 5000)  # flying east at 100 m/s
+    stages = _stages(paper10, [vehicle])
+    state = LoopState.start(
+        grid, HapfAcoPlanner(paper10, starts, 1), MissionRecorder(paper10, starts), starts, [-1]
+    )
+    stages.gather(state, 1, looks={})
+    state.last_target[0] = (float(here[0, 0]) + 5.0, float(here[0, 1]))  # 5 km east
+    active = np.array([True])
+    stages.clock_rate = 20.0
+    stages.wall_clock = lambda: vehicle.position_s + 0.5  # 0.5 s of wall time: 10 s of flight
+    positions, courses, _, elapsed = stages.where_now(state, active)
+    np.testing.assert_allclose(positions[0], here[0] + [1.0, 0.0], atol=0.05)
+    assert abs(courses[0]) < 0.05 and elapsed[0] == 10
+    stages.predict_from_now = False  # lockstep: the planes wait at the decision instant
+    positions, _, _, elapsed = stages.where_now(state, active)
+    np.testing.assert_allclose(positions[0], here[0], atol=1e-3)
+    assert elapsed[0] == 0

@@ -51,17 +51,28 @@ def test_the_later_plane_holds_at_a_safe_point_clear_of_the_other_way():
     assert s.plan([home], [(later, 0.0)]).holds == {}
 
 
-def test_a_plane_circling_its_home_on_anothers_way_is_not_waited_for():
+def test_a_plane_circling_its_home_on_anothers_way_is_flown_around_not_waited_for():
     """Plane 1 circles its home, which lies on plane 2's way home: it stays there, so holding
     plane 2 would never clear the conflict (it circled until the watch of the flight home
-    ended, 7 minutes at real time). Plane 2 flies on, and the daemon says so."""
+    ended, 7 minutes at real time), and flying on passed through its circle. Plane 2 detours:
+    its way through the detour point keeps d_min from plane 1's circle, and the point is a safe
+    place to circle (clear of the threat) if the ground station goes silent."""
     s = separation()
     home_1 = np.array([24.0, 24.0])
     circling = s.leg(1, home_1, home_1, at_home=True)
     way = s.leg(2, np.array([20.0, 20.0]), np.array([28.0, 28.0]), at_home=True)
     assert s.clearance_km(way, circling) < 1.0
-    plan = s.plan([circling], [(way, 0.0)])
-    assert plan.holds == {} and plan.unresolved == [2]
-    # a plane still on its way is waited for: once it is home the way may clear
+    plan = s.plan([circling], [(way, np.pi / 4)])
+    assert plan.detours == [2] and plan.unresolved == []
+    point = plan.holds[2]
+    around = s.leg(2, way.start_km, way.aim_km, at_home=True, via_km=point)
+    assert s.clearance_km(around, circling) >= 1.0
+    positions = around.positions(np.arange(0.0, around.arrival_s + 1.0, 1.0))
+    np.testing.assert_allclose(positions[-1], way.aim_km)  # it does get home
+    assert np.hypot(*(positions - home_1).T).min() >= 1.0 + s.circle_km()
+    reach = float(PlaneModel().loiter_reach_km())
+    assert np.hypot(*(point - THREAT_XY[0])) - THREAT_R[0] >= 1.0 + reach
+    # a plane still on its way is waited for (a hold): once it is home the way may clear
     flying = s.leg(1, np.array([28.0, 20.0]), np.array([20.0, 28.0]), at_home=True)
-    assert list(s.plan([flying], [(way, 0.0)]).holds) == [2]
+    plan = s.plan([flying], [(way, 0.0)])
+    assert list(plan.holds) == [2] and plan.detours == []
