@@ -2,22 +2,27 @@
 after every decision step, so a daemon killed mid-mission (``kill -9``, a crash, a power cut)
 can be started again with ``--resume`` and carry on from the last step it finished.
 
-File format (version 2): a 64-byte header, then a pickle (protocol 5) of a :class:`Checkpoint`.
+File format (version 3): a 64-byte header, then a pickle (protocol 5) of a :class:`Checkpoint`,
+compressed with zlib at its fastest level (version 2, the same uncompressed, is still read).
 
 * header: ``MAGIC`` (16 bytes), format version (uint32), payload length (uint64), the SHA-256
-  of the payload (32 bytes), 4 reserved bytes; all little-endian.
+  of the payload as stored (32 bytes), 4 reserved bytes; all little-endian.
 * payload: the planner object (``HapfAcoPlanner``: TPMs, pheromone maps, coverage, tracks, its
   random generator...) without what the scenario alone determines (:data:`DERIVED`: the safety
   models it caches, the TPM diffusion's stencil and scratch buffers, half the bytes, taken
   from the planner the resumed daemon builds), the recorder, and the loop variables of
-  ``MissionDaemon._decision_loop`` named in :data:`LOOP_STATE`. A 10-UAV checkpoint is about
-  5 MB (10-15 MB before: issue 12, finding 9). Not compressed: zlib at its fastest level takes
-  it to 1.4 MB but costs ~0.5 s a step on this machine, a whole decision period at 20x; the
-  TPMs, most of it, change everywhere at every step, so a delta would not be smaller.
+  ``MissionDaemon._decision_loop`` named in :data:`LOOP_STATE`. A 10-UAV checkpoint pickles to
+  about 5 MB (10-15 MB before: issue 12, finding 9) and compresses to about 1.7 MB (zlib level
+  1, ~80 ms on this machine); the TPMs, most of it, change everywhere at every step, so a
+  delta would not be smaller.
 
-Writing: into ``PATH.tmp`` in the same folder, flushed and fsync'ed, then ``os.replace`` over
-``PATH`` (atomic on POSIX and Windows), then the folder is fsync'ed: a reader sees the previous
-checkpoint or the new one, never a mix, whenever the writer dies.
+Writing: the state is pickled at once (it changes at the next step); compressing and writing
+can go to a background thread (``CheckpointWriter(background=True)``, the daemon's: zlib and
+the file system release the GIL, so the decision loop does not wait), one write at a time, the
+next save (or ``flush``) waiting for the one before. Into ``PATH.tmp`` in the same folder,
+flushed and fsync'ed, then ``os.replace`` over ``PATH`` (atomic on POSIX and Windows), then the
+folder is fsync'ed: a reader sees the previous checkpoint or the new one, never a mix, whenever
+the writer dies.
 
 Reading checks, in order: the file exists and is readable, the magic, the version, the length
 and the digest (a torn or corrupted file), and that it belongs to this mission (scenario name and
@@ -35,6 +40,8 @@ import io
 import os
 import pickle
 import struct
+import threading
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,7 +50,8 @@ from planner.errors import UserError
 from planner.scenario import Scenario
 
 MAGIC = b"SWARMPLAN-CKPT\x00\x01"
-VERSION = 2
+VERSION = 3  # zlib-compressed pickle
+_UNCOMPRESSED_VERSION = 2  # a plain pickle, still read
 #: planner attributes (``owner.attribute`` paths from the planner) determined by the scenario
 #: alone: not written; a resumed daemon takes them from the planner it builds for the mission
 DERIVED = ("_safety", "tpm.stencil", "tpm.work", "tpm.wiener_work")
@@ -106,8 +114,14 @@ class Checkpoint:
 
 def write_checkpoint(path: str | Path, checkpoint: Checkpoint) -> int:
     """Write ``checkpoint`` to ``path`` atomically; returns the bytes written."""
+    return write_pickled(path, pickle.dumps(checkpoint, protocol=5))
+
+
+def write_pickled(path: str | Path, pickled: bytes) -> int:
+    """Compress a pickled :class:`Checkpoint` and write it to ``path`` atomically; returns the
+    bytes written."""
     path = Path(path)
-    payload = pickle.dumps(checkpoint, protocol=5)
+    payload = zlib.compress(pickled, 1)
     header = _HEADER.pack(MAGIC, VERSION, len(payload), hashlib.sha256(payload).digest())
     tmp = path.with_name(path.name + ".tmp")
     try:
@@ -141,13 +155,18 @@ def _fsync_dir(folder: Path) -> None:
 
 
 class CheckpointWriter:
-    """Writes the loop state after every step; counts and times the writes."""
+    """Writes the loop state after every step; counts the writes. ``background``: compress and
+    write in a thread, one write at a time (``flush`` waits for it; an error in it is raised
+    by the next ``save`` or ``flush``)."""
 
-    def __init__(self, path: str | Path, fingerprint: str) -> None:
+    def __init__(self, path: str | Path, fingerprint: str, background: bool = False) -> None:
         self.path = Path(path)
         self.fingerprint = fingerprint
+        self.background = background
         self.writes = 0
         self.bytes = 0
+        self._thread: threading.Thread | None = None
+        self._error: CheckpointError | None = None
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -164,8 +183,32 @@ class CheckpointWriter:
         state = {name: getattr(daemon, name) for name in DAEMON_STATE}
         loop = dict(loop, planner=without_derived(loop["planner"]))
         checkpoint = Checkpoint(self.fingerprint, step, loop, state, wall_time_s, time.time())
-        self.bytes = write_checkpoint(self.path, checkpoint)
-        self.writes += 1
+        pickled = pickle.dumps(checkpoint, protocol=5)  # now: the state changes at the next step
+        self.flush()
+        if not self.background:
+            self._write(pickled)
+            self.flush()
+            return
+        self._thread = threading.Thread(
+            target=self._write, args=(pickled,), name="checkpoint", daemon=False
+        )
+        self._thread.start()
+
+    def _write(self, pickled: bytes) -> None:
+        try:
+            self.bytes = write_pickled(self.path, pickled)
+            self.writes += 1
+        except CheckpointError as exc:
+            self._error = exc
+
+    def flush(self) -> None:
+        """Wait for the write in flight; raise the error of a failed one."""
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
 
 
 # ---------------------------------------------------------------------------- reading
@@ -248,9 +291,10 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
     magic, version, length, digest = _HEADER.unpack_from(data)
     if magic != MAGIC:
         raise CheckpointError(f"{path} is not a swarmplan checkpoint (bad magic); {hint}")
-    if version != VERSION:
+    if version not in (VERSION, _UNCOMPRESSED_VERSION):
         raise CheckpointError(
-            f"checkpoint {path} has format version {version}, this daemon reads {VERSION}; {hint}"
+            f"checkpoint {path} has format version {version}, this daemon reads "
+            f"{_UNCOMPRESSED_VERSION} and {VERSION}; {hint}"
         )
     payload = data[_HEADER.size :]
     if len(payload) != length:
@@ -259,6 +303,11 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
         )
     if hashlib.sha256(payload).digest() != digest:
         raise CheckpointError(f"checkpoint {path} is corrupt (checksum mismatch); {hint}")
+    if version == VERSION:
+        try:
+            payload = zlib.decompress(payload)
+        except zlib.error as exc:
+            raise CheckpointError(f"checkpoint {path} is corrupt ({exc}); {hint}") from None
     try:
         checkpoint = _RestrictedUnpickler(io.BytesIO(payload)).load()
     except Exception as exc:  # noqa: BLE001 - any unpickling failure is a bad file

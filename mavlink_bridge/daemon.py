@@ -39,6 +39,7 @@ from mavlink_bridge.airframe import (
 )
 from mavlink_bridge.checkpoint import (
     Checkpoint,
+    CheckpointError,
     CheckpointWriter,
     load_for_mission,
     mission_fingerprint,
@@ -237,7 +238,7 @@ class MissionDaemon:
         self.checkpoints = (
             None
             if options.checkpoint_path is None
-            else CheckpointWriter(options.checkpoint_path, self.fingerprint)
+            else CheckpointWriter(options.checkpoint_path, self.fingerprint, background=True)
         )
         self.resume_from: Checkpoint | None = None
         self.clock: LockstepClock | None = None
@@ -562,6 +563,11 @@ class MissionDaemon:
         return self.state.recorder.result(self.options.seed, ALGORITHM, wall_s, extra=extra)
 
     def close(self) -> None:
+        if self.checkpoints is not None:
+            try:
+                self.checkpoints.flush()  # the last step's checkpoint is on disk before we go
+            except CheckpointError as exc:
+                self.say(f"warning: {exc}")
         if self.link is not None:
             self.link.close()
         if self.tlog is not None:
