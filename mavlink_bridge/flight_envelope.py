@@ -17,7 +17,13 @@ accepts a target only if
   silent for 3 s at 20x entered threat zones in 7 of 10 runs, issue 12);
 * at every predicted second of the next ``separation_horizon_steps`` it stays
   ``min_separation_km + separation_margin_km`` from the predicted path of every UAV already
-  settled this step (beyond the next decision every plane gets a new target).
+  settled this step (beyond the next decision every plane gets a new target); and so it does
+  when, from the next decision instant on, every plane flew straight on for the time it needs
+  to turn away (a quarter circle at its bank limit and fastest speed, ``escape_s``): the new
+  target cannot turn a plane at once. Without this, two planes converging at 100-150 m/s
+  with their targets 1 km apart were accepted (1.32 km apart within 1.5 steps), and one step
+  later nothing was left that kept them apart: 0.63 km along the tracks in the lockstep demo
+  (paper-10uav seed 2), where judging the whole 3-step prediction had kept 1.56 km.
 
 Paths are predicted from each plane's measured speed, at the airspeed it will be sent for the
 leg (``leg_timing``: the leg to the candidate's cell in one decision step, see
@@ -88,6 +94,9 @@ class FlightEnvelope:
     threat_margin_km: float = 0.25
     separation_margin_km: float = 0.3
     leg_timing: bool = True  # airspeed per leg, so each leg takes one step (flight_prediction)
+    #: judge separation also on the planes flying straight on from the next decision instant
+    #: for ``escape_s`` (see the module docstring)
+    separation_escape: bool = True
     #: also keep clear the circle a plane would fly where it is (a failsafe or RC loss that
     #: switches it to CIRCLE) at every predicted second of the coming decision period
     failsafe_circle: bool = True
@@ -96,6 +105,13 @@ class FlightEnvelope:
     #: period); meanwhile the plane flies on to its previous target. 0 in lockstep (the
     #: simulated time waits for the commands)
     command_delay_s: float = 0.0
+
+    @property
+    def escape_s(self) -> float:
+        """Seconds a plane at its fastest needs to turn a quarter circle at its bank limit: how
+        long a new target takes to turn it away from where it was heading (24 s at 150 m/s and
+        45 deg; 2 s for ArduPlane's 30 m/s and 65 deg)."""
+        return float(np.pi / 2 / self.model.turn_rate_radps(self.model.max_speed_mps))
 
     @property
     def horizon_s(self) -> float:
@@ -166,6 +182,7 @@ class FlightEnvelope:
             speed_mps=speeds_now,
             commanded_mps=commanded,
         )
+        kept_apart = self._separation_paths(paths)
         row_uav = np.array([i for i, _ in rows], dtype=np.int64)
         clearance = np.minimum(
             self._threat_clearance(
@@ -199,11 +216,11 @@ class FlightEnvelope:
         for i in range(n):
             if not candidates[i]:
                 continue
-            others = [paths[row_of[(j, k)]] for j, k in chosen.items()]
+            others = [kept_apart[row_of[(j, k)]] for j, k in chosen.items()]
             best: tuple[float, int] | None = None
             for k in range(len(candidates[i])):
                 r = row_of[(i, k)]
-                sep = self._separation(paths[r], others)
+                sep = self._separation(kept_apart[r], others)
                 if threat_ok[r] and sep >= need_sep:
                     best = (np.inf, k)
                     break
@@ -213,7 +230,7 @@ class FlightEnvelope:
             assert best is not None
             chosen[i] = best[1]
             if np.isfinite(best[0]):
-                self._repair(i, chosen, candidates, paths, row_of, threat_ok, need_sep)
+                self._repair(i, chosen, candidates, kept_apart, row_of, threat_ok, need_sep)
         for i, k in chosen.items():
             r = row_of[(i, k)]
             kept = k == 1 and candidates[i][1].cruise  # the planner's cell, only flown slower
@@ -237,7 +254,7 @@ class FlightEnvelope:
                 )
             else:
                 out_cells[i], out_headings[i] = cand.cell, cand.heading
-        accepted = [paths[row_of[(i, k)]] for i, k in chosen.items()]
+        accepted = [kept_apart[row_of[(i, k)]] for i, k in chosen.items()]
         closest = min(
             (self._separation(path, accepted[a + 1 :]) for a, path in enumerate(accepted)),
             default=np.inf,
@@ -427,12 +444,26 @@ class FlightEnvelope:
             dense = np.minimum(dense, chords)
         return dense
 
+    def _separation_paths(self, paths: np.ndarray) -> np.ndarray:
+        """The instants at which planes are kept apart, each column one instant for every row:
+        the predicted paths over the first ``separation_horizon_steps`` decision steps, then
+        (``separation_escape``) each plane flying straight on from where the prediction has it
+        at the next decision instant, at its predicted velocity there, for ``escape_s``."""
+        last = paths.shape[1] - 1
+        upto = min(int(round(max(1.0, self.separation_horizon_steps) * self.step_s)), last)
+        apart = paths[:, : upto + 1]
+        if not self.separation_escape:
+            return apart
+        at = min(max(1, int(round(self.step_s))), last)
+        velocity = paths[:, at] - paths[:, at - 1]  # km per second (samples are 1 s apart)
+        ahead = np.arange(1, int(np.ceil(self.escape_s)) + 1, dtype=float)
+        straight = paths[:, at, None] + ahead[None, :, None] * velocity[:, None]
+        return np.concatenate([apart, straight], axis=1)
+
     def _separation(self, path: np.ndarray, settled: list[np.ndarray]) -> float:
-        """Smallest distance (km) between ``path`` and any settled path at the same instant,
-        over the first ``separation_horizon_steps`` decision steps."""
+        """Smallest distance (km) between ``path`` and any settled path at the same instant
+        (rows of ``_separation_paths``)."""
         if not settled:
             return float(np.inf)
-        upto = int(round(max(1.0, self.separation_horizon_steps) * self.step_s)) + 1
-        others = np.stack(settled)[:, :upto]  # (K, S + 1, 2)
-        d = np.hypot(*(others - path[None, :upto]).transpose(2, 0, 1))
+        d = np.hypot(*(np.stack(settled) - path[None]).transpose(2, 0, 1))
         return float(d.min())

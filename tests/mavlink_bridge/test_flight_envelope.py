@@ -152,3 +152,35 @@ def test_a_replaced_move_goes_where_the_plane_can_fly_on_not_into_a_dead_end():
     assert [o.reason for o in decision.overrides] == ["separation"]
     np.testing.assert_array_equal(decision.next_cells[1], [5, 11])
     assert decision.next_headings[1] == north_east
+
+
+def test_planes_converging_too_fast_to_turn_away_after_the_next_decision_are_kept_apart(paper10):
+    """The lockstep demo's paper-10uav seed 2, step 203: two planes 3.9 km apart, one heading
+    north-east, the other north-west, their next cells 2.2 km apart and their guided targets
+    1 km apart. Their predicted paths stay 1.32 km apart over 1.5 steps, so the pair was
+    accepted; a step later they were 2 km apart closing at 250 m/s, too fast to turn away on a
+    1-2.3 km turn radius, and passed 0.63 km apart. Judged also flying straight on from the
+    next decision for the time a quarter turn takes, the planner's pair is replaced."""
+    cells = SafetyEnvelope.for_scenario(paper10, 1.0, 1.0)
+    grid = cells.grid
+    here = np.array([[21, 3], [25, 4]])
+    headings = np.array([0, 4])
+    proposed = np.array([[22, 4], [24, 5]])
+    proposed_headings = np.array([1, 3])
+
+    def choose(escape: bool):
+        envelope = FlightEnvelope(cells, PlaneModel(), separation_escape=escape)
+        return envelope, envelope.choose(
+            np.array([[21.45, 3.31], [25.25, 4.73]]), np.radians([9.0, -163.0]), np.full(2, 100.0),
+            here, headings, proposed, proposed_headings, np.full((2, 2), np.nan), np.zeros(2),
+            grid.centre_km(here), np.ones(2, dtype=bool), 1.0,
+        )  # fmt: skip
+
+    envelope, before = choose(False)
+    np.testing.assert_array_equal(before.next_cells, proposed)  # accepted without the escape
+    envelope, after = choose(True)
+    assert envelope.escape_s > 20.0  # a quarter turn at 150 m/s and 45 deg bank
+    assert after.overrides["predicted_separation"] >= 1
+    assert not np.array_equal(after.next_cells, proposed)
+    need = paper10.config.min_separation_km + envelope.separation_margin_km
+    assert after.min_separation_km >= need
