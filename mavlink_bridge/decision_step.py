@@ -278,7 +278,7 @@ class DecisionStep:
         )
         state.engagements = [None] * self.n
         done = np.asarray(decision.done, dtype=bool)
-        proposed = np.where(done[:, None], state.cells, np.asarray(decision.next_cells))
+        proposed = np.where(done[:, None], self.home_cells(state), np.asarray(decision.next_cells))
         proposed_h = np.where(done, state.headings, np.asarray(decision.next_headings))
         return StepPlan(decision, done, proposed, proposed_h, list(given))
 
@@ -287,13 +287,16 @@ class DecisionStep:
     def envelope(self, state: LoopState, inputs: StepInputs, plan: StepPlan) -> FlightChoice:
         """Cell-level envelope, then the flight-path layer: every UAV's guided target, the cell
         and heading it stands for, and its leg airspeed. Replacements are counted."""
+        from_cells = np.where(plan.done[:, None], self.home_cells(state), state.cells)
         checked = self.cell_envelope.check(
-            state.cells, state.headings, plan.proposed_cells, plan.proposed_headings,
+            from_cells, state.headings, plan.proposed_cells, plan.proposed_headings,
             state.flown_km, state.home_km, inputs.active,
         )  # fmt: skip
         for o in checked.overrides:
             self.counters.overrides[o.reason] += 1
-        flight = self.choose_flight(state, checked.next_cells, checked.next_headings, inputs.active)
+        flight = self.choose_flight(
+            state, checked.next_cells, checked.next_headings, inputs.active, from_cells
+        )
         for reason, count in flight.overrides.items():
             self.counters.overrides[reason] += count
         return flight
@@ -304,19 +307,23 @@ class DecisionStep:
         next_cells: np.ndarray,
         next_headings: np.ndarray,
         active: np.ndarray,
+        from_cells: np.ndarray | None = None,
     ) -> FlightChoice:
         """Guided targets whose predicted flight is safe (flight_envelope.py); without the
         flight-path envelope, the aim points of the checked cells. Paths are predicted from each
         plane's latest position, course and speed: in lockstep that is the decision instant
         (``positions``, measured at the vehicle's ``positions_ms``); in paced time the plane has
-        flown on while the step was planned."""
+        flown on while the step was planned. ``from_cells``: the cell each move is judged from
+        (a UAV the planner counts as home, ``done``, holds its home cell wherever its circle
+        has taken it; default where each plane is)."""
         n, lead = self.n, self.lead_steps
+        cells = state.cells if from_cells is None else from_cells
         positions, courses, speeds, elapsed_s = self.where_now(state, active)
         decision_positions = state.positions
         if self.flight_envelope is None:
             aims = np.array(
                 [
-                    self.cell_envelope.aim_point_km(state.cells[i], next_cells[i], lead)
+                    self.cell_envelope.aim_point_km(cells[i], next_cells[i], lead)
                     for i in range(n)
                 ]
             )
@@ -324,7 +331,7 @@ class DecisionStep:
                 speeds = leg_speed_mps(
                     self.plane,
                     positions,
-                    self.grid.centre_km(state.cells),
+                    self.grid.centre_km(cells),
                     self.grid.centre_km(next_cells),
                     speeds,
                     self.scenario.config.step_s,
@@ -334,10 +341,18 @@ class DecisionStep:
             return FlightChoice(aims, next_cells, next_headings, speeds)
         previous = np.array([t if t is not None else (np.nan, np.nan) for t in state.last_target])
         return self.flight_envelope.choose(
-            positions, courses, speeds, state.cells, state.headings, next_cells,
+            positions, courses, speeds, cells, state.headings, next_cells,
             next_headings, previous, state.flown_km, state.home_km, active, lead,
             decision_positions, elapsed_s,
         )  # fmt: skip
+
+    def home_cells(self, state: LoopState) -> np.ndarray:
+        """Each UAV's start cell. A UAV the planner counts as home (``done``: back next to its
+        start, eq 37) is sent to circle it: sent to circle the cell it was in at each step
+        instead, a plane at 100-150 m/s on a 1-2 km turn radius drifted a cell or more a step,
+        and in the lockstep demo (paper-10uav seed 2) 1 of 10 ended within a cell of its start
+        against 10 of 10 offline."""
+        return self.grid.cell_of(state.home_km)
 
     def where_now(
         self, state: LoopState, active: np.ndarray

@@ -164,3 +164,27 @@ def test_a_stale_position_is_flown_on_to_where_the_plane_is_now(paper10):
     positions, _, _, elapsed = stages.where_now(state, active)
     np.testing.assert_allclose(positions[0], here[0], atol=1e-3)
     assert elapsed[0] == 0
+
+
+def test_a_uav_counted_home_is_sent_to_circle_its_start_not_where_it_drifted(paper10):
+    """A UAV the planner counts as home (``done``) keeps flying: it is sent to circle its start
+    cell. Sent to circle the cell it was in at each step, a plane on a 1-2 km turn radius
+    drifted a cell or more a step (lockstep demo, paper-10uav seed 2: 1 of 10 within a cell of
+    its start at the end, 10 of 10 offline)."""
+    starts = paper10.starts_for_seed(1)[:2]
+    grid = Grid(paper10.config.grid_nx, paper10.config.grid_ny, paper10.config.cell_km)
+    here = np.array([[s.x_km + 2.0, s.y_km] for s in starts])  # drifted 2 cells east
+    lat, lon = local_km_to_geodetic(here[:, 0], here[:, 1], paper10.origin)
+    stages = _stages(paper10, [_heard(i + 1, lat[i], lon[i], 5000) for i in range(2)])
+    planner = HapfAcoPlanner(paper10, starts, 1)
+    recorder = MissionRecorder(paper10, starts)
+    state = LoopState.start(grid, planner, recorder, starts, [-1, -1])
+    inputs = stages.gather(state, 1, looks={})
+    planner.done[0] = True  # UAV 1 is back; UAV 2 still searching
+    plan = stages.plan(state, inputs)
+    home = grid.cell_of(np.array([[starts[0].x_km, starts[0].y_km]]))[0]
+    np.testing.assert_array_equal(plan.proposed_cells[0], home)
+    flight = stages.envelope(state, inputs, plan)
+    np.testing.assert_array_equal(flight.next_cells[0], home)
+    np.testing.assert_allclose(flight.aims_km[0], grid.centre_km(home))
+    assert not np.array_equal(plan.proposed_cells[1], home)
