@@ -183,11 +183,8 @@ def launch_phases() -> list[LaunchPhase]:
         LaunchPhase("fence", fence),
         LaunchPhase("failsafe", failsafe),
         LaunchPhase("arm", arm),
-        # the homes before the take-off: a plane in TAKEOFF flies straight on, so nothing may
-        # wait between its switch to GUIDED and its first target (asking for a lost
-        # HOME_POSITION waited 1 s there: 20 s of flight at 20x)
-        LaunchPhase("homes", request_homes),
         LaunchPhase("take off", take_off),
+        LaunchPhase("homes", request_homes),
     ]
 
 
