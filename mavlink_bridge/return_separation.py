@@ -149,6 +149,21 @@ class ReturnSeparation:
     def conflicts(self, leg: Homeward, others: list[Homeward]) -> bool:
         return any(self.clearance_km(leg, o) < self.d_min_km for o in others)
 
+    def _rings(self, xy: np.ndarray, radii_km: tuple[float, ...]) -> np.ndarray:
+        """Points on circles of ``radii_km`` around ``xy``, ``hold_directions`` to a circle,
+        circle by circle (radius 0: ``xy`` itself)."""
+        angles = np.arange(self.hold_directions) * (2 * math.pi / self.hold_directions)
+        ring = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        return np.concatenate([xy[None] if r == 0 else xy[None] + r * ring for r in radii_km])
+
+    def _circle_and_leg_clear(self, xy: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Points whose circle keeps the threat margin (the loiter diameter from the point)
+        and whose leg from ``xy`` keeps it too."""
+        routes = self.routes
+        keep = routes.point_clearance(points) >= routes.margin_km + self.circle_km()
+        leg = routes.leg_clearance(np.broadcast_to(xy, points.shape), points)
+        return keep & (leg >= routes.margin_km)
+
     def hold_point(
         self,
         leg: Homeward,
@@ -162,18 +177,11 @@ class ReturnSeparation:
         ``previous`` (the point it circles now) first, so a holding plane is not moved while its
         point stays good; ``None`` if no candidate does."""
         xy = leg.start_km
-        angles = np.arange(self.hold_directions) * (2 * math.pi / self.hold_directions)
-        ring = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-        points = [xy[None]] + [xy[None] + r * ring for r in self.hold_rings_km if r > 0]
+        candidates = self._rings(xy, (0.0, *(r for r in self.hold_rings_km if r > 0)))
         if previous is not None:
-            points.insert(0, np.asarray(previous, float)[None])
-        candidates = np.concatenate(points)
+            candidates = np.concatenate([np.asarray(previous, float)[None], candidates])
         routes = self.routes
-        keep = routes.point_clearance(candidates) >= routes.margin_km + self.circle_km()
-        keep &= routes.leg_clearance(np.broadcast_to(xy, candidates.shape), candidates) >= (
-            routes.margin_km
-        )
-        candidates = candidates[keep]
+        candidates = candidates[self._circle_and_leg_clear(xy, candidates)]
         if len(candidates) == 0:
             return None
         turns = routes.turn_clearance(xy, course_rad, candidates)
@@ -198,18 +206,13 @@ class ReturnSeparation:
         conflicts with none of ``others``; ``previous`` (the point it flies to now) first, then
         the shortest way; ``None`` if no candidate does."""
         xy, aim = leg.start_km, leg.aim_km
-        angles = np.arange(self.hold_directions) * (2 * math.pi / self.hold_directions)
-        ring = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-        candidates = np.concatenate([xy[None] + r * ring for r in self.detour_rings_km])
+        candidates = self._rings(xy, self.detour_rings_km)
         total = np.hypot(*(candidates - xy).T) + np.hypot(*(aim - candidates).T)
         candidates = candidates[np.argsort(total, kind="stable")]
         if previous is not None:
             candidates = np.concatenate([np.asarray(previous, float)[None], candidates])
         routes = self.routes
-        keep = routes.point_clearance(candidates) >= routes.margin_km + self.circle_km()
-        keep &= routes.leg_clearance(np.broadcast_to(xy, candidates.shape), candidates) >= (
-            routes.margin_km
-        )
+        keep = self._circle_and_leg_clear(xy, candidates)
         keep &= routes.leg_clearance(candidates, np.broadcast_to(aim, candidates.shape)) >= (
             routes.margin_km
         )
