@@ -102,6 +102,10 @@ class LoopState:
     previous_centres: np.ndarray
     positions_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))  # vehicle clock there
 
+    def last_targets_km(self) -> np.ndarray:
+        """(N, 2) the guided target each plane last accepted (NaN: none yet)."""
+        return np.array([t if t is not None else (np.nan, np.nan) for t in self.last_target])
+
     @classmethod
     def start(
         cls,
@@ -339,7 +343,7 @@ class DecisionStep:
             else:
                 speeds[:] = self.plane.speed_mps
             return FlightChoice(aims, next_cells, next_headings, speeds)
-        previous = np.array([t if t is not None else (np.nan, np.nan) for t in state.last_target])
+        previous = state.last_targets_km()
         return self.flight_envelope.choose(
             positions, courses, speeds, cells, state.headings, next_cells,
             next_headings, previous, state.flown_km, state.home_km, active, lead,
@@ -382,7 +386,7 @@ class DecisionStep:
                 speeds[i] = math.hypot(v.vn_mps, v.ve_mps)
             else:
                 courses[i] = int(state.headings[i]) * math.pi / 4
-        aims = np.array([t if t is not None else (np.nan, np.nan) for t in state.last_target])
+        aims = state.last_targets_km()
         late = np.flatnonzero((stale_s >= 1.0) & np.all(np.isfinite(aims), axis=1))
         if len(late):
             ahead = predict_paths(

@@ -345,6 +345,9 @@ class FlightEnvelope:
         its previous target meanwhile (each with and without the new airspeed). The stretch
         flown to the previous target before the late command is not counted: no choice of this
         step changes it."""
+        m = len(aims_km)
+        if len(self.cells.threat_radius_km) == 0:
+            return np.full(m, np.inf)
         held = np.asarray(speeds_mps, dtype=float)[row_uav]
         starts = np.asarray(positions_km, dtype=float)[row_uav].reshape(-1, 2)
         courses = np.asarray(courses_rad, dtype=float)[row_uav]
@@ -371,7 +374,6 @@ class FlightEnvelope:
                 (late_starts, late_courses, held, commanded_mps),
                 (late_starts, late_courses, held, held),
             ]
-        m = len(aims_km)
         flown = predict_paths(
             self.model,
             np.concatenate([v[0] for v in variants]),
@@ -382,13 +384,7 @@ class FlightEnvelope:
             speed_mps=np.concatenate([v[2] for v in variants]),
             commanded_mps=np.concatenate([v[3] for v in variants]),
         )
-        env = self.cells
-        if len(env.threat_radius_km) == 0:
-            return np.full(m, np.inf)
-        dense = segment_clearance(
-            flown[:, :-1], flown[:, 1:], env.threat_xy_km, env.threat_radius_km
-        ).min(axis=1)
-        return dense.reshape(len(variants), m).min(axis=0)
+        return self._polyline_clearance(flown).reshape(len(variants), m).min(axis=0)
 
     def _loiter_clearance(self, aims_km: np.ndarray, speeds_mps: np.ndarray) -> np.ndarray:
         """Distance (km) from the loiter circle around each aim, flown at ``speeds_mps`` and
@@ -426,23 +422,24 @@ class FlightEnvelope:
         threat edge: every predicted second, and the chords between the decision instants
         (what the result measures), the first from where the plane was at the last decision
         instant (``decision_km``, ``elapsed_s`` ago) to where it will be at the next."""
-        env = self.cells
-        if len(env.threat_radius_km) == 0:
+        if len(self.cells.threat_radius_km) == 0:
             return np.full(len(paths), np.inf)
-        dense = segment_clearance(
-            paths[:, :-1], paths[:, 1:], env.threat_xy_km, env.threat_radius_km
-        ).min(axis=1)
+        dense = self._polyline_clearance(paths)
         samples = paths.shape[1] - 1
         instants = self.step_s * np.arange(1, int(samples // self.step_s) + 1)  # s after it
         index = np.clip(np.round(instants[None] - elapsed_s[:, None]), 0, samples).astype(int)
         ahead = np.take_along_axis(paths, index[:, :, None], axis=1)
         marks = np.concatenate([decision_km[:, None], ahead], axis=1)
         if marks.shape[1] >= 2:
-            chords = segment_clearance(
-                marks[:, :-1], marks[:, 1:], env.threat_xy_km, env.threat_radius_km
-            ).min(axis=1)
-            dense = np.minimum(dense, chords)
+            dense = np.minimum(dense, self._polyline_clearance(marks))
         return dense
+
+    def _polyline_clearance(self, points: np.ndarray) -> np.ndarray:
+        """(M,) smallest distance (km) to a threat edge of each of M polylines (M, K, 2)."""
+        env = self.cells
+        return segment_clearance(
+            points[:, :-1], points[:, 1:], env.threat_xy_km, env.threat_radius_km
+        ).min(axis=1)
 
     def _separation_paths(self, paths: np.ndarray) -> np.ndarray:
         """The instants at which planes are kept apart, each column one instant for every row:

@@ -146,13 +146,8 @@ def guide_stray_returns(daemon: MissionDaemon) -> list[Command]:
             continue
         if v.home is None or not v.has_position or v.link is None or link_down(v) is not None:
             continue
-        xy = daemon.local_km(v.lat_deg, v.lon_deg)
-        home = daemon.local_km(v.home[0], v.home[1])
-        course = math.atan2(v.vn_mps, v.ve_mps)
-        if routes.rtl_clear(xy, course, home):
-            continue
-        waypoint = routes.waypoint(xy, home, course)
-        if waypoint is None:
+        waypoint = way_home(daemon, routes, v)[3]
+        if waypoint is None:  # RTL's line is clear (or no way is known)
             continue
         if v.system_id not in daemon.flight_home.strays:
             daemon.flight_home.strays.add(v.system_id)
@@ -212,13 +207,7 @@ def homeward_commands(
     ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]] = {}
     for v in vehicles:
         if v.home is not None and v.has_position:
-            xy = daemon.local_km(v.lat_deg, v.lon_deg)
-            home = daemon.local_km(v.home[0], v.home[1])
-            course = math.atan2(v.vn_mps, v.ve_mps)
-            waypoint = None
-            if not routes.rtl_clear(xy, course, home):
-                waypoint = routes.waypoint(xy, home, course)
-            ways[v.system_id] = (xy, home, course, waypoint)
+            ways[v.system_id] = way_home(daemon, routes, v)
     holds = hold_for_separation(daemon, vehicles, ways) if flight.separate else {}
     for v in vehicles:
         waypoint = ways[v.system_id][3] if v.system_id in ways else None
@@ -249,6 +238,23 @@ def homeward_commands(
     return commands
 
 
+def place_and_home(daemon: MissionDaemon, v: VehicleState) -> tuple[np.ndarray, np.ndarray]:
+    """Where ``v`` is and its home, in the mission frame (km)."""
+    assert v.home is not None
+    return daemon.local_km(v.lat_deg, v.lon_deg), daemon.local_km(v.home[0], v.home[1])
+
+
+def way_home(
+    daemon: MissionDaemon, routes: HomeRoutes, v: VehicleState
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
+    """Where ``v`` is, its home, its course (rad from east), and the next waypoint of its safe
+    way home: None when RTL's straight line (and the turn onto it) is clear, or no way is
+    known (``HomeRoutes.waypoint``, which judges ``rtl_clear`` first)."""
+    xy, home = place_and_home(daemon, v)
+    course = math.atan2(v.vn_mps, v.ve_mps)
+    return xy, home, course, routes.waypoint(xy, home, course)
+
+
 def reposition_to(daemon: MissionDaemon, v: VehicleState, xy_km: np.ndarray) -> Command:
     """DO_REPOSITION of ``v`` to ``xy_km`` (mission frame) at the scenario's altitude."""
     lat, lon = local_km_to_geodetic(xy_km[:1], xy_km[1:], daemon.scenario.origin)
@@ -273,8 +279,7 @@ def hold_for_separation(
             continue
         if not o.has_position:
             continue
-        xy, home = daemon.local_km(o.lat_deg, o.lon_deg), daemon.local_km(o.home[0], o.home[1])
-        set_legs.append(separation.leg(o.system_id, xy, home, at_home=True))
+        set_legs.append(separation.leg(o.system_id, *place_and_home(daemon, o), at_home=True))
     waiting = []
     for sid, (xy, home, course, waypoint) in ways.items():
         aim = home if waypoint is None else waypoint
