@@ -191,6 +191,7 @@ def scenario_plane_model(
         bank_limit_deg=bank_limit_deg or 45.0,
         min_speed_mps=slowest,
         max_speed_mps=fastest,
+        slowest_mps=v,
     )
 
 
@@ -219,6 +220,7 @@ def fleet_plane_model(
         wp_loiter_radius_m=max(a.wp_loiter_radius_m for a in airframes),
         min_speed_mps=low,
         max_speed_mps=high,
+        slowest_mps=min(slowest_allowed, v),
     )
 
 

@@ -524,6 +524,9 @@ class MissionDaemon:
         result["rtl_sent_to"] = sorted(set(sent_to) | later)
         result["guided_home_around_threats"] = sorted(flight.detoured)
         result["held_for_separation_home"] = sorted(flight.held)
+        result["home_circle_speeds_mps"] = {
+            str(k): round(v, 1) for k, v in sorted(flight.circles.speeds_mps.items())
+        }
         result["rtl_not_sent"] = {str(k): why for k, why in sorted(skipped.items())}
         result["track_audit"] = self.audit.summary()
         self.close()

@@ -326,10 +326,7 @@ class DecisionStep:
         decision_positions = state.positions
         if self.flight_envelope is None:
             aims = np.array(
-                [
-                    self.cell_envelope.aim_point_km(cells[i], next_cells[i], lead)
-                    for i in range(n)
-                ]
+                [self.cell_envelope.aim_point_km(cells[i], next_cells[i], lead) for i in range(n)]
             )
             if self.leg_timing:
                 speeds = leg_speed_mps(

@@ -394,9 +394,7 @@ class FlightEnvelope:
         if len(env.threat_radius_km) == 0:
             return np.full(len(aims_km), np.inf)
         d = np.hypot(*(aims_km[:, None, :] - env.threat_xy_km[None]).transpose(2, 0, 1))
-        return (d - env.threat_radius_km[None]).min(axis=1) - self.model.loiter_reach_km(
-            speeds_mps
-        )
+        return (d - env.threat_radius_km[None]).min(axis=1) - self.model.loiter_reach_km(speeds_mps)
 
     def _failsafe_circle_clearance(self, paths: np.ndarray, speeds_mps: np.ndarray) -> np.ndarray:
         """Distance (km) to the nearest threat edge of the circle each plane would fly if, at any

@@ -23,7 +23,11 @@ from mavlink_bridge.guided_commands import (
 )
 from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
 from mavlink_bridge.return_home import HomeWatch, rtl_line, rtl_recipients
-from mavlink_bridge.return_separation import Homeward, ReturnSeparation
+from mavlink_bridge.return_separation import (
+    HomeCircles,
+    ReturnSeparation,
+    home_circle_speeds,
+)
 from mavlink_bridge.safe_return import HomeRoutes
 from mavlink_bridge.vehicle_loss import link_down
 from mavlink_bridge.vehicle_state import VehicleState
@@ -50,6 +54,8 @@ class FlightHome:
     #: planes switched to RTL during the mission whose line home crossed a threat, guided out
     #: (``guide_stray_returns``)
     strays: set[int] = field(default_factory=set)
+    #: who circles home slower than cruise, its home being near another's (``home_circles``)
+    circles: HomeCircles = field(default_factory=HomeCircles)
 
 
 def home_routes(daemon: MissionDaemon) -> HomeRoutes:
@@ -80,7 +86,57 @@ def return_separation(daemon: MissionDaemon) -> ReturnSeparation:
         routes,
         daemon.scenario.config.min_separation_km,
         slack_km=float(daemon.plane.loiter_radius_km()),
+        speeds_mps=daemon.flight_home.circles.speeds_mps,
     )
+
+
+def home_circles(daemon: MissionDaemon) -> HomeCircles:
+    """How fast each plane circles its home (``home_circle_speeds``, over every vehicle heard
+    with a home that is airborne or lost: a lost plane may be circling its home); says who
+    slows down and which homes are too close even then (kept in ``FlightHome.circles``)."""
+    heard = daemon.link.vehicles.values() if daemon.link is not None else []
+    homes = {
+        v.system_id: daemon.local_km(v.home[0], v.home[1])
+        for v in heard
+        if v.home is not None and (v.airborne or v.lost)
+    }
+    circles = home_circle_speeds(homes, daemon.plane, daemon.scenario.config.min_separation_km)
+    daemon.flight_home.circles = circles
+    by_speed: dict[float, list[int]] = {}
+    for sid, speed in sorted(circles.speeds_mps.items()):
+        by_speed.setdefault(round(speed), []).append(sid)
+    for speed, ids in by_speed.items():
+        daemon.say(
+            f"vehicle{'s' if len(ids) > 1 else ''} {', '.join(map(str, ids))} circle home at "
+            f"{speed} m/s: their homes are close to another's, and a circle at cruise would "
+            "come within d_min"
+        )
+    for a, b, km in circles.too_close:
+        daemon.say(
+            f"warning: the homes of vehicles {a} and {b} are {km:.2f} km apart: circling them "
+            f"keeps d_min only for homes {daemon.scenario.config.min_separation_km:g} km and two "
+            "loiter circles apart at AIRSPEED_MIN; start them farther apart"
+        )
+    return circles
+
+
+def slow_home_circles(daemon: MissionDaemon, sent: list[Command]) -> None:
+    """After RTL was accepted: the home circle's airspeed (DO_CHANGE_SPEED) to the planes
+    that fly home slower than cruise. Sent after the mode change, which resets a speed
+    commanded before it (ArduPlane)."""
+    speeds = daemon.flight_home.circles.speeds_mps
+    slow = [
+        change_speed_command(c.vehicle, speeds[c.vehicle.system_id])
+        for c in sent
+        if c.command == mavlink.MAV_CMD_DO_SET_MODE and c.accepted and c.vehicle.system_id in speeds
+    ]
+    refused = [c.vehicle.system_id for c in (daemon.send(slow) if slow else []) if not c.accepted]
+    if refused:
+        daemon.say(
+            f"warning: vehicle(s) {', '.join(map(str, refused))} did not take the home circle's "
+            "airspeed (DO_CHANGE_SPEED): they circle home at cruise, within d_min of another's "
+            "home circle"
+        )
 
 
 def watch_rtl(daemon: MissionDaemon) -> None:
@@ -92,7 +148,8 @@ def watch_rtl(daemon: MissionDaemon) -> None:
     if not vehicles:
         return
     near_km = float(daemon.plane.loiter_radius_km()) + 0.5
-    watch = HomeWatch(vehicles, near_km, daemon.plane.speed_mps)
+    slowest = min(flight.circles.speeds_mps.values(), default=daemon.plane.speed_mps)
+    watch = HomeWatch(vehicles, near_km, slowest)
     limit_s = watch.limit_s(daemon.options.rtl_watch_s)
     if limit_s <= 0:
         return
@@ -116,7 +173,7 @@ def watch_rtl(daemon: MissionDaemon) -> None:
             return
         guided = flight.homing.keys() | flight.holding.keys()
         flying = [v for v in vehicles if not v.lost and v.system_id in guided]
-        daemon.send(homeward_commands(daemon, flying, announce=False))
+        slow_home_circles(daemon, daemon.send(homeward_commands(daemon, flying, announce=False)))
     still = [v for v in vehicles if not v.lost and v.system_id in flight.holding]
     if still:
         daemon.say(
@@ -125,7 +182,7 @@ def watch_rtl(daemon: MissionDaemon) -> None:
         )
         for v in still:
             flight.holding.pop(v.system_id)
-        daemon.send([set_mode_command(v, PLANE_MODE_RTL) for v in still])
+        slow_home_circles(daemon, daemon.send([set_mode_command(v, PLANE_MODE_RTL) for v in still]))
 
 
 def guide_stray_returns(daemon: MissionDaemon) -> list[Command]:
@@ -176,7 +233,9 @@ def return_to_launch(daemon: MissionDaemon) -> tuple[list[int], dict[int, str]]:
         cruise = daemon.plane.speed_mps
         daemon.send([change_speed_command(v, cruise) for v in flying])
     # RTL where the way home is clear, else guided around the threats (safe_return.py)
+    home_circles(daemon)
     results = daemon.send(homeward_commands(daemon, flying, announce=True))
+    slow_home_circles(daemon, results)
     for c in results:
         if not c.accepted:
             daemon.say(f"warning: {c.describe_failure()}")
@@ -273,17 +332,26 @@ def hold_for_separation(
     flight = daemon.flight_home
     separation = return_separation(daemon)
     deciding = {v.system_id for v in vehicles}
-    set_legs: list[Homeward] = []
+    # flights RTL straight home, as the plane model flies them: every other airborne vehicle
+    # heard (nobody holds it any more) and the deciding ones whose line home is clear
+    rtl: list[tuple[int, np.ndarray, np.ndarray, float, float]] = []
     for o in daemon.vehicles():
         if o.system_id in deciding or o.lost or not o.airborne or o.home is None:
             continue
-        if not o.has_position:
-            continue
-        set_legs.append(separation.leg(o.system_id, *place_and_home(daemon, o), at_home=True))
-    waiting = []
+        if o.has_position:
+            course = math.atan2(o.vn_mps, o.ve_mps)
+            rtl.append((o.system_id, *place_and_home(daemon, o), course, o.speed_mps))
+    set_count = len(rtl)
+    by_id = {v.system_id: v for v in vehicles}
     for sid, (xy, home, course, waypoint) in ways.items():
-        aim = home if waypoint is None else waypoint
-        waiting.append((separation.leg(sid, xy, aim, at_home=waypoint is None), course))
+        if waypoint is None:
+            rtl.append((sid, xy, home, course, by_id[sid].speed_mps))
+    flights = {leg.system_id: leg for leg in separation.flights_home(rtl)}
+    set_legs = [flights[w[0]] for w in rtl[:set_count]]
+    waiting = []
+    for sid, (xy, _home, course, waypoint) in ways.items():
+        leg = flights[sid] if waypoint is None else separation.leg(sid, xy, waypoint, False)
+        waiting.append((leg, course))
     plan = separation.plan(set_legs, waiting, keep=flight.holding)
     for sid, point in plan.holds.items():
         if sid not in flight.holding:

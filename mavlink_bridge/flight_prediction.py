@@ -49,6 +49,10 @@ class PlaneModel:
     #: phi_max in a step (with 75 m/s allowed, 14 turn breaches in one paper-10uav mission)
     min_speed_mps: float = 100.0
     max_speed_mps: float = 150.0  # fastest (<= AIRSPEED_MAX): sqrt(2) v and room to catch up
+    #: AIRSPEED_MIN: the slowest the autopilot flies in its automatic modes (ArduPilot sets it
+    #: 20 % above the stall); a plane whose home is near another's circles it this slowly
+    #: (``return_separation.home_circle_speeds``)
+    slowest_mps: float = 100.0
     accel_mps2: float = 5.0  # how fast the airspeed follows a DO_CHANGE_SPEED
 
     def min_turn_radius_km(self, speed_mps: np.ndarray | float | None = None) -> np.ndarray:

@@ -8,7 +8,6 @@ with MISSION_ITEM_INT) -> MISSION_ACK. Lost datagrams are sent again by the side
 (``upload_fence``), as the mission protocol's retries do.
 """
 
-
 from __future__ import annotations
 
 import time

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mavlink_bridge.flight_prediction import GRAVITY_MPS2, PlaneModel, predict_paths
 from mavlink_bridge.safe_return import HomeRoutes
 
 
@@ -46,7 +47,9 @@ from mavlink_bridge.safe_return import HomeRoutes
 class Homeward:
     """One plane's next stretch home as predicted: straight to ``aim_km`` at ``speed_kmps``
     (through ``via_km`` first, when it detours), then circling it (straying ``circle_km`` from
-    it); ``at_home``: the aim is its home."""
+    it); ``at_home``: the aim is its home. With ``path_km`` (RTL home from where the plane
+    is, its course and speed known: :meth:`ReturnSeparation.flights_home`) the flight is the
+    plane model's (the turn onto the way, the overshoot, the circle), every ``path_dt_s``."""
 
     system_id: int
     start_km: np.ndarray  # (2,)
@@ -55,6 +58,9 @@ class Homeward:
     circle_km: float
     at_home: bool
     via_km: np.ndarray | None = None  # (2,) a detour point flown through on the way
+    path_km: np.ndarray | None = None  # (S + 1, 2) predicted positions from now
+    path_dt_s: float = 2.0
+    path_arrival_s: float = 0.0  # when the predicted path reaches its circle
 
     @property
     def length_km(self) -> float:
@@ -65,11 +71,33 @@ class Homeward:
         )
 
     @property
+    def predicted(self) -> bool:
+        return self.path_km is not None
+
+    @property
+    def settled(self) -> bool:
+        """Already on its circle around the aim (within its loiter radius and a fifth): it
+        strays its radius from the aim, not the overshoot of a plane arriving there."""
+        return self.via_km is None and self.length_km <= 0.6 * self.circle_km
+
+    @property
+    def stray_at_aim_km(self) -> float:
+        """How far from its aim it strays once there: its loiter radius when settled, else a
+        loiter diameter (``circle_km``: it passes the point before it turns onto its circle)."""
+        return self.circle_km / 2 if self.settled else self.circle_km
+
+    @property
     def arrival_s(self) -> float:
+        if self.path_km is not None:
+            return self.path_arrival_s
         return self.length_km / max(self.speed_kmps, 1e-6)
 
     def positions(self, t_s: np.ndarray) -> np.ndarray:
-        """(len(t_s), 2) where the plane is at each instant (at the aim once arrived)."""
+        """(len(t_s), 2) where the plane is at each instant (at the aim once arrived; on the
+        predicted path, its last point beyond it)."""
+        if self.path_km is not None:
+            index = np.rint(np.asarray(t_s, float) / self.path_dt_s).astype(int)
+            return self.path_km[np.clip(index, 0, len(self.path_km) - 1)]
         flown = np.clip(np.asarray(t_s, float) * self.speed_kmps, 0.0, self.length_km)
         corners = [self.start_km] + ([] if self.via_km is None else [self.via_km]) + [self.aim_km]
         out = np.repeat(self.start_km[None], len(flown), axis=0)
@@ -98,6 +126,10 @@ class ReturnSeparation:
     #: detour points (``detour_point``), this far from the plane: far enough to pass a home
     #: circle off the line by d_min plus the circle's reach and the plane's stray (~4.2 km)
     detour_rings_km: tuple[float, ...] = (3.0, 5.0, 7.0, 9.0, 12.0)
+    #: planes that fly home slower than cruise (``home_circle_speeds``), by system id
+    speeds_mps: dict[int, float] = field(default_factory=dict)
+    #: how far a plane may be from where the plane model flies it (``flights_home``)
+    track_km: float = 0.3
 
     def circle_km(self) -> float:
         """How far a plane strays from the point it circles: its loiter diameter (it arrives
@@ -112,15 +144,66 @@ class ReturnSeparation:
         at_home: bool,
         via_km: np.ndarray | None = None,
     ) -> Homeward:
+        plane = self.routes.plane
+        # RTL home at the home circle's speed; guided (to a hold, through a detour) at cruise,
+        # which an autopilot goes back to at each change of mode (ArduPlane)
+        home_mps = self.speeds_mps.get(system_id, plane.speed_mps) if at_home else plane.speed_mps
+        travel_mps = home_mps if via_km is None else plane.speed_mps
         return Homeward(
             system_id,
             np.asarray(xy_km, float),
             np.asarray(aim_km, float),
-            self.routes.plane.speed_mps / 1e3,
-            self.circle_km(),
+            travel_mps / 1e3,
+            float(plane.loiter_reach_km(home_mps)),
             at_home,
             None if via_km is None else np.asarray(via_km, float),
         )
+
+    def flights_home(
+        self, ways: list[tuple[int, np.ndarray, np.ndarray, float, float]]
+    ) -> list[Homeward]:
+        """The RTL flights home of planes (system id, where, home, course in rad from east,
+        airspeed now), each as the plane model flies it (``predict_paths``, all in one batch):
+        the turn from its course onto the way home, at the home circle's speed
+        (``speeds_mps``) once commanded, the overshoot at home and the circle. The straight line
+        and its strays (``leg``) would miss a plane that turns the long way round, past
+        another's home circle (paper-10uav seed 3: 0.79 km)."""
+        if not ways:
+            return []
+        plane = self.routes.plane
+        ids = [w[0] for w in ways]
+        xy = np.array([w[1] for w in ways], float)
+        home = np.array([w[2] for w in ways], float)
+        course = np.array([w[3] for w in ways], float)
+        now = np.array([w[4] for w in ways], float)
+        home_mps = np.array([self.speeds_mps.get(i, plane.speed_mps) for i in ids])
+        radius = np.asarray(plane.loiter_radius_km(home_mps), float)
+        straight_s = np.hypot(*(home - xy).T) * 1e3 / home_mps
+        # a half turn, the way, and a circle at home
+        turn_s = math.pi / float(plane.turn_rate_radps(float(now.max())))
+        horizon = float((straight_s + turn_s + 2 * math.pi * radius * 1e3 / home_mps).max())
+        paths = predict_paths(
+            plane, xy, course, home, horizon + self.sample_s, sample_s=self.sample_s,
+            dt_s=0.5, speed_mps=now, commanded_mps=home_mps,
+        )  # fmt: skip
+        legs = []
+        for k, sid in enumerate(ids):
+            near = np.hypot(*(paths[k] - home[k]).T) <= 1.1 * radius[k]
+            arrival = float(np.argmax(near)) * self.sample_s if near.any() else horizon
+            legs.append(
+                Homeward(
+                    sid,
+                    xy[k],
+                    home[k],
+                    home_mps[k] / 1e3,
+                    2 * radius[k],
+                    True,
+                    path_km=paths[k],
+                    path_dt_s=self.sample_s,
+                    path_arrival_s=arrival,
+                )  # fmt: skip
+            )
+        return legs
 
     def clearance_km(self, a: Homeward, b: Homeward) -> float:
         """The smallest distance between ``a`` and ``b`` less what both may stray, over every
@@ -133,10 +216,7 @@ class ReturnSeparation:
         arrived_a, arrived_b = t >= a.arrival_s, t >= b.arrival_s
         # no plane strays from its line further than it has flown (planes near each other now
         # are not a conflict by themselves), nor, on the way, further than ``slack_km``
-        way_a = np.minimum(self.slack_km, a.speed_kmps * t)
-        way_b = np.minimum(self.slack_km, b.speed_kmps * t)
-        stray_a = np.where(arrived_a, np.minimum(a.circle_km, a.speed_kmps * t), way_a)
-        stray_b = np.where(arrived_b, np.minimum(b.circle_km, b.speed_kmps * t), way_b)
+        stray_a, stray_b = self._stray_km(a, t), self._stray_km(b, t)
         clear = gap - stray_a[:, None] - stray_b[None, :]
         window = self.tolerance_s + self.tolerance_frac * np.maximum(t[:, None], t[None, :])
         compared = np.abs(t[:, None] - t[None, :]) <= window
@@ -145,6 +225,16 @@ class ReturnSeparation:
         if not compared.any():
             return math.inf
         return float(clear[compared].min())
+
+    def _stray_km(self, leg: Homeward, t: np.ndarray) -> np.ndarray:
+        """How far ``leg``'s plane may be from its predicted place at each instant: never
+        more than it has flown; on a path the plane model flew, ``track_km``; on a straight
+        line, ``slack_km`` on the way and its circle's reach once there."""
+        flown = leg.speed_kmps * t
+        if leg.predicted:
+            return np.minimum(self.track_km, flown)
+        at_aim = np.minimum(leg.stray_at_aim_km, flown)
+        return np.where(t >= leg.arrival_s, at_aim, np.minimum(self.slack_km, flown))
 
     def conflicts(self, leg: Homeward, others: list[Homeward]) -> bool:
         return any(self.clearance_km(leg, o) < self.d_min_km for o in others)
@@ -248,7 +338,7 @@ class ReturnSeparation:
             # planes already circling their homes stay there, so holding would never clear
             # the way (a plane held for one circled until the watch of the flight home ended):
             # only a detour around their circles does
-            circling = all(o.at_home and o.arrival_s <= self.sample_s for o in blocking)
+            circling = all(o.at_home and o.settled for o in blocking)
             point = None if circling else self.hold_point(leg, course, fixed, previous)
             if point is not None:
                 plan.holds[leg.system_id] = point
@@ -273,3 +363,50 @@ class ReturnPlan:
     #: of ``holds``, the planes that fly through their point on the way (a detour), not wait
     detours: list[int] = field(default_factory=list)
     unresolved: list[int] = field(default_factory=list)  # conflicting, no hold or detour found
+
+
+@dataclass(frozen=True)
+class HomeCircles:
+    """How fast each plane circles its home so that the circles keep d_min
+    (:func:`home_circle_speeds`): ``speeds_mps`` for the planes that must fly slower than
+    cruise, and the pairs of homes (system ids, km apart) too close even at the slowest."""
+
+    speeds_mps: dict[int, float] = field(default_factory=dict)
+    too_close: list[tuple[int, int, float]] = field(default_factory=list)
+
+
+def home_circle_speeds(
+    homes_km: dict[int, np.ndarray], plane: PlaneModel, d_min_km: float
+) -> HomeCircles:
+    """The airspeed at which each plane circles its home at the end of a mission, so that two
+    planes whose homes are close keep d_min there.
+
+    RTL circles home at the loiter radius, r(v) = the tightest turn at airspeed v (or
+    WP_LOITER_RAD when wider), and a plane arriving at its home strays up to a loiter
+    diameter before it is on its circle (``PlaneModel.loiter_reach_km``). Two homes D apart
+    keep d_min while one arrives and the other circles when D >= d_min + 2 r(v) + r(v), so a
+    plane flies home at the fastest v <= cruise that meets this for its nearest home, and not
+    slower than the autopilot's AIRSPEED_MIN (``PlaneModel.slowest_mps``). Where even that is
+    too fast for two planes circling (D < d_min + 2 r), the pair is in ``too_close``: the
+    scenario put their homes too near for the airframe (paper-10uav seed 3 at 100 m/s: homes
+    2.37 km apart, circles of 1.07 km, 0.70 km between the planes)."""
+    ids = sorted(homes_km)
+    circles = HomeCircles()
+    if len(ids) < 2:
+        return circles
+    xy = np.array([homes_km[i] for i in ids], dtype=float)
+    gap = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+    np.fill_diagonal(gap, np.inf)
+    cruise, slowest = plane.speed_mps, min(plane.slowest_mps, plane.speed_mps)
+    # fastest speed whose loiter radius is at most (D - d_min) / 3
+    radius_m = np.maximum(gap.min(axis=1) - d_min_km, 0.0) / 3.0 * 1e3
+    turn = GRAVITY_MPS2 * math.tan(math.radians(plane.bank_limit_deg)) / plane.loiter_radius_factor
+    speeds = np.clip(np.sqrt(radius_m * turn), slowest, cruise)
+    for sid, speed in zip(ids, speeds, strict=True):
+        if speed < cruise:
+            circles.speeds_mps[sid] = float(speed)
+    radius_km = np.array([float(plane.loiter_radius_km(s)) for s in speeds])
+    short = gap < d_min_km + radius_km[:, None] + radius_km[None, :]
+    for a, b in zip(*np.nonzero(np.triu(short)), strict=True):
+        circles.too_close.append((ids[a], ids[b], float(gap[a, b])))
+    return circles

@@ -176,9 +176,9 @@ class HomeRoutes:
         node = first  # then on along the way while still in straight reach
         while paths.towards[node] >= 0 and reach[paths.towards[node]]:
             node = int(paths.towards[node])
-        if course_rad is None or self.turn_clearance(xy, course_rad, self._nodes_km[[node]])[
-            0
-        ] >= (self.turn_margin_km):
+        if course_rad is None or self.turn_clearance(xy, course_rad, self._nodes_km[[node]])[0] >= (
+            self.turn_margin_km
+        ):
             return self._nodes_km[node].copy()
         # the turn onto that leg sweeps too close: the cheapest node whose turn is clear, or
         # (a plane too near a threat for any turn to keep the margin) the one whose turn keeps most

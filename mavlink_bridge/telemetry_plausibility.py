@@ -267,9 +267,7 @@ class PlausibilityFilter:
             trust.fix, trust.candidates = new, []
             return True
         # not the believed time base: a new one if it is the only one left (module docstring)
-        if trust.candidates and self._follows(
-            trust, trust.candidates[-1], new, now_s, rebase=True
-        ):
+        if trust.candidates and self._follows(trust, trust.candidates[-1], new, now_s, rebase=True):
             trust.candidates = []
         trust.candidates.append(new)
         first = trust.candidates[0]
@@ -343,9 +341,7 @@ class PlausibilityFilter:
         return ground_distance_m(old.lat_deg, old.lon_deg, lat_deg, lon_deg) <= reach
 
     def _home(self, trust: VehicleTrust, msg: Any, now_s: float) -> bool:
-        if not self._fields_ok(msg.latitude, msg.longitude, 0) or not (
-            -1e6 <= msg.altitude <= 1e7
-        ):
+        if not self._fields_ok(msg.latitude, msg.longitude, 0) or not (-1e6 <= msg.altitude <= 1e7):
             return self._reject("out_of_range")
         return True
 

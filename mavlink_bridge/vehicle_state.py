@@ -130,6 +130,11 @@ class VehicleState:
         return in_air or (self.has_position and self.relative_alt_m > AIRBORNE_MIN_ALT_M)
 
     @property
+    def speed_mps(self) -> float:
+        """Ground speed from the last position report (the airspeed, without wind)."""
+        return math.hypot(self.vn_mps, self.ve_mps)
+
+    @property
     def clock_ms(self) -> int:
         """The vehicle's own clock (time_boot_ms) as last reported, by position or SYSTEM_TIME."""
         return max(self.time_boot_ms, self.system_time_boot_ms)

@@ -118,6 +118,7 @@ def test_a_vehicle_without_a_camera_gets_one_warning_and_no_more_engagement_requ
     ap, cam = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None, 2, 100)
     request = engagement_command(vehicles[0], 1)
     request.attempts = 1
+
     def wire(msg, mav):  # as the daemon gets it: packed, then parsed
         return mavlink.MAVLink(None).parse_char(msg.pack(mav))
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from test_daemon_protocol import options
 
 from mavlink_bridge.daemon import MissionDaemon
@@ -72,10 +73,16 @@ def test_daemon_sends_leg_airspeeds_and_cruise_before_rtl(paper10, udp_port, fak
     swarm = fake_swarm_factory(2, udp_port)
     report = MissionDaemon(paper10, options(udp_port, expect=2)).fly()
     assert report.result["refused_commands"] == 0
+    # the fake vehicles start 2.9 km apart: closer than d_min and two 1.07 km circles at
+    # cruise, so after RTL each gets its home circle's slower airspeed
+    home_speeds = report.result["home_circle_speeds_mps"]
     for v in swarm.vehicles:
-        assert len(v.speeds) >= 3 and all(100 <= s <= 150 for s in v.speeds)
-        assert max(v.speeds) > 120  # diagonal legs and catching up
-        assert v.speeds[-1] == 100 and v.mode == 11  # back to cruise, then RTL
+        *legs, home_speed = v.speeds
+        assert home_speed == pytest.approx(home_speeds[str(v.sysid)], abs=0.05)
+        assert 60 <= home_speed < 100 and v.mode == 11
+        assert len(legs) >= 3 and all(100 <= s <= 150 for s in legs)
+        assert max(legs) > 120  # diagonal legs and catching up
+        assert legs[-1] == 100  # back to cruise, then RTL
 
 
 def test_refused_airspeed_falls_back_to_cruise(paper10, udp_port, fake_swarm_factory):
@@ -90,7 +97,8 @@ def test_refused_airspeed_falls_back_to_cruise(paper10, udp_port, fake_swarm_fac
     assert len(warnings) == 1 and "--airspeed-range" in warnings[0]
     for v in swarm.vehicles:
         asked = v.commands.count(mavlink.MAV_CMD_DO_CHANGE_SPEED)
-        assert 1 <= asked <= 2  # the refused leg speed and the cruise reset, not once a step
+        # the refused leg speed, the cruise reset and the home circle's speed, not once a step
+        assert 1 <= asked <= 3
         assert v.speeds == [] and v.mode == 11
 
 

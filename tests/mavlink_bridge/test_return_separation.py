@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from mavlink_bridge.flight_prediction import PlaneModel
-from mavlink_bridge.return_separation import ReturnSeparation
+from mavlink_bridge.return_separation import ReturnSeparation, home_circle_speeds
 from mavlink_bridge.safe_return import HomeRoutes
 from planner.grid import Grid
 
@@ -76,3 +76,49 @@ def test_a_plane_circling_its_home_on_anothers_way_is_flown_around_not_waited_fo
     flying = s.leg(1, np.array([28.0, 20.0]), np.array([20.0, 28.0]), at_home=True)
     plan = s.plan([flying], [(way, 0.0)])
     assert list(plan.holds) == [2] and plan.detours == []
+
+
+def test_planes_whose_homes_are_close_circle_them_slowly_enough_to_keep_d_min():
+    """paper-10uav seed 3 starts planes 3 and 4 2.37 km apart: circling their homes at cruise
+    (1.07 km circles) they came 0.70 km apart. Each flies home at the fastest speed whose
+    circle keeps d_min from the other's while it arrives (overshoot: a loiter diameter), never
+    below AIRSPEED_MIN; a far plane keeps cruise; homes too close even then are named."""
+    plane = PlaneModel(slowest_mps=60.0)
+    homes = {3: np.array([84.5, 55.5]), 4: np.array([86.5, 54.5]), 7: np.array([20.0, 20.0])}
+    d = float(np.hypot(*(homes[3] - homes[4])))
+    assert d < 1.0 + 2 * float(plane.loiter_radius_km())  # at cruise the circles breach
+    circles = home_circle_speeds(homes, plane, 1.0)
+    assert set(circles.speeds_mps) == {3, 4} and circles.too_close == []
+    for sid in (3, 4):
+        speed = circles.speeds_mps[sid]
+        assert 60.0 <= speed < plane.speed_mps
+        assert 1.0 + 3 * float(plane.loiter_radius_km(speed)) <= d + 1e-9
+    # 1.5 km apart: even at AIRSPEED_MIN two circles (0.39 km) leave less than d_min
+    close = home_circle_speeds({1: np.zeros(2), 2: np.array([1.5, 0.0])}, plane, 1.0)
+    assert close.speeds_mps == {1: 60.0, 2: 60.0}
+    assert [(a, b) for a, b, _ in close.too_close] == [(1, 2)]
+    # an airframe that cannot fly slower than cruise keeps it: nothing to gain
+    assert home_circle_speeds(homes, PlaneModel(), 1.0).speeds_mps == {}
+
+
+def test_the_flight_home_is_judged_along_the_turn_the_plane_flies():
+    """Plane 4 ends its mission 2.4 km south of plane 3's home circle flying west, its own
+    home to the east-northeast: the shortest turn home is through north, past plane 3's
+    circle (paper-10uav seed 3 at 20 steps: 0.09 km). The plane model's flight home
+    (``flights_home``) sees the turn and its way conflicts (so it is not flown as it is: held
+    or detoured, ``plan``); heading south, away from plane 3, it is clear by more."""
+    plane = PlaneModel(slowest_mps=60.0)
+    routes = HomeRoutes(Grid(100, 100, 1.0), np.zeros((0, 2)), np.zeros(0), plane, margin_km=1.0)
+    home_3, home_4 = np.array([84.5, 55.5]), np.array([86.5, 54.5])
+    speeds = home_circle_speeds({3: home_3, 4: home_4}, plane, 1.0).speeds_mps
+    s = ReturnSeparation(routes, 1.0, slack_km=float(plane.loiter_radius_km()), speeds_mps=speeds)
+    west, circling = s.flights_home(
+        [(4, np.array([84.46, 53.10]), home_4, np.pi, 100.0), (3, home_3, home_3, 0.0, 62.0)]
+    )
+    assert circling.settled and west.predicted
+    # the predicted turn swings north, towards plane 3's home, before heading east
+    assert np.hypot(*(west.path_km - home_3).T).min() < 2.0
+    assert west.path_km[:, 1].max() > 54.0
+    assert s.clearance_km(west, circling) < 1.0
+    (south,) = s.flights_home([(4, np.array([84.46, 53.10]), home_4, -np.pi / 2, 100.0)])
+    assert s.clearance_km(south, circling) > s.clearance_km(west, circling)

@@ -136,9 +136,7 @@ def test_unsigned_radio_status_changes_nothing_when_signing_is_on(tmp_path: Path
     diverted the daemon's signed commands for vehicle 3 to the sender."""
     radio = ml.MAVLink_radio_status_message(200, 190, 50, 10, 10, 0, 0)
     frames = [pack(radio, 3, 1, k) for k in range(256)]
-    result, summary, spoofer, _ = fly_with_spoofer(
-        tmp_path, lambda k: frames[k % 256], signed=True
-    )
+    result, summary, spoofer, _ = fly_with_spoofer(tmp_path, lambda k: frames[k % 256], signed=True)
     assert spoofer.sent > 2000
     assert spoofer.received == 0, spoofer.received_types  # no frame for vehicle 3 diverted
     assert result["steps"] == STEPS and result["lost_uavs"] == []
@@ -169,7 +167,6 @@ def test_a_position_with_time_boot_ms_0xffffffff_does_not_crash_the_daemon(tmp_p
     assert result["violations"] == NO_VIOLATIONS
     assert 50 < result["plausibility"]["second_address"] <= spoofer.sent
     assert summary is not None and summary["fence_breaches"] == 0
-
 
 
 @pytest.mark.timeout(200)

@@ -20,6 +20,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from loopback import free_udp_port, run_swarmplan, start_swarmplan, stop
 from pymavlink import mavutil
@@ -284,6 +285,65 @@ def test_a_plane_switched_to_rtl_mid_mission_is_guided_out_not_through(tmp_path:
     truth = last_json(sim_log)["safety"]
     assert truth["threat_entries"] == 0, truth
     assert truth["by_mode"]["rtl"]["min_threat_margin_km"] > 0
+
+
+#: two planes starting 2.24 km apart (random starts may be as close as 2 cells) that fly 8 steps
+#: and come home: at cruise their home circles (1.07 km radius) come within d_min (0.72 km
+#: before the fix, 0.09 km for paper-10uav seed 3 at 20 steps)
+CLOSE_HOMES = """
+name = "close-homes"
+steps = 8
+altitude_m = 500
+[parameters]
+grid_nx = 30
+grid_ny = 30
+[uavs]
+count = 2
+[[uavs.start]]
+x_km = 12.5
+y_km = 15.5
+heading_deg = 0
+[[uavs.start]]
+x_km = 14.5
+y_km = 14.5
+heading_deg = 180
+[[targets]]
+id = 1
+kind = "unknown_position"
+x_km = 25
+y_km = 25
+value = 1
+"""
+
+
+@pytest.mark.timeout(120)
+def test_planes_whose_homes_are_close_circle_them_apart(tmp_path: Path):
+    """Two planes start 2.24 km apart and come home after 8 steps. At cruise their home
+    circles are 1.07 km in radius: the planes would come within d_min circling them (0.72 km
+    before the fix, as the track account and the simulator's truth both saw). Now each circles
+    home at the speed that keeps d_min (above AIRSPEED_MIN, said at RTL), and the flight home
+    is judged along the turns the plane model flies."""
+    from mavlink_bridge.flight_prediction import PlaneModel
+
+    scenario = tmp_path / "close.toml"
+    scenario.write_text(CLOSE_HOMES)
+    done = run_swarmplan(
+        ["demo", str(scenario), "--out", str(tmp_path / "out"), "--no-view", "--json"],
+        timeout=110,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads(done.stdout)
+    d_min = result["min_separation_limit_km"]
+    (a, b) = (np.array(u["start_km"]) for u in result["uavs"])
+    cruise_circle = float(PlaneModel().loiter_radius_km())
+    assert np.hypot(*(a - b)) < d_min + 2 * cruise_circle  # the premise: circles would breach
+    rtl = result["track_audit"]["phases"]["rtl"]
+    assert rtl["separation_breaches"] == 0 and rtl["min_separation_km"] >= d_min, rtl
+    truth = result["simulator_truth"]["by_mode"]["rtl"]
+    assert truth["separation_breaches"] == 0 and truth["min_separation_km"] >= d_min, truth
+    speeds = result["home_circle_speeds_mps"]  # said at RTL: "vehicles 1, 2 circle home at"
+    assert set(speeds) == {"1", "2"} and all(60 <= v < 100 for v in speeds.values()), speeds
+    assert result["rtl_sent_to"] == [1, 2]
 
 
 @pytest.mark.timeout(120)

@@ -120,27 +120,19 @@ def test_looks_on_the_vehicle_clock_and_engagements_from_ground_truth(tmp_path):
             offsets = parse_look_url(look.file_url)
             assert set(offsets) <= footprint
         # engagement at the target: ACCEPTED from the camera, the target's id; a repeat replays
-        autopilot.send(
-            mavlink.MAVLink_command_long_message(2, 100, 2000, 0, 0, 0, 1, 7, 0, 0, 0)
-        )
+        autopilot.send(mavlink.MAVLink_command_long_message(2, 100, 2000, 0, 0, 0, 1, 7, 0, 0, 0))
         ack = autopilot.receive("COMMAND_ACK")
         assert ack is not None and ack.get_srcComponent() == 100
         assert (ack.result, ack.result_param2, ack.progress) == (0, 5, 7)
-        autopilot.send(
-            mavlink.MAVLink_command_long_message(2, 100, 2000, 1, 0, 0, 1, 7, 0, 0, 0)
-        )
+        autopilot.send(mavlink.MAVLink_command_long_message(2, 100, 2000, 1, 0, 0, 1, 7, 0, 0, 0))
         ack = autopilot.receive("COMMAND_ACK")
         assert (ack.result, ack.result_param2) == (0, 5)
         # a new request at the same spot: the target left the world with the first engagement
-        autopilot.send(
-            mavlink.MAVLink_command_long_message(2, 100, 2000, 0, 0, 0, 1, 8, 0, 0, 0)
-        )
+        autopilot.send(mavlink.MAVLink_command_long_message(2, 100, 2000, 0, 0, 0, 1, 8, 0, 0, 0))
         ack = autopilot.receive("COMMAND_ACK")
         assert (ack.result, ack.result_param2) == (0, 0)
         # a malformed request is DENIED
-        autopilot.send(
-            mavlink.MAVLink_command_long_message(2, 100, 2000, 0, 0, 5, 1, 9, 0, 0, 0)
-        )
+        autopilot.send(mavlink.MAVLink_command_long_message(2, 100, 2000, 0, 0, 5, 1, 9, 0, 0, 0))
         ack = autopilot.receive("COMMAND_ACK")
         assert ack.result == mavlink.MAV_RESULT_DENIED
         # the autopilot's port goes away and comes back: the camera reconnects and goes on

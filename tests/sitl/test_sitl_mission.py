@@ -54,9 +54,7 @@ def test_three_planes_with_the_payload_simulator_search_look_and_engage(sitl_bin
 
 
 @pytest.mark.timeout(300)
-def test_two_planes_at_real_time_become_ready_arm_take_off_and_fly_two_steps(
-    sitl_binary, tmp_path
-):
+def test_two_planes_at_real_time_become_ready_arm_take_off_and_fly_two_steps(sitl_binary, tmp_path):
     scenario = Path(__file__).with_name("arduplane-1x.toml")
     run = fly_sitl_mission(
         sitl_binary, tmp_path, planes=2, speedup=1, scenario=str(scenario), steps=2,
