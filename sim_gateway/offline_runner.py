@@ -119,9 +119,9 @@ def _observed(
     world: World,
     planner: object,
 ) -> OfflineStep:
-    truth = np.column_stack(
-        [world.target_ids, world.positions, world.alive.astype(float)]
-    ).astype(float)
+    truth = np.column_stack([world.target_ids, world.positions, world.alive.astype(float)]).astype(
+        float
+    )
     return OfflineStep(
         step=k,
         positions_km=positions.copy(),
