@@ -16,6 +16,7 @@ import pytest
 from loopback import free_port_block, run_swarmplan, start_swarmplan, stop
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
+from mavlink_bridge.protocol import PLANE_MODE_GUIDED
 
 SPEEDUP = 100
 
@@ -162,14 +163,17 @@ class CuttableRelay(threading.Thread):
 @pytest.mark.timeout(120)
 def test_cut_link_vehicle_is_lost_and_others_go_on(paper10, tmp_path):
     """Vehicle 3 talks through a relay (the simulator's per-vehicle ports: vehicle i sends to
-    BASE + i); the relay stops forwarding at step 5 and forwards again from step 22. The daemon
-    reports it lost, flies on with the others, and takes it back when it is heard again."""
+    BASE + i); the relay stops forwarding from step 5 on, once the daemon has heard vehicle 3
+    in GUIDED (heartbeats come at 1 Hz of wall time, a tenth of a second of flight at 100x: cut
+    before one in GUIDED, the daemon still knows it in its launch mode and reports it back but
+    not fit to rejoin before it rejoins), and forwards again 17 steps later. The daemon reports
+    it lost, flies on with the others, and takes it back when it is heard again."""
     daemon = MissionDaemon(
         paper10,
         DaemonOptions(
             connect=["udpin:127.0.0.1:0"],
             seed=2,
-            steps=30,
+            steps=40,
             lost_after_s=1.0,
             discovery_timeout_s=30,
             time_scale=SPEEDUP,
@@ -188,10 +192,14 @@ def test_cut_link_vehicle_is_lost_and_others_go_on(paper10, tmp_path):
     relay = relays[2]
     sim = start_sim(port, 2, tmp_path / "sim.log", ["--per-vehicle-ports", str(base)])
 
+    cut_at: list[int] = []
+
     def on_step(status) -> None:
-        if status.step == 5:
+        guided = daemon.vehicle(2).custom_mode == PLANE_MODE_GUIDED
+        if not cut_at and status.step >= 5 and guided:
+            cut_at.append(status.step)
             relay.cut.set()
-        if status.step == 22:
+        if cut_at and status.step == cut_at[0] + 17:
             relay.cut.clear()
 
     daemon.options.on_step = on_step
@@ -206,9 +214,9 @@ def test_cut_link_vehicle_is_lost_and_others_go_on(paper10, tmp_path):
     events = [(e.uav, e.event) for e in report.events]
     assert events[:2] == [(2, "lost"), (2, "rejoined")], events
     rejoined_at = next(e.step for e in report.events if e.event == "rejoined")
-    assert rejoined_at < 30
+    assert rejoined_at < 40
     # back in the mission: recorded as flying again after it rejoined
     track = result["uavs"][2]["track_km"]
     assert track[-1] != track[rejoined_at - 1]
-    assert result["steps"] == 30  # the others carried on to the end
-    assert all(len(u["track_km"]) == 31 for u in result["uavs"])
+    assert result["steps"] == 40  # the others carried on to the end
+    assert all(len(u["track_km"]) == 41 for u in result["uavs"])
