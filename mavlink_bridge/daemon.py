@@ -103,6 +103,10 @@ class DaemonOptions:
     ready_timeout_s: float = 120.0
     lost_after_s: float = 3.0  # wall seconds of silence before a vehicle counts as lost
     takeoff_altitude_m: float = 30.0  # climb (above home) that ends the TAKEOFF phase
+    #: steps the planner keeps back for the way home beyond the scenario's
+    #: ``home_reserve_steps``: the flight envelope's replacements on the way cost some
+    #: (docs/parameters.md, "Home by mission end")
+    home_reserve_extra_steps: int = 3
     takeoff_timeout_s: float = 60.0
     #: the safety envelope's clearance of every leg from the threat circles; None: from the
     #: airframe read at launch (``airframe.threat_margin_km``: its loiter circle plus
@@ -603,6 +607,21 @@ class MissionDaemon:
 
     _course_heading = staticmethod(course_heading)
 
+    def home_path_margin_km(self) -> float:
+        """How far from the threat circles the planner counts the way home (``SafetyModel``'s
+        ``home_margin_km``): the clearance the flight envelope keeps for a guided target, its
+        loiter circle as flown at cruise plus the predicted margin (2.29 km for the simulator's
+        100 m/s plane, 0.41 km for ArduPlane's defaults), at least the cell-level margin. The
+        planner's own way home hugs a threat that close; the envelope then replaced its moves
+        one by one and the plane came home late (paper-10uav demo: 8.2 of 10 home over seeds
+        1-6 against 9.9 offline; docs/parameters.md)."""
+        margin = self.envelope.threat_margin_km
+        if self.flight_envelope is not None:
+            fe = self.flight_envelope
+            reach = float(fe.model.loiter_reach_km(fe.model.speed_mps))
+            margin = max(margin, reach + fe.threat_margin_km)
+        return margin
+
     def make_stages(self) -> DecisionStep:
         """The decision step's stages over the expected vehicles."""
         return DecisionStep(
@@ -652,10 +671,19 @@ class MissionDaemon:
         )
         # the planner's last step is this mission's (home_by_end plans to be home by then)
         planning = replace(planning, steps=self.steps)
+        # the way home as the flight envelope flies it (home_by_end and the range slack): wide of
+        # the threats, and a few steps kept back for the envelope's replacements on the way
+        planning = planning.with_config(
+            home_path_margin_km=max(cfg.home_path_margin_km, self.home_path_margin_km()),
+            home_reserve_steps=cfg.home_reserve_steps + self.options.home_reserve_extra_steps,
+        )
         planner = planner_cls(planning, starts, self.options.seed)
         PursuitLog().attach(planner)  # the planner's half of the per-target account (read-only)
         recorder = recorder_cls(
-            scenario, starts, turn_tolerance_deg=self.options.turn_tolerance_deg
+            scenario,
+            starts,
+            turn_tolerance_deg=self.options.turn_tolerance_deg,
+            home_reach_km=float(self.plane.loiter_reach_km(self.plane.speed_mps)),
         )
         consumed = [v.latest_look for v in self.vehicles()]
         return LoopState.start(self.grid, planner, recorder, starts, consumed)

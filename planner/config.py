@@ -117,6 +117,9 @@ class PlannerConfig:
     home_by_end: bool = False  # plan C_r so every UAV is home at the scenario's last step
     home_reserve_steps: int = 3  # steps kept back for the turns on the way home (open)
     home_margin_steps: int = 0  # time slack below which the return term decides (open)
+    #: clearance (km, beyond R_t) of the way home that C_r counts (hops and km home); 0: the
+    #: same as the moves'. A flown plane keeps a wider berth (the daemon sets its own, open)
+    home_path_margin_km: float = 0.0
 
     # --- seeds for the parts of the run that are random ---
     seed: int = 0
@@ -179,6 +182,8 @@ class PlannerConfig:
             raise ConfigError("need 0 < tau_min < tau_max for the pheromone clamp (eq 29)")
         if not 0 <= self.morse_r0_km < self.min_separation_km:
             raise ConfigError("morse_r0_km must be in [0, min_separation_km)")
+        if self.home_path_margin_km < 0:
+            raise ConfigError("home_path_margin_km must be >= 0 (0: the moves' own margin)")
         if self.max_turn_deg < 45:
             raise ConfigError(
                 "max_turn_deg below 45 leaves only straight flight on an 8-heading grid"

@@ -46,36 +46,20 @@ class SafetyModel:
     """Move safety and viability for one set of known threats (cached by the planner)."""
 
     def __init__(self, grid: Grid, threat_xy: np.ndarray, threat_r: np.ndarray, margin_km: float,
-                 max_turn_deg: float) -> None:  # fmt: skip
+                 max_turn_deg: float, home_margin_km: float | None = None) -> None:  # fmt: skip
         self.grid = grid
         self.threat_xy = threat_xy.reshape(-1, 2)
         self.threat_r = threat_r + margin_km
         self.turns = turn_options(max_turn_deg)
-        ix, iy = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny), indexing="ij")
-        cells = np.stack([ix, iy], axis=-1)
-        start = grid.centre_km(cells)
-        # only moves starting within one diagonal step of a threat circle can touch it
-        if len(self.threat_r):
-            gap = (
-                np.hypot(*(start[..., None, :] - self.threat_xy).transpose(3, 0, 1, 2))
-                - self.threat_r
-            )
-            near = gap.min(axis=-1) <= np.sqrt(2) * grid.cell_km + 1e-9
-        else:
-            near = np.zeros(grid.shape, dtype=bool)
-        safe = np.zeros((8, grid.nx, grid.ny), dtype=bool)
-        for h in range(8):
-            nxt = cells + HEADING_STEPS[h]
-            clear = np.ones(grid.shape, dtype=bool)
-            clear[near] = (
-                segment_clearance(
-                    start[near], grid.centre_km(nxt[near]), self.threat_xy, self.threat_r
-                )
-                > 0
-            )
-            safe[h] = grid.inside(nxt) & clear
         #: edge_safe[h, x, y]: the move from (x, y) along heading h is inside and clear of threats.
-        self.edge_safe = safe
+        self.edge_safe = self._safe_moves(self.threat_r)
+        #: the moves the way home is counted over (``hops_home_at``, ``distance_home_km``): clear
+        #: of the threats by ``home_margin_km`` (a flown plane keeps a wider berth than the grid)
+        self.home_edge_safe = self.edge_safe
+        if home_margin_km is not None and home_margin_km > margin_km and len(threat_r):
+            wide = threat_r + home_margin_km
+            in_band = self._centre_gap_km(wide) <= 0  # from there, by the grid's own moves
+            self.home_edge_safe = self._safe_moves(wide) | (self.edge_safe & in_band[None])
         self.viable = self._viability_kernel()
         self._home_rows: dict[int, int] = {}  # home cell -> row of _fields
         self._fields = np.zeros((0, grid.nx, grid.ny))
@@ -83,6 +67,38 @@ class SafetyModel:
         self._hop_fields = np.zeros((0, 8, grid.nx, grid.ny))
         self._home_index: dict[bytes, np.ndarray] = {}  # homes array's bytes -> rows
         self._hop_index: dict[bytes, np.ndarray] = {}  # homes array's bytes -> rows (per step)
+
+    def _cells(self) -> np.ndarray:
+        """(nx, ny, 2): every cell's index."""
+        ix, iy = np.meshgrid(np.arange(self.grid.nx), np.arange(self.grid.ny), indexing="ij")
+        return np.stack([ix, iy], axis=-1)
+
+    def _centre_gap_km(self, radii: np.ndarray) -> np.ndarray:
+        """(nx, ny): distance (km) from each cell's centre to the nearest threat circle of
+        ``radii`` (negative inside one, inf without threats)."""
+        if not len(radii):
+            return np.full(self.grid.shape, np.inf)
+        centres = self.grid.centre_km(self._cells())
+        gap = np.hypot(*(centres[..., None, :] - self.threat_xy).transpose(3, 0, 1, 2)) - radii
+        return gap.min(axis=-1)
+
+    def _safe_moves(self, radii: np.ndarray) -> np.ndarray:
+        """safe[h, x, y]: the move from (x, y) along heading h ends inside the area and its leg
+        keeps clear of every threat circle of ``radii``."""
+        grid = self.grid
+        cells = self._cells()
+        start = grid.centre_km(cells)
+        # only moves starting within one diagonal step of a threat circle can touch it
+        near = self._centre_gap_km(radii) <= np.sqrt(2) * grid.cell_km + 1e-9
+        safe = np.zeros((8, grid.nx, grid.ny), dtype=bool)
+        for h in range(8):
+            nxt = cells + HEADING_STEPS[h]
+            clear = np.ones(grid.shape, dtype=bool)
+            clear[near] = (
+                segment_clearance(start[near], grid.centre_km(nxt[near]), self.threat_xy, radii) > 0
+            )
+            safe[h] = grid.inside(nxt) & clear
+        return safe
 
     def _shifted(self, viable_h: np.ndarray, h: int, outside: float = False) -> np.ndarray:
         """value[..., x, y] = viable_h[..., (x, y) + step(h)] (``outside`` beyond the area's
@@ -146,7 +162,7 @@ class SafetyModel:
         rows, cols, weights = [], [], []
         flat = np.arange(grid.size).reshape(grid.shape)
         for h in range(8):
-            start = flat[self.edge_safe[h]]  # safe moves end inside: one flat step further
+            start = flat[self.home_edge_safe[h]]  # safe moves end inside: one flat step further
             cols.append(start)
             rows.append(start + grid.flat(HEADING_STEPS[h]))
             weights.append(np.full(len(start), HEADING_LENGTHS[h] * grid.cell_km))
@@ -202,7 +218,7 @@ class SafetyModel:
         best = np.full(hops.shape, np.inf)
         direction = np.zeros(hops.shape, dtype=np.int64)
         for h in range(8):
-            after = np.where(self.edge_safe[h][None], self._shifted(hops, h, np.inf), np.inf)
+            after = np.where(self.home_edge_safe[h][None], self._shifted(hops, h, np.inf), np.inf)
             better = after < best
             best = np.where(better, after, best)
             direction = np.where(better, h, direction)

@@ -161,7 +161,7 @@ class HapfAcoPlanner:
         if key not in self._safety:
             self._safety[key] = SafetyModel(
                 self.grid, self.threat_xy[known], self.threat_r[known], self.cfg.threat_margin_km,
-                self.cfg.max_turn_deg,
+                self.cfg.max_turn_deg, self.cfg.home_path_margin_km,
             )  # fmt: skip
         return self._safety[key]
 

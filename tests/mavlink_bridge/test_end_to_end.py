@@ -58,6 +58,30 @@ def test_lockstep_demo_gives_the_same_result_for_a_seed(tmp_path):
     assert a["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
 
 
+HOMING = Path(__file__).parents[1] / "planner" / "homing.toml"
+
+
+@pytest.mark.timeout(150)
+@pytest.mark.parametrize("seed", [1, 2])
+def test_demo_brings_every_plane_home_by_the_last_step(tmp_path, seed):
+    """A scenario that asks for every UAV home at its last step (``home_by_end``; offline they
+    all are) flown through the daemon: every plane is home, the planner's last cell beside its
+    start and the plane circling there. Before, seed 2 brought 1 of 3 home (the planner's way
+    home hugged the threat, the flight envelope replaced its moves one by one, and two planes
+    came 7 and 10 cells short), and seed 1 counted 2 of 3 (a plane circling its home cell was
+    2 cells from it at the last decision instant, counted not home)."""
+    proc = run_swarmplan(
+        ["demo", str(HOMING), "--seed", str(seed), "--json", "--out", str(tmp_path)], 130
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout)
+    ends = [(u["planned_km"][-1], u["track_km"][-1], u["start_km"]) for u in result["uavs"]]
+    assert result["returned_count"] == 3, ends
+    assert result["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
+    audit = result["track_audit"]["phases"]["mission"]
+    assert audit["threat_entries"] == 0 and audit["separation_breaches"] == 0, audit
+
+
 ARMED_AT = re.compile(r"armed \d+ vehicles after [\d.]+ s \(vehicle clocks ([\d.]+)\.\.([\d.]+) s")
 
 

@@ -2,6 +2,8 @@
 suspect is kept through a missed look until it is confirmed or ruled out, and a scenario that
 asks for it (``home_by_end``) ends with every UAV back at its start, with no constraint broken."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -77,58 +79,28 @@ def test_without_the_keep_threshold_one_missed_look_ends_the_pursuit():
     assert not kept[0]
 
 
-HOMING = """
-name = "homing"
-steps = 70
-[parameters]
-grid_nx = 30
-grid_ny = 30
-max_range_km = 95.0
-home_by_end = {home}
-[uavs]
-count = 3
-[[uavs.start]]
-x_km = 5.5
-y_km = 5.5
-heading_deg = 45
-[[uavs.start]]
-x_km = 24.5
-y_km = 6.5
-heading_deg = 90
-[[uavs.start]]
-x_km = 15.5
-y_km = 24.5
-heading_deg = 270
-[[threats]]
-x_km = 22
-y_km = 21
-radius_km = 2
-[[targets]]
-kind = "unknown_position"
-x_km = 10
-y_km = 20
-value = 1
-[[targets]]
-kind = "known_position"
-x_km = 22
-y_km = 12
-value = 2
-"""
+HOMING_TOML = Path(__file__).with_name("homing.toml")
+
+
+def homing(home: bool):
+    """The homing scenario (three UAVs, a threat between them), home by the end or not."""
+    text = HOMING_TOML.read_text()
+    return parse_scenario(text.replace("home_by_end = true", f"home_by_end = {str(home).lower()}"))
 
 
 @pytest.mark.parametrize("seed", [1, 2])
 def test_uavs_are_home_at_the_last_step_when_the_scenario_asks(seed):
-    home = run_offline(parse_scenario(HOMING.format(home="true")), seed)
+    home = run_offline(homing(True), seed)
     assert home["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
     assert home["returned_count"] == 3, [u["track_km"][-1] for u in home["uavs"]]
     # the rule is what brings them home: without it they end the mission out in the area
-    away = run_offline(parse_scenario(HOMING.format(home="false")), seed)
+    away = run_offline(homing(False), seed)
     assert away["returned_count"] < 3
     assert away["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
 
 
 def test_a_shorter_run_brings_them_home_at_its_own_last_step():
-    scenario = parse_scenario(HOMING.format(home="true"))
+    scenario = homing(True)
     result = run_offline(scenario, 1, steps=40)
     assert result["steps"] == 40
     assert result["returned_count"] == 3

@@ -125,6 +125,30 @@ def test_distance_home_goes_around_threats():
     assert free[70, 50] == pytest.approx(40.0)
 
 
+def test_the_way_home_can_be_counted_wider_of_the_threats_than_the_moves():
+    """``home_margin_km``: the way home is counted clear of the threats by a wider margin (the
+    daemon's flight envelope keeps its planes' loiter circles that far off), the moves and
+    their viability keep the planner's own."""
+    threat, radius = np.array([[50.0, 50.0]]), np.array([10.0])
+    home = int(GRID.flat(np.array([30, 50])))
+    tight = SafetyModel(GRID, threat, radius, 0.0, 45.0)
+    wide = SafetyModel(GRID, threat, radius, 0.0, 45.0, home_margin_km=2.5)
+    assert np.array_equal(wide.edge_safe, tight.edge_safe)
+    assert np.array_equal(wide.viable, tight.viable)
+    # across the threat the way round is longer; in the open the same
+    assert wide.distance_home_km(home)[70, 50] > tight.distance_home_km(home)[70, 50] + 2.0
+    assert wide.distance_home_km(home)[30, 80] == tight.distance_home_km(home)[30, 80]
+    # never fewer moves home (diagonal moves count one: here round the threat costs none)
+    x, y = np.meshgrid(np.arange(GRID.nx), np.arange(GRID.ny), indexing="ij")
+    x, y, homes = x[None], y[None], np.array([home])
+    heading = np.zeros(x.shape, dtype=np.int64)
+    hops_wide = wide.hops_home_at(homes, x, y, heading)
+    hops_tight = tight.hops_home_at(homes, x, y, heading)
+    assert np.all(hops_wide >= hops_tight)
+    # a UAV already inside the wider band still has a way home (by the planner's own moves)
+    assert np.isfinite(wide.distance_home_km(home)[50, 61])
+
+
 def test_deterministic_switch_and_heuristic_choice():
     q = np.array([0.1, 0.9, 0.1])
     det = use_deterministic(np.array([1.0, 1.0, 1e-9]), np.array([1.0, 1.0, 1e-9]), q, CFG)
