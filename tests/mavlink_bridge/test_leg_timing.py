@@ -71,7 +71,10 @@ def test_leg_speed_limits():
 
 def test_daemon_sends_leg_airspeeds_and_cruise_before_rtl(paper10, udp_port, fake_swarm_factory):
     swarm = fake_swarm_factory(2, udp_port)
-    report = MissionDaemon(paper10, options(udp_port, expect=2)).fly()
+    # twelve steps out in the area (home_by_end would keep half of them for the way home,
+    # flown straight at cruise)
+    searching = paper10.with_config(home_by_end=False)
+    report = MissionDaemon(searching, options(udp_port, expect=2)).fly()
     assert report.result["refused_commands"] == 0
     # the fake vehicles start 2.9 km apart: closer than d_min and two 1.07 km circles at
     # cruise, so after RTL each gets its home circle's slower airspeed
