@@ -21,6 +21,9 @@ from planner.errors import UserError
 #: uploads begun (MISSION_COUNT sent after the vehicle had asked for items) before a vehicle
 #: that keeps asking but never acknowledges counts as failed
 MAX_RESTARTS = 20
+#: the item a vehicle asked for last is sent again this many times (every retry interval) with
+#: no answer before the upload starts over (``upload_fence``)
+ITEM_RESENDS = 3
 
 
 class MissionUploadError(UserError):
@@ -70,8 +73,13 @@ def upload_fence(
     Over a lossy link each side re-sends what the other did not answer (the mission protocol's
     retries), and nothing that got through is thrown away: every ``retry_interval_s`` without
     an answer the daemon sends again what the vehicle last went without (MISSION_COUNT until it
-    asks for an item; then the item it asked for last; after the last item, the MISSION_COUNT
-    again, since only a new upload brings back a MISSION_ACK that was lost). A vehicle gives up
+    asks for an item; then the item it asked for last, ``ITEM_RESENDS`` times; after the last
+    item, or when the vehicle stays silent through those resends, the MISSION_COUNT again:
+    only a new upload brings back a MISSION_ACK that was lost, and a vehicle whose transfer
+    ended ignores items. On a link that duplicates and delays, a late MISSION_COUNT restarted a
+    vehicle's transfer after it had asked for item 1, a delayed item 1 then completed it, its
+    ACK was lost, and item 0 was resent to a vehicle that no longer listened until the upload
+    stalled: the reliability bench at 30 % loss). A vehicle gives up
     only when it has said nothing of this upload for ``stall_timeout_s`` (a dead link, an
     autopilot without MISSION_TYPE_FENCE), not after a fixed time: a link that loses 30 % each
     way gets its fence through (before, every stall restarted the whole exchange and the upload
@@ -83,6 +91,7 @@ def upload_fence(
     last_sent: dict[int, float] = {}
     heard: dict[int, float] = {}  # the vehicle's last message of this upload
     restarts = dict.fromkeys(done, 0)
+    resends = dict.fromkeys(done, 0)  # the last asked item sent again with no answer since
 
     def send_count(vehicle: VehicleState) -> None:
         vehicle.mission_requests.clear()
@@ -106,6 +115,7 @@ def upload_fence(
                 if mission_type == fence and 0 <= seq < n:
                     send_fence_item(vehicle, seq, circles[seq])
                     last_asked[sysid], last_sent[sysid], heard[sysid] = seq, now, now
+                    resends[sysid] = 0
             if vehicle.mission_ack is not None and vehicle.mission_ack[1] == fence:
                 done[sysid] = vehicle.mission_ack[0]
                 continue
@@ -117,9 +127,10 @@ def upload_fence(
                 )
             if now - last_sent[sysid] > retry_interval_s:
                 asked = last_asked[sysid]
-                if asked is None or asked == n - 1:
-                    # not started, or its MISSION_ACK lost: (again) from the start
+                if asked is None or asked == n - 1 or resends[sysid] >= ITEM_RESENDS:
+                    # not started, its MISSION_ACK lost, or its transfer over: from the start
                     restarts[sysid] += asked is not None
+                    resends[sysid] = 0
                     if restarts[sysid] > MAX_RESTARTS:
                         raise MissionUploadError(
                             f"fence upload to vehicle {sysid}: {MAX_RESTARTS} uploads without a "
@@ -129,6 +140,7 @@ def upload_fence(
                 else:
                     send_fence_item(vehicle, asked, circles[asked])  # it may not have come
                     last_sent[sysid] = now
+                    resends[sysid] += 1
     for sysid, result in done.items():
         if result != mavlink.MAV_MISSION_ACCEPTED:
             raise MissionUploadError(

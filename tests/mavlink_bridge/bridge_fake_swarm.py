@@ -44,6 +44,12 @@ class FakeVehicle:
     fence_items: list = field(default_factory=list)
     mission_items: list = field(default_factory=list)
     upload_count: dict = field(default_factory=dict)
+    #: the first fence upload as a duplicating, delaying link plays it: after item 1 a late
+    #: MISSION_COUNT restarts the transfer (it asks for item 0 again), a delayed item 1 completes
+    #: it with the next item 0, its MISSION_ACK is lost, and the vehicle, its transfer over,
+    #: ignores items until a new MISSION_COUNT
+    fence_race: bool = False
+    race_stage: int = 0
     look_index: int = 0
     engagement_seq: set = field(default_factory=set)
     commands: list = field(default_factory=list)
@@ -291,6 +297,8 @@ class FakeSwarm(threading.Thread):
         elif kind == "MISSION_COUNT":
             items = v.fence_items if msg.mission_type == 1 else v.mission_items
             items.clear()
+            if v.race_stage == 2:
+                v.race_stage = 3  # a new upload: played straight from now on
             v.upload_count[msg.mission_type] = msg.count
             src = (msg.get_srcSystem(), msg.get_srcComponent())
             if msg.count == 0:
@@ -300,6 +308,17 @@ class FakeSwarm(threading.Thread):
         elif kind in ("MISSION_ITEM_INT", "MISSION_ITEM"):
             items = v.fence_items if msg.mission_type == 1 else v.mission_items
             src = (msg.get_srcSystem(), msg.get_srcComponent())
+            racing = v.fence_race and msg.mission_type == 1 and v.race_stage < 3
+            if racing and v.race_stage == 2:
+                return  # its transfer is over: items are ignored
+            if racing and v.race_stage == 0 and msg.seq == 1:
+                items.clear()  # a late MISSION_COUNT restarted it: item 0 again
+                v.race_stage = 1
+                v.send(v.ap, v.ap.mission_request_encode(*src, 0, msg.mission_type))
+                return
+            if racing and v.race_stage == 1 and msg.seq == 0:
+                v.race_stage = 2  # the delayed item 1 completes it; the ACK is lost
+                return
             if msg.seq == len(items):
                 items.append(msg)
             if len(items) < v.upload_count.get(msg.mission_type, 0):

@@ -155,3 +155,25 @@ def test_silent_vehicle_is_lost_then_rejoins(paper10, udp_port, fake_swarm_facto
     assert (1, "lost") in events and (1, "rejoined") in events
     assert report.result["lost_uavs"] == [1]
     assert report.result["steps"] >= 35  # the others carried on
+
+
+def test_a_fence_upload_a_vehicle_ended_unheard_starts_over(udp_port, fake_swarm_factory):
+    """A duplicating, delaying link (the reliability bench at 30 % loss): a late MISSION_COUNT
+    restarts the vehicle's transfer after it asked for item 1, a delayed item 1 completes it
+    with the next item 0, and its MISSION_ACK is lost; the vehicle, its transfer over, ignores
+    items. Resending item 0 never got an answer and the upload stalled; after ``ITEM_RESENDS``
+    unanswered resends it now starts over, and the fence gets through."""
+    from mavlink_bridge.mission_upload import FenceCircle, upload_fence
+    from mavlink_bridge.swarm_link import SwarmLink
+
+    swarm = fake_swarm_factory(1, udp_port, fence_race=True)
+    link = SwarmLink.open([f"udpin:127.0.0.1:{udp_port}"])
+    try:
+        assert link.pump_until(lambda: 1 in link.vehicles, 5.0)
+        circles = [FenceCircle(-35.30, 149.20, 2000.0), FenceCircle(-35.33, 149.25, 3000.0)]
+        upload_fence(link, [link.vehicles[1]], circles, stall_timeout_s=4.0)
+    finally:
+        link.close()
+    vehicle = swarm.vehicles[0]
+    assert vehicle.race_stage == 3  # the race was played, then a second upload went through
+    assert [item.seq for item in vehicle.fence_items] == [0, 1]
