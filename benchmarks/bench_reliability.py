@@ -153,8 +153,11 @@ def _km(v: float | None) -> str:
 
 def row(figures: dict) -> str:
     r, t = figures["result"], figures["truth"]
-    if r is None or t is None:
-        return f"| {figures['name']} | failed (see its logs) |" + " |" * 7
+    if r is None or t is None or "violations" not in r:
+        # no result, or a mission that ended before it flew (its launch failed: a refused
+        # speedup, an upload or a parameter that did not get through)
+        why = "see its logs" if r is None else str(r.get("ended", "see its logs"))
+        return f"| {figures['name']} | failed ({why}) |" + " |" * 10
     a = r["track_audit"]["all"]
     v = r["violations"]
     phases = r["track_audit"]["phases"]
