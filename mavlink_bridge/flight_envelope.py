@@ -23,7 +23,10 @@ accepts a target only if
   target cannot turn a plane at once. Without this, two planes converging at 100-150 m/s
   with their targets 1 km apart were accepted (1.32 km apart within 1.5 steps), and one step
   later nothing was left that kept them apart: 0.63 km along the tracks in the lockstep demo
-  (paper-10uav seed 2), where judging the whole 3-step prediction had kept 1.56 km.
+  (paper-10uav seed 2), where judging the whole 3-step prediction had kept 1.56 km. In paced
+  time the same holds for the paths a lossy link may fly (a lost airspeed, a target resent
+  until late: ``_lossy_link_paths``), every variant of a plane against every variant of the
+  others, wherever some candidate can keep it; where none can, the prediction decides.
 
 Paths are predicted from each plane's measured speed, at the airspeed it will be sent for the
 leg (``leg_timing``: the leg to the candidate's cell in one decision step, see
@@ -64,6 +67,17 @@ class FlightChoice:
     speeds_mps: np.ndarray  # (N,) airspeed to fly the leg at
     overrides: dict[str, int] = field(default_factory=dict)
     min_separation_km: float = np.inf  # predicted, between the accepted paths
+    #: the same over every lossy-link variant of each (paced time; as predicted in lockstep)
+    min_separation_lossy_km: float = np.inf
+
+
+@dataclass
+class LossyLinkPaths:
+    """Candidates' paths as a lossy link may deliver their commands (V variants, M candidates,
+    one sample a second; ``FlightEnvelope._lossy_link_paths``)."""
+
+    from_command: np.ndarray  # (V, M, S + 1, 2) from where the command takes hold
+    from_now: np.ndarray  # (V, M, S + 1, 2) from now: the same instants as the prediction
 
 
 @dataclass
@@ -182,8 +196,20 @@ class FlightEnvelope:
             speed_mps=speeds_now,
             commanded_mps=commanded,
         )
-        kept_apart = self._separation_paths(paths)
         row_uav = np.array([i for i, _ in rows], dtype=np.int64)
+        lossy = (
+            self._lossy_link_paths(
+                positions_km, courses_rad, speeds_mps, previous_aims_km, row_uav, aims, commanded
+            )
+            if rows
+            else None
+        )
+        # (M, V, T, 2): the instants each candidate is kept apart at, as predicted and, in paced
+        # time, as each lossy-link variant flies it (a late or lost command)
+        kept_apart = self._separation_paths(paths)[:, None]
+        if lossy is not None and self.command_delay_s >= 1.0:
+            variants = [self._separation_paths(v) for v in lossy.from_now]
+            kept_apart = np.stack([kept_apart[:, 0], *variants], axis=1)
         clearance = np.minimum(
             self._threat_clearance(
                 paths,
@@ -192,14 +218,12 @@ class FlightEnvelope:
             ),
             self._loiter_clearance(aims, np.maximum(speeds_now, commanded)),
         )
-        if rows:
+        if lossy is not None and len(self.cells.threat_radius_km):
+            flown = lossy.from_command.reshape(-1, *lossy.from_command.shape[2:])
             clearance = np.minimum(
                 clearance,
-                self._lossy_link_clearance(
-                    positions_km, courses_rad, speeds_mps, previous_aims_km, row_uav, aims,
-                    commanded,
-                ),
-            )  # fmt: skip
+                self._polyline_clearance(flown).reshape(len(lossy.from_command), -1).min(axis=0),
+            )
         if self.failsafe_circle:
             clearance = np.minimum(
                 clearance, self._failsafe_circle_clearance(paths, np.maximum(speeds_now, commanded))
@@ -212,25 +236,32 @@ class FlightEnvelope:
         overrides = {"predicted_threat": 0, "predicted_separation": 0}
         need_sep = self.cells.min_separation_km + self.separation_margin_km
         threat_ok = clearance >= self.threat_margin_km
+        # kept apart as a lossy link may fly them where some candidate can be; where none can
+        # (two planes whose last legs already close within the delay), as predicted
+        nominal = kept_apart[:, :1]
+        tiers = [kept_apart, nominal] if kept_apart.shape[1] > 1 else [nominal]
         chosen: dict[int, int] = {}  # UAV -> candidate index, settled in index order
         for i in range(n):
             if not candidates[i]:
                 continue
-            others = [kept_apart[row_of[(j, k)]] for j, k in chosen.items()]
-            best: tuple[float, int] | None = None
-            for k in range(len(candidates[i])):
-                r = row_of[(i, k)]
-                sep = self._separation(kept_apart[r], others)
-                if threat_ok[r] and sep >= need_sep:
-                    best = (np.inf, k)
+            for apart in tiers:
+                others = [apart[row_of[(j, k)]] for j, k in chosen.items()]
+                best: tuple[float, int] | None = None
+                for k in range(len(candidates[i])):
+                    r = row_of[(i, k)]
+                    sep = self._separation(apart[r], others)
+                    if threat_ok[r] and sep >= need_sep:
+                        best = (np.inf, k)
+                        break
+                    score = min(clearance[r] - self.threat_margin_km, sep - need_sep)
+                    if best is None or score > best[0]:
+                        best = (score, k)
+                assert best is not None
+                chosen[i] = best[1]
+                if not np.isfinite(best[0]) or self._repair(
+                    i, chosen, candidates, apart, row_of, threat_ok, need_sep
+                ):
                     break
-                score = min(clearance[r] - self.threat_margin_km, sep - need_sep)
-                if best is None or score > best[0]:
-                    best = (score, k)
-            assert best is not None
-            chosen[i] = best[1]
-            if np.isfinite(best[0]):
-                self._repair(i, chosen, candidates, kept_apart, row_of, threat_ok, need_sep)
         for i, k in chosen.items():
             r = row_of[(i, k)]
             kept = k == 1 and candidates[i][1].cruise  # the planner's cell, only flown slower
@@ -254,12 +285,18 @@ class FlightEnvelope:
                 )
             else:
                 out_cells[i], out_headings[i] = cand.cell, cand.heading
-        accepted = [kept_apart[row_of[(i, k)]] for i, k in chosen.items()]
-        closest = min(
-            (self._separation(path, accepted[a + 1 :]) for a, path in enumerate(accepted)),
-            default=np.inf,
-        )
-        return FlightChoice(out_aims, out_cells, out_headings, out_speeds, overrides, closest)
+
+        def closest(apart: np.ndarray) -> float:
+            accepted = [apart[row_of[(i, k)]] for i, k in chosen.items()]
+            return min(
+                (self._separation(path, accepted[a + 1 :]) for a, path in enumerate(accepted)),
+                default=np.inf,
+            )
+
+        return FlightChoice(
+            out_aims, out_cells, out_headings, out_speeds, overrides, closest(nominal),
+            closest(kept_apart),
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ pieces
 
@@ -272,15 +309,15 @@ class FlightEnvelope:
         row_of: dict[tuple[int, int], int],
         threat_ok: np.ndarray,
         need_sep: float,
-    ) -> None:
+    ) -> bool:
         """UAV ``i`` found no safe candidate next to the UAVs settled before it. Re-open the
         choice of the settled UAV it comes closest to, ``j``: the first pair of candidates (j's
         in its order, then i's) that are both clear of threats, of every other settled UAV and
-        of each other replaces both choices. Without such a pair nothing changes."""
+        of each other replaces both choices (True). Without such a pair nothing changes."""
         mine = paths[row_of[(i, chosen[i])]]
         rivals = [j for j in chosen if j != i]
         if not rivals:
-            return
+            return False
         j = min(rivals, key=lambda o: self._separation(mine, [paths[row_of[(o, chosen[o])]]]))
         rest = [paths[row_of[(o, ko)]] for o, ko in chosen.items() if o not in (i, j)]
         safe_i = [
@@ -296,7 +333,8 @@ class FlightEnvelope:
             for ki in safe_i:
                 if self._separation(paths[row_of[(i, ki)]], [paths[rj]]) >= need_sep:
                     chosen[i], chosen[j] = ki, kj
-                    return
+                    return True
+        return False
 
     def _candidates(
         self,
@@ -328,7 +366,7 @@ class FlightEnvelope:
         out.append(_Candidate(cell, heading, env.grid.centre_km(cell), derived=True))
         return out
 
-    def _lossy_link_clearance(
+    def _lossy_link_paths(
         self,
         positions_km: np.ndarray,
         courses_rad: np.ndarray,
@@ -337,43 +375,42 @@ class FlightEnvelope:
         row_uav: np.ndarray,
         aims_km: np.ndarray,
         commanded_mps: np.ndarray,
-    ) -> np.ndarray:
-        """Distance (km) to the nearest threat edge of each candidate's path flown as a lossy
-        link may deliver it: its DO_CHANGE_SPEED lost (the plane keeps the airspeed it flies
-        now: at 150 m/s it turns on a 2.29 km radius, not the 1.02 km of 100 m/s), and, in paced
-        time, its DO_REPOSITION arriving ``command_delay_s`` late, after the plane flew on to
-        its previous target meanwhile (each with and without the new airspeed). The stretch
-        flown to the previous target before the late command is not counted: no choice of this
-        step changes it."""
-        m = len(aims_km)
-        if len(self.cells.threat_radius_km) == 0:
-            return np.full(m, np.inf)
+    ) -> LossyLinkPaths:
+        """Each candidate's path flown as a lossy link may deliver its commands: its
+        DO_CHANGE_SPEED lost (the plane keeps the airspeed it flies now: at 150 m/s it turns on a
+        2.29 km radius, not the 1.02 km of 100 m/s), and, in paced time, its DO_REPOSITION
+        arriving ``command_delay_s`` late, after the plane flew on to its previous target
+        meanwhile (each with and without the new airspeed). Predicted every second to the
+        horizon from where the command takes hold (``from_command``: what the threat clearance
+        judges; the stretch flown to the previous target before a late command is not counted,
+        no choice of this step changes it) and from now, that stretch first
+        (``from_now``: the instants separation is judged at)."""
         held = np.asarray(speeds_mps, dtype=float)[row_uav]
         starts = np.asarray(positions_km, dtype=float)[row_uav].reshape(-1, 2)
         courses = np.asarray(courses_rad, dtype=float)[row_uav]
         variants = [(starts, courses, held, held)]
         delay_s = round(self.command_delay_s)
         previous = np.asarray(previous_aims_km, dtype=float)
+        on_way = None
         if delay_s >= 1:
             known = np.all(np.isfinite(previous), axis=1)
             on_way = predict_paths(
                 self.model, positions_km, courses_rad, np.where(known[:, None], previous,
                 np.asarray(positions_km, dtype=float)), delay_s, dt_s=0.5, speed_mps=speeds_mps,
-            )  # fmt: skip
+            )[row_uav]  # fmt: skip
             late_xy = on_way[:, -1]
             move = on_way[:, -1] - on_way[:, -2]
             late_course = np.where(
-                np.hypot(move[:, 0], move[:, 1]) > 0,
-                np.arctan2(move[:, 1], move[:, 0]),
-                np.asarray(courses_rad, dtype=float),
+                np.hypot(move[:, 0], move[:, 1]) > 0, np.arctan2(move[:, 1], move[:, 0]), courses
             )
             late_known = known[row_uav]
-            late_starts = np.where(late_known[:, None], late_xy[row_uav], starts)
-            late_courses = np.where(late_known, late_course[row_uav], courses)
+            late_starts = np.where(late_known[:, None], late_xy, starts)
+            late_courses = np.where(late_known, late_course, courses)
             variants += [
                 (late_starts, late_courses, held, commanded_mps),
                 (late_starts, late_courses, held, held),
             ]
+        m = len(aims_km)
         flown = predict_paths(
             self.model,
             np.concatenate([v[0] for v in variants]),
@@ -383,8 +420,14 @@ class FlightEnvelope:
             dt_s=0.5,  # a clearance check: 2.8 deg of turn a step at 100 m/s is fine enough
             speed_mps=np.concatenate([v[2] for v in variants]),
             commanded_mps=np.concatenate([v[3] for v in variants]),
-        )
-        return self._polyline_clearance(flown).reshape(len(variants), m).min(axis=0)
+        ).reshape(len(variants), m, -1, 2)
+        from_now = flown.copy()
+        if on_way is not None:  # the late ones: the stretch to the previous target first
+            samples = flown.shape[2]
+            late = np.concatenate([np.broadcast_to(on_way, (2, *on_way.shape)), flown[1:, :, 1:]],
+                                  axis=2)[:, :, :samples]  # fmt: skip
+            from_now[1:, late_known] = late[:, late_known]  # no previous target: from now
+        return LossyLinkPaths(from_command=flown, from_now=from_now)
 
     def _loiter_clearance(self, aims_km: np.ndarray, speeds_mps: np.ndarray) -> np.ndarray:
         """Distance (km) from the loiter circle around each aim, flown at ``speeds_mps`` and
@@ -456,9 +499,10 @@ class FlightEnvelope:
         return np.concatenate([apart, straight], axis=1)
 
     def _separation(self, path: np.ndarray, settled: list[np.ndarray]) -> float:
-        """Smallest distance (km) between ``path`` and any settled path at the same instant
-        (rows of ``_separation_paths``)."""
+        """Smallest distance (km) between ``path`` and any settled path at the same instant,
+        over every pair of their variants (each (V, T, 2): ``_separation_paths`` of the
+        prediction and of its lossy-link variants)."""
         if not settled:
             return float(np.inf)
-        d = np.hypot(*(np.stack(settled) - path[None]).transpose(2, 0, 1))
-        return float(d.min())
+        gap = np.stack(settled)[:, :, None] - path[None, None]  # (S, V, V, T, 2)
+        return float(np.hypot(gap[..., 0], gap[..., 1]).min())
