@@ -274,16 +274,26 @@ def measure(run: SitlMissionRun) -> dict:
     return numbers
 
 
+def _heading_change_deg(a: np.ndarray, b: np.ndarray) -> float:
+    turn = math.atan2(b[1], b[0]) - math.atan2(a[1], a[0])
+    return math.degrees(abs((turn + math.pi) % (2 * math.pi) - math.pi))
+
+
 def turn_breaks_by_step_length(result: dict, step_s: float, tolerance_deg: float = 15.0) -> dict:
     """The turn rule's breaks (the recorder's C_m on the flown positions at the decision steps,
-    with the daemon's default tolerance) split by the length of the two steps around them: both
-    within 10 % of ``step_s`` (a regular step), or not (a step after a stall of the machine, or
-    the short one catching up after it, where a plane circled its target meanwhile)."""
+    with the daemon's default tolerance) split three ways: ``planned`` where the plan itself
+    turned more than the rule allows or kept the plane on its cell (a circle the planner asked
+    for: a suspect circled for more looks, a hold beside a confirmed target before it is
+    engaged; ``planned_km`` of the same steps), else by the length of the two steps around
+    them: both within 10 % of ``step_s`` (``regular``), or not (a step after a stall of the
+    machine, or the short one catching up after it, where a plane circled its target
+    meanwhile)."""
     times = dict(result.get("look_times_ms") or [])
     limit = result.get("max_turn_deg", 45.0) + tolerance_deg
-    regular = irregular = 0
+    regular = irregular = planned = 0
     for uav in result.get("uavs", []):
         track = np.asarray(uav.get("track_km") or [], float).reshape(-1, 2)
+        plan = np.asarray(uav.get("planned_km") or [], float).reshape(-1, 2)
         legs = np.diff(track, axis=0)
         last = None  # the last leg flown (as the recorder: a standstill keeps it)
         for k in range(len(legs)):
@@ -292,11 +302,17 @@ def turn_breaks_by_step_length(result: dict, step_s: float, tolerance_deg: float
             if last is None:
                 last = k
                 continue
-            a, b = (math.atan2(leg[1], leg[0]) for leg in (legs[last], legs[k]))
-            turn = math.degrees(abs((b - a + math.pi) % (2 * math.pi) - math.pi))
+            turn = _heading_change_deg(legs[last], legs[k])
             previous, last = last, k
             if turn <= limit:
                 continue
+            # the planned legs of the same steps: position k + 1 was planned at step k
+            if previous >= 1 and k < len(plan):
+                before, after = plan[previous] - plan[previous - 1], plan[k] - plan[k - 1]
+                still = min(np.hypot(*before), np.hypot(*after)) <= 1e-9
+                if still or _heading_change_deg(before, after) > limit:
+                    planned += 1
+                    continue
             spans = [
                 (times[j] - times[j - 1]) / 1000.0
                 for j in (previous + 1, k + 1)
@@ -306,4 +322,8 @@ def turn_breaks_by_step_length(result: dict, step_s: float, tolerance_deg: float
                 regular += 1
             else:
                 irregular += 1
-    return {"turn_breaks_regular_steps": regular, "turn_breaks_around_stalls": irregular}
+    return {
+        "turn_breaks_regular_steps": regular,
+        "turn_breaks_around_stalls": irregular,
+        "turn_breaks_planned": planned,
+    }

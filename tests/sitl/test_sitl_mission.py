@@ -43,13 +43,20 @@ def test_three_planes_with_the_payload_simulator_search_look_and_engage(sitl_bin
     # separation around targets never circled and from replacements into dead ends (0-6 breaks
     # in 16 steps); with both fixed 0 in 3 runs, and one run with the first fix alone had 1:
     # two planes' legs crossing at one instant, one had to circle (docs/sitl.md). Counted on the
-    # regular steps: a machine that stalls the daemon or the autopilots (a step of the planes'
-    # clock longer or shorter than the period by 10 %) leaves planes circling their targets
-    # meanwhile, a break the plan did not make (CI once had 5 in one run)
+    # regular steps the plan did not ask for: a machine that stalls the daemon or the autopilots
+    # (a step of the planes' clock longer or shorter than the period by 10 %) leaves planes
+    # circling their targets meanwhile, and a circle the plan asked for (a suspect, a target
+    # before it is engaged) is the plan's (CI had 4 and 5 in one run each, on a loaded machine)
     v = result["violations"]
     assert (v["threat"], v["separation"], v["range"]) == (0, 0, 0), run.explain()
     breaks = turn_breaks_by_step_length(result, run.step_s)
-    assert breaks["turn_breaks_regular_steps"] <= 1, (breaks, run.explain())
+    facts = {
+        **breaks,
+        **{k: result.get(k) for k in ("late_steps", "max_lateness_s", "held_steps", "lost_uavs")},
+        "overrides": result["envelope_overrides"],
+        "engaged": engaged,
+    }
+    assert breaks["turn_breaks_regular_steps"] <= 1, (facts, run.explain())
     for phase, audit in result["track_audit"]["phases"].items():
         assert audit["threat_entries"] == 0 and audit["separation_breaches"] == 0, (phase, audit)
     # every plane sent home: RTL, or guided around the threats where the straight line crosses
