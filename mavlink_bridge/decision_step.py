@@ -67,8 +67,8 @@ def has_camera(vehicle: VehicleState) -> bool:
 
 def course_heading(v: VehicleState) -> int | None:
     """Heading index of the vehicle's velocity (or compass heading), None if unknown."""
-    if math.hypot(v.vn_mps, v.ve_mps) > 1.0:
-        return int(heading_of_angle(math.atan2(v.vn_mps, v.ve_mps)))
+    if v.speed_mps > 1.0:
+        return int(heading_of_angle(v.course_rad))
     if v.heading_cdeg != 65535:
         compass = v.heading_cdeg / 100.0
         return int(heading_of_angle(math.radians(90.0 - compass)))
@@ -378,9 +378,8 @@ class DecisionStep:
                 positions[i] = self.local_km(v.lat_deg, v.lon_deg)
                 stale_s[i] = min(cap_s, max(0.0, (now - v.position_s) * self.clock_rate))
                 elapsed_s[i] = max(0.0, (v.time_boot_ms - state.positions_ms[i]) / 1e3)
-            if math.hypot(v.vn_mps, v.ve_mps) > 1.0:
-                courses[i] = math.atan2(v.vn_mps, v.ve_mps)  # course over ground, from east
-                speeds[i] = math.hypot(v.vn_mps, v.ve_mps)
+            if v.speed_mps > 1.0:
+                courses[i], speeds[i] = v.course_rad, v.speed_mps  # over ground, from east
             else:
                 courses[i] = int(state.headings[i]) * math.pi / 4
         aims = state.last_targets_km()

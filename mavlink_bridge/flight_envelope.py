@@ -77,7 +77,9 @@ class LossyLinkPaths:
     one sample a second; ``FlightEnvelope._lossy_link_paths``)."""
 
     from_command: np.ndarray  # (V, M, S + 1, 2) from where the command takes hold
-    from_now: np.ndarray  # (V, M, S + 1, 2) from now: the same instants as the prediction
+    #: (V, M, S + 1, 2) from now, the same instants as the prediction; None without a command
+    #: delay (lockstep: separation is judged on the prediction alone)
+    from_now: np.ndarray | None
 
 
 @dataclass
@@ -197,17 +199,21 @@ class FlightEnvelope:
             commanded_mps=commanded,
         )
         row_uav = np.array([i for i, _ in rows], dtype=np.int64)
+        # judged for threats (when there are any) and, paced, for separation: not predicted
+        # when neither needs it (lockstep among no threats)
+        paced = round(self.command_delay_s) >= 1  # as ``_lossy_link_paths`` counts it
+        threats = len(self.cells.threat_radius_km) > 0
         lossy = (
             self._lossy_link_paths(
                 positions_km, courses_rad, speeds_mps, previous_aims_km, row_uav, aims, commanded
             )
-            if rows
+            if rows and (threats or paced)
             else None
         )
         # (M, V, T, 2): the instants each candidate is kept apart at, as predicted and, in paced
         # time, as each lossy-link variant flies it (a late or lost command)
         kept_apart = self._separation_paths(paths)[:, None]
-        if lossy is not None and self.command_delay_s >= 1.0:
+        if lossy is not None and lossy.from_now is not None:
             variants = [self._separation_paths(v) for v in lossy.from_now]
             kept_apart = np.stack([kept_apart[:, 0], *variants], axis=1)
         clearance = np.minimum(
@@ -218,7 +224,7 @@ class FlightEnvelope:
             ),
             self._loiter_clearance(aims, np.maximum(speeds_now, commanded)),
         )
-        if lossy is not None and len(self.cells.threat_radius_km):
+        if lossy is not None and threats:
             flown = lossy.from_command.reshape(-1, *lossy.from_command.shape[2:])
             clearance = np.minimum(
                 clearance,
@@ -293,10 +299,11 @@ class FlightEnvelope:
                 default=np.inf,
             )
 
+        predicted = closest(nominal)
+        as_flown = closest(kept_apart) if len(tiers) > 1 else predicted
         return FlightChoice(
-            out_aims, out_cells, out_headings, out_speeds, overrides, closest(nominal),
-            closest(kept_apart),
-        )  # fmt: skip
+            out_aims, out_cells, out_headings, out_speeds, overrides, predicted, as_flown
+        )
 
     # ------------------------------------------------------------------ pieces
 
@@ -421,8 +428,9 @@ class FlightEnvelope:
             speed_mps=np.concatenate([v[2] for v in variants]),
             commanded_mps=np.concatenate([v[3] for v in variants]),
         ).reshape(len(variants), m, -1, 2)
-        from_now = flown.copy()
+        from_now = None
         if on_way is not None:  # the late ones: the stretch to the previous target first
+            from_now = flown.copy()
             samples = flown.shape[2]
             late = np.concatenate([np.broadcast_to(on_way, (2, *on_way.shape)), flown[1:, :, 1:]],
                                   axis=2)[:, :, :samples]  # fmt: skip

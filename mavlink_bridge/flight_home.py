@@ -9,7 +9,6 @@ the daemon's :class:`FlightHome`.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -310,8 +309,7 @@ def way_home(
     way home: None when RTL's straight line (and the turn onto it) is clear, or no way is
     known (``HomeRoutes.waypoint``, which judges ``rtl_clear`` first)."""
     xy, home = place_and_home(daemon, v)
-    course = math.atan2(v.vn_mps, v.ve_mps)
-    return xy, home, course, routes.waypoint(xy, home, course)
+    return xy, home, v.course_rad, routes.waypoint(xy, home, v.course_rad)
 
 
 def reposition_to(daemon: MissionDaemon, v: VehicleState, xy_km: np.ndarray) -> Command:
@@ -339,8 +337,7 @@ def hold_for_separation(
         if o.system_id in deciding or o.lost or not o.airborne or o.home is None:
             continue
         if o.has_position:
-            course = math.atan2(o.vn_mps, o.ve_mps)
-            rtl.append((o.system_id, *place_and_home(daemon, o), course, o.speed_mps))
+            rtl.append((o.system_id, *place_and_home(daemon, o), o.course_rad, o.speed_mps))
     set_count = len(rtl)
     by_id = {v.system_id: v for v in vehicles}
     for sid, (xy, home, course, waypoint) in ways.items():

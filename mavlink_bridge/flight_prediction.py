@@ -69,6 +69,15 @@ class PlaneModel:
         tightest = self.loiter_radius_factor * self.min_turn_radius_km(speed_mps)
         return np.maximum(tightest, abs(self.wp_loiter_radius_m) / 1000.0)
 
+    def fastest_for_loiter_radius_mps(self, radius_km: np.ndarray | float) -> np.ndarray:
+        """The fastest airspeed whose loiter circle (``loiter_radius_km``) is no wider than
+        ``radius_km``: the inverse of the tightest circle; 0 where WP_LOITER_RAD alone is
+        wider (no airspeed flies a circle that small)."""
+        r_m = np.asarray(radius_km, dtype=float) * 1e3
+        turn = GRAVITY_MPS2 * np.tan(np.radians(self.bank_limit_deg)) / self.loiter_radius_factor
+        fastest = np.sqrt(np.maximum(r_m, 0.0) * turn)
+        return np.where(r_m >= abs(self.wp_loiter_radius_m), fastest, 0.0)
+
     def loiter_reach_km(self, speed_mps: np.ndarray | float | None = None) -> np.ndarray:
         """How far from a loiter point a plane strays when it arrives there: a loiter diameter.
         It flies straight at the point, passes it, and only then turns onto its circle (the

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mavlink_bridge.flight_prediction import GRAVITY_MPS2, PlaneModel, predict_paths
+from mavlink_bridge.flight_prediction import PlaneModel, predict_paths
 from mavlink_bridge.safe_return import HomeRoutes
 
 
@@ -399,9 +399,8 @@ def home_circle_speeds(
     np.fill_diagonal(gap, np.inf)
     cruise, slowest = plane.speed_mps, min(plane.slowest_mps, plane.speed_mps)
     # fastest speed whose loiter radius is at most (D - d_min) / 3
-    radius_m = np.maximum(gap.min(axis=1) - d_min_km, 0.0) / 3.0 * 1e3
-    turn = GRAVITY_MPS2 * math.tan(math.radians(plane.bank_limit_deg)) / plane.loiter_radius_factor
-    speeds = np.clip(np.sqrt(radius_m * turn), slowest, cruise)
+    room_km = np.maximum(gap.min(axis=1) - d_min_km, 0.0) / 3.0
+    speeds = np.clip(plane.fastest_for_loiter_radius_mps(room_km), slowest, cruise)
     for sid, speed in zip(ids, speeds, strict=True):
         if speed < cruise:
             circles.speeds_mps[sid] = float(speed)

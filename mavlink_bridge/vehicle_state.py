@@ -135,6 +135,12 @@ class VehicleState:
         return math.hypot(self.vn_mps, self.ve_mps)
 
     @property
+    def course_rad(self) -> float:
+        """Course over ground from the last position report, rad from east (counter-clockwise);
+        meaningful while it moves (``speed_mps`` above 1 m/s)."""
+        return math.atan2(self.vn_mps, self.ve_mps)
+
+    @property
     def clock_ms(self) -> int:
         """The vehicle's own clock (time_boot_ms) as last reported, by position or SYSTEM_TIME."""
         return max(self.time_boot_ms, self.system_time_boot_ms)

@@ -75,8 +75,7 @@ class DaemonViewFeed:
             v = daemon.vehicle(i)
             x, y = (float(c) for c in record.positions_km[i])
             fallback = float(record.headings[i]) * 45.0
-            moving = math.hypot(v.vn_mps, v.ve_mps) > 1.0
-            course = math.degrees(math.atan2(v.vn_mps, v.ve_mps)) if moving else fallback
+            course = math.degrees(v.course_rad) if v.speed_mps > 1.0 else fallback
             mode = "" if record.modes is None else MODES[int(record.modes[i])]
             vehicles.append(
                 VehicleView(
@@ -87,7 +86,7 @@ class DaemonViewFeed:
                     target_km=(float(record.aims_km[i, 0]), float(record.aims_km[i, 1])),
                     mode=mode_name(v.custom_mode) if v.custom_mode >= 0 else "",
                     planner_mode=mode,
-                    ground_speed_mps=math.hypot(v.vn_mps, v.ve_mps),
+                    ground_speed_mps=v.speed_mps,
                     airspeed_mps=float(record.speeds_mps[i]),
                     last_heard_s=max(0.0, v.silent_for(now)),
                     signed=signed,
