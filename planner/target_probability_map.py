@@ -262,6 +262,35 @@ def shift_with_reflection(
     return out
 
 
+def drifted_ratio(
+    keys: np.ndarray, ratio: np.ndarray, phase: np.ndarray, grid: Grid, lookup: np.ndarray
+) -> np.ndarray:
+    """Eq 18's likelihood ratio for layers kept shifted by whole cells while their targets
+    drift by a part of one more (eq 22): the target believed in stored cell s is uniform over
+    [s + phase, s + phase + 1) along each axis, so it overlaps cell s with share
+    (1 - |phase|) and its neighbour towards the phase with share |phase|, and the ratio of a
+    look for it is the share-weighted mean of those cells' ratios (``ratio`` at the sorted
+    ``keys``, UAV * cells + cell; 1 at cells nobody looked at; a neighbour over the area's
+    edge is the cell itself, where the reflected part lies). ``phase`` is (V, 2) in
+    [-1/2, 1/2]; the result is (V, P). Reading ratios only at looked-at cells leaves out the
+    stored cells just outside a footprint, where eq 17's ratio is close to 1. ``lookup`` is
+    a scratch array of ones, one per UAV and cell, left as it was found."""
+    uav, cell = np.divmod(keys, grid.size)
+    x, y = np.divmod(cell, grid.ny)
+    toward = np.sign(phase).astype(np.int64)  # (V, 2)
+    share = np.abs(phase)
+    near_x = np.clip(x[None] + toward[:, 0, None], 0, grid.nx - 1) * grid.ny  # (V, P)
+    near_y = np.clip(y[None] + toward[:, 1, None], 0, grid.ny - 1)
+    row, base = x * grid.ny, uav * grid.size
+    lookup[keys] = ratio
+    out = ((1.0 - share[:, 0]) * (1.0 - share[:, 1]))[:, None] * ratio[None]
+    out += (share[:, 0] * (1.0 - share[:, 1]))[:, None] * lookup[base + near_x + y]
+    out += ((1.0 - share[:, 0]) * share[:, 1])[:, None] * lookup[base + row + near_y]
+    out += (share[:, 0] * share[:, 1])[:, None] * lookup[base + near_x + near_y]
+    lookup[keys] = 1.0
+    return out
+
+
 # ----------------------------------------------------------------------------- layers
 
 
@@ -373,8 +402,12 @@ class TargetProbabilityMaps:
         self.stencil = SquareStencil(self.maps.shape[1:], self.maps.dtype)
         self.work = np.empty(self.maps.shape[1:], dtype=self.maps.dtype)  # one layer's maps
         self.wiener_work = np.empty_like(self.work)
+        self.ratio_lookup = np.ones(self.maps.shape[1] * self.grid.size)  # drifted_ratio's
         self.shift_rate = np.zeros((len(self.specs), 2))  # cells per step
         self.wiener_layers = [l for l, s in enumerate(self.specs) if s.kind == "known_position"]
+        self.drift_layers = np.array(
+            [l for l, s in enumerate(self.specs) if s.kind == "known_velocity"], dtype=np.int64
+        )
         self.shift_accum = np.zeros((len(self.specs), 2))
         for l, spec in enumerate(self.specs):
             step_cells = spec.speed_mps / 1000.0 * dt / cfg.cell_km
@@ -441,7 +474,8 @@ class TargetProbabilityMaps:
                     self.maps[l] = convolve_reflect(layer, self.ring_kernels[l])
             elif spec.kind == "known_velocity":
                 # Exact sub-cell bookkeeping: move whole cells once the drift reaches half a cell,
-                # so the map is not blurred by repeated interpolation.
+                # so the map is not blurred by repeated interpolation; the part of a cell left
+                # (shift_accum) is where looks read the targets (drifted_ratio).
                 self.shift_accum[l] += self.shift_rate[l]
                 whole = np.rint(self.shift_accum[l]).astype(int)
                 if whole.any():
@@ -485,7 +519,15 @@ class TargetProbabilityMaps:
         view = self.maps.reshape(len(self.specs), -1)  # (L, N * cells): keys index it directly
         scale = self.scale[:, uav]  # (L, P)
         stored_before = view[:, keys]
-        updated = posterior(stored_before * scale, np.exp(log_ratio)[None, :])
+        cell_ratio = np.exp(log_ratio)
+        ratio = np.broadcast_to(cell_ratio[None, :], stored_before.shape)
+        drifting = self.drift_layers[(self.shift_accum[self.drift_layers] != 0).any(axis=1)]
+        if drifting.size:  # known-velocity layers a part of a cell beside their targets
+            ratio = ratio.copy()
+            ratio[drifting] = drifted_ratio(
+                keys, cell_ratio, self.shift_accum[drifting], grid, self.ratio_lookup
+            )
+        updated = posterior(stored_before * scale, ratio)
         if (self.scale > 0).all():  # the usual case: no layer is empty, no zero scale to skip
             stored = (updated / scale).astype(np.float32)
         else:
