@@ -9,7 +9,7 @@ pheromone eqs 28-34, transition rules eqs 35-37 with the N_t escape) with exactl
 taken out, and nothing else changed, so a comparison isolates what the paper claims they add:
 
 1. **The APF without the TPM's forecast update (eqs 19-22).** The map the potential field
-   (eqs 23-27) and the heuristic information read is initialised from the priors (eqs 9-16)
+   (eqs 23-27, its far attraction included) and the heuristic information read is initialised from the priors (eqs 9-16)
    and updated by what the sensors see (eqs 17-18), but never propagated with the targets'
    motion models: the field believes the targets stay where the prior or the last look put
    them. Sensing, confirmation and engagement are not the APF: they read HAPF-ACO's own TPM
@@ -104,11 +104,10 @@ class AcoApfPlanner(HapfAcoPlanner):
         self.flown_km = np.zeros(self.n)
         self.out_of_fuel = np.zeros(self.n, dtype=bool)
 
-    def _existence_window(self) -> np.ndarray:
-        """HAPF-ACO's window of existence probabilities for the potential field and the
-        heuristic information, read from the forecast-free map (``ApfBeliefs.static``)."""
-        around = self.cells[:, None, None, :] + self.window_offsets[None]
-        return self.tpm.static.existence_at(np.arange(self.n)[:, None, None], around)
+    def _field_beliefs(self) -> TargetProbabilityMaps:
+        """The potential field, its far attraction and the heuristic information read the
+        forecast-free map (``ApfBeliefs.static``)."""
+        return self.tpm.static
 
     def step(
         self,

@@ -427,12 +427,17 @@ class HapfAcoPlanner:
 
     # ------------------------------------------------------------------ decision
 
+    def _field_beliefs(self) -> TargetProbabilityMaps:
+        """The TPM the potential field (eqs 23-24, the far attraction) and the heuristic
+        information read: HAPF-ACO's own, forecast included (ACOAPF reads another)."""
+        return self.tpm
+
     def _existence_window(self) -> np.ndarray:
         """Each UAV's existence probabilities on the square of half-side ``window_reach`` around
         its cell, (N, 2r+1, 2r+1) (0 outside the area): one TPM read serves the footprint's
         forces and every candidate's footprint mass."""
         around = self.cells[:, None, None, :] + self.window_offsets[None]
-        return self.tpm.existence_at(np.arange(self.n)[:, None, None], around)
+        return self._field_beliefs().existence_at(np.arange(self.n)[:, None, None], around)
 
     def _forces(
         self, window: np.ndarray, positions: np.ndarray, neighbours: np.ndarray
@@ -480,8 +485,9 @@ class HapfAcoPlanner:
         footprint)."""
         cfg = self.cfg
         if self.k % cfg.far_refresh_steps == 0:
+            beliefs = self._field_beliefs()
             self.far_masses = block_masses(
-                self.tpm.maps, self.tpm.scale, cfg.far_block_cells, ~self.coverage
+                beliefs.maps, beliefs.scale, cfg.far_block_cells, ~self.coverage
             )
         ahead = cand + HEADING_STEPS[cand_head] * cfg.far_lookahead_steps
         v = far_potential(self.far_kernel, self.far_masses, self.grid.clipped_flat(ahead))

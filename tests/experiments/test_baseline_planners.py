@@ -8,6 +8,7 @@ import pytest
 
 from planner.acoapf import AcoApfPlanner, StaticTargetProbabilityMaps, fuel_exhausted
 from planner.hapf_aco import HapfAcoPlanner
+from planner.potential_field import block_masses
 from planner.pso import PsoPlanner, PsoSettings
 from planner.scenario import load_scenario
 from sim_gateway.offline_runner import PLANNERS, run_offline
@@ -94,6 +95,20 @@ def test_acoapf_field_has_no_forecast_but_its_confirmation_beliefs_have():
     around = aco.cells[:, None, None, :] + aco.window_offsets[None]
     np.testing.assert_array_equal(
         window, aco.tpm.static.existence_at(np.arange(aco.n)[:, None, None], around)
+    )
+    # and so does its far attraction (on in paper-2uav): the block masses at a refresh step
+    assert aco.cfg.far_weight > 0
+    aco.k = 2 * aco.cfg.far_refresh_steps
+    options = aco._move_options()
+    aco._far_share(options.cells, options.headings, options.feasible)
+    unsearched = ~aco.coverage
+    static, full = aco.tpm.static, aco.tpm.full
+    blocks = aco.cfg.far_block_cells
+    np.testing.assert_array_equal(
+        aco.far_masses, block_masses(static.maps, static.scale, blocks, unsearched)
+    )
+    assert not np.array_equal(
+        aco.far_masses, block_masses(full.maps, full.scale, blocks, unsearched)
     )
 
 
