@@ -20,8 +20,11 @@ action 0 leaves GUIDED alone on an RC loss; the long timeout only says when the 
 the failsafe (it changes nothing in GUIDED with *Continue*).
 
 Parameters are set with PARAM_SET and confirmed by the PARAM_VALUE the vehicle answers with;
-unanswered ones are resent. A vehicle that refuses (answers another value) or never answers
-fails the launch with a line naming it and the fix.
+unanswered ones are resent every half second, for up to 20 s (a set and its answer both get
+through a link losing 30 % each way in half the tries, so 12 tries left about one launch in a
+hundred of ten planes unconfirmed; 40 leave one in 10^5 at 50 % loss each way). A vehicle that
+refuses (answers another value) or never answers fails the launch with a line naming it and
+the fix.
 """
 
 from __future__ import annotations
@@ -70,7 +73,7 @@ def set_gcs_failsafe(
     vehicles: Sequence[VehicleState],
     settings: GcsFailsafeSettings = MISSION_FAILSAFE,
     retry_s: float = 0.5,
-    attempts: int = 12,
+    attempts: int = 40,
 ) -> None:
     """Set ``settings`` on every vehicle and wait until each confirms every value."""
     todo = {

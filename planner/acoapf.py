@@ -9,12 +9,12 @@ pheromone eqs 28-34, transition rules eqs 35-37 with the N_t escape) with exactl
 taken out, and nothing else changed, so a comparison isolates what the paper claims they add:
 
 1. **The APF without the TPM's forecast update (eqs 19-22).** The map the potential field
-   (eqs 23-27, its far attraction included) and the heuristic information read is initialised from the priors (eqs 9-16)
-   and updated by what the sensors see (eqs 17-18), but never propagated with the targets'
-   motion models: the field believes the targets stay where the prior or the last look put
-   them. Sensing, confirmation and engagement are not the APF: they read HAPF-ACO's own TPM
-   (with the forecast) through HAPF-ACO's code, so all three planners confirm and engage by
-   one rule (section 3.2.1) and differ only in how they move.
+   (eqs 23-27, its far attraction included) and the heuristic information read is initialised
+   from the priors (eqs 9-16) and updated by what the sensors see (eqs 17-18), but never
+   propagated with the targets' motion models: the field believes the targets stay where the
+   prior or the last look put them. Sensing, confirmation and engagement are not the APF:
+   they read HAPF-ACO's own TPM (with the forecast) through HAPF-ACO's code, so all three
+   planners confirm and engage by one rule (section 3.2.1) and differ only in how they move.
 2. **No range term (C_r in eqs 35 and 37).** The planner neither keeps a return slack nor flies
    home; it plans as if L_max were infinite.
 

@@ -2,8 +2,6 @@
 gradient of the TPM at a UAV's own cell is near zero away from a prior's blob, so without it a
 sparse swarm flies past the priors; paper-2uav turns it on (docs/parameters.md)."""
 
-import numpy as np
-
 from planner.hapf_aco import HapfAcoPlanner
 from planner.scenario import load_scenario, parse_scenario
 from sim_gateway.offline_runner import run_offline

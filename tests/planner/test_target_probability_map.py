@@ -160,9 +160,7 @@ def _track_with_exact_looks(velocity_cells, start_km, steps, cfg):
         cell = np.floor(position).astype(int)
         looked = cell + offsets
         looked = looked[GRID.inside(looked)]
-        tpm.apply_looks(
-            np.array([0]), [looked], [(looked == cell).all(axis=1)], cell[None, :]
-        )
+        tpm.apply_looks(np.array([0]), [looked], [(looked == cell).all(axis=1)], cell[None, :])
         tpm.renormalise()
         truth.append(position.copy())
         tpm.forecast()
