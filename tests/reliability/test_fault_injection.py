@@ -10,6 +10,7 @@ import os
 os.environ.setdefault("MAVLINK20", "1")
 
 from collections import deque  # noqa: E402
+from contextlib import contextmanager  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
@@ -92,22 +93,34 @@ def test_ten_uav_mission_at_20_percent_loss_and_100ms_jitter_has_no_violations(t
     assert result["engaged_count"] == len(scenario.targets) - summary["targets_left"]
 
 
-@pytest.mark.timeout(200)
-def test_the_fence_gets_through_a_link_losing_30_percent_each_way():
-    """Finding 10: at 30 % loss the fence upload restarted the whole exchange at every stall
-    and gave up after 20 s in 2 of 3 runs. Three uploads in a row to ten vehicles must all
-    complete, each vehicle storing every circle."""
-    scenario = load_scenario("paper-10uav")
-    ids = list(range(1, scenario.uav_count + 1))
+@contextmanager
+def ten_vehicles_through(profile: FaultProfile, seed: int):
+    """paper-10uav's simulator behind the fault relay, the ten vehicles found on a SwarmLink:
+    yields (link, vehicles, relay); everything is stopped and closed after."""
+    ids = list(range(1, 11))
     link = SwarmLink.open(["udpin:127.0.0.1:0"], accept_system_id=lambda s: s in ids)
-    profile = FaultProfile(loss=0.3, jitter_s=0.05)
-    relay = FaultRelay(link.endpoints[0].port, scenario.uav_count, profile, seed=10)
+    relay = FaultRelay(link.endpoints[0].port, len(ids), profile, seed=seed)
     relay.start()
     sim = start_swarmplan(
         ["sim", "--scenario", "paper-10uav", "--boot-s", "0", "--speedup", "1",
          "--per-vehicle-ports", str(relay.base_port), "--quiet"],
         Path(os.devnull),
     )  # fmt: skip
+    try:
+        wait_for_vehicles(link, ids, 60)
+        yield link, [link.vehicles[i] for i in ids], relay
+    finally:
+        stop(sim)
+        relay.stop()
+        link.close()
+
+
+@pytest.mark.timeout(200)
+def test_the_fence_gets_through_a_link_losing_30_percent_each_way():
+    """Finding 10: at 30 % loss the fence upload restarted the whole exchange at every stall
+    and gave up after 20 s in 2 of 3 runs. Three uploads in a row to ten vehicles must all
+    complete, each vehicle storing every circle."""
+    scenario = load_scenario("paper-10uav")
     lat, lon = local_km_to_geodetic(
         [t.x_km for t in scenario.threats], [t.y_km for t in scenario.threats], scenario.origin
     )
@@ -115,9 +128,9 @@ def test_the_fence_gets_through_a_link_losing_30_percent_each_way():
         FenceCircle(float(la), float(lo), t.radius_km * 1e3)
         for la, lo, t in zip(lat, lon, scenario.threats, strict=True)
     ]
-    try:
-        wait_for_vehicles(link, ids, 60)
-        vehicles = [link.vehicles[i] for i in ids]
+    with ten_vehicles_through(FaultProfile(loss=0.3, jitter_s=0.05), seed=10) as (
+        link, vehicles, relay,
+    ):  # fmt: skip
         # each upload returns only once every vehicle answered MISSION_ACK ACCEPTED for the
         # fence (any other answer, or a stall, raises MissionUploadError naming the vehicle).
         # The vehicles' last MISSION_ACK is not asserted: an exchange restarted because its
@@ -125,10 +138,6 @@ def test_the_fence_gets_through_a_link_losing_30_percent_each_way():
         # the upload ended, which keeps the fence it stored (sim_gateway/mission_protocol.py)
         for _ in range(3):
             upload_fence(link, vehicles, circles)
-    finally:
-        stop(sim)
-        relay.stop()
-        link.close()
     assert 0.25 < relay.counters.dropped / relay.counters.received < 0.35
 
 
@@ -139,25 +148,9 @@ def test_the_gcs_failsafe_gets_through_a_link_losing_half_of_everything():
     link losing 50 % each way, three launches in a row set and confirm every parameter of the
     GCS failsafe on ten vehicles (with 12 tries each of a launch's 40 parameters went
     unconfirmed about 3 % of the time)."""
-    scenario = load_scenario("paper-10uav")
-    ids = list(range(1, scenario.uav_count + 1))
-    link = SwarmLink.open(["udpin:127.0.0.1:0"], accept_system_id=lambda s: s in ids)
-    relay = FaultRelay(link.endpoints[0].port, scenario.uav_count, FaultProfile(loss=0.5), seed=12)
-    relay.start()
-    sim = start_swarmplan(
-        ["sim", "--scenario", "paper-10uav", "--boot-s", "0", "--speedup", "1",
-         "--per-vehicle-ports", str(relay.base_port), "--quiet"],
-        Path(os.devnull),
-    )  # fmt: skip
-    try:
-        wait_for_vehicles(link, ids, 60)
-        vehicles = [link.vehicles[i] for i in ids]
+    with ten_vehicles_through(FaultProfile(loss=0.5), seed=12) as (link, vehicles, relay):
         for _ in range(3):  # each returns only once every vehicle confirmed every value
             set_gcs_failsafe(link, vehicles)
-    finally:
-        stop(sim)
-        relay.stop()
-        link.close()
     for v in vehicles:
         for name, value, _ in MISSION_FAILSAFE.parameters():
             assert v.params[name] == value, (v.system_id, name)
