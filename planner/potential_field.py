@@ -124,15 +124,15 @@ def block_masses(
     UAV: ``maps`` (L, N, nx, ny) stored TPM layers, ``scale`` (L, N) their scales
     (``TargetProbabilityMaps``), counting only the cells ``keep`` (N, nx, ny) bool marks;
     returns (N, B)."""
-    layers, n, nx, ny = maps.shape
+    _, n, nx, ny = maps.shape
+    expected = np.einsum("lnxy,ln->nxy", maps, scale.astype(np.float32))  # (N, nx, ny)
     if keep is not None:
-        maps = maps * keep[None]
+        expected *= keep
     b = block_cells
     bx, by = -(-nx // b), -(-ny // b)
     if (bx * b, by * b) != (nx, ny):
-        maps = np.pad(maps, ((0, 0), (0, 0), (0, bx * b - nx), (0, by * b - ny)))
-    sums = maps.reshape(layers, n, bx, b, by, b).sum(axis=(3, 5), dtype=np.float64)
-    return np.einsum("lnxy,ln->nxy", sums, scale).reshape(n, bx * by)
+        expected = np.pad(expected, ((0, 0), (0, bx * b - nx), (0, by * b - ny)))
+    return expected.reshape(n, bx, b, by, b).sum(axis=(2, 4), dtype=np.float64).reshape(n, -1)
 
 
 def far_potential(weights: np.ndarray, masses: np.ndarray, flat_cells: np.ndarray) -> np.ndarray:
