@@ -32,7 +32,9 @@ from mavlink_bridge.checkpoint import (
 
 STEPS = 24
 KILL_AFTER_STEP = 8
-SPEEDUP = 20
+# 10x, not 20x: at 20x a step's computation must fit twice into 60 % of 0.5 s of wall time, and
+# the launch's calibration refused that time scale on a loaded machine (keeping_up.py)
+SPEEDUP = 10
 
 
 def _checkpoint_step(path: Path) -> int:
