@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from planner.hapf_aco import HapfAcoPlanner
-from planner.scenario import parse_scenario
+from planner.scenario import load_scenario, parse_scenario
 from planner.sensor_model import SensorReport
 from sim_gateway.offline_runner import run_offline
 
@@ -186,3 +186,21 @@ def test_the_likeliest_cell_of_a_confirmed_target_is_the_one_flown_to():
     assert p.min() >= planner.cfg.confirm_threshold and p[1] > p[0], p
     assert planner.track_confirmed[0]
     assert (planner.track[0] == east).all(), planner.track[0]
+
+
+def test_paper_10uav_confirms_at_0_6_and_misses_less_for_it():
+    # A dense swarm examines many false suspects, some of which reach 0.5 by chance: confirming
+    # at 0.6 (the scenario's) halves the engage misses (seeds 1-60, 250 steps: 0.63 per run
+    # against 1.37) and engages as many over the mission (9.60 against 9.47; docs/parameters.md:
+    # the surer confirmations come later, so the first 100 steps engage ~10 % fewer). Here 24
+    # seeds of the first 100 steps.
+    scenario = load_scenario("paper-10uav")
+    assert scenario.config.confirm_threshold == 0.6
+
+    def misses(s) -> int:
+        return sum(
+            run_offline(s, seed, 100, account=False)["engage_misses"] for seed in range(1, 25)
+        )
+
+    at_six, at_half = misses(scenario), misses(scenario.with_config(confirm_threshold=0.5))
+    assert 2 * at_six <= at_half, (at_six, at_half)
