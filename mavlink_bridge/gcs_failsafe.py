@@ -21,8 +21,8 @@ the failsafe (it changes nothing in GUIDED with *Continue*).
 
 Parameters are set with PARAM_SET and confirmed by the PARAM_VALUE the vehicle answers with;
 unanswered ones are resent every half second, for up to 20 s (a set and its answer both get
-through a link losing 30 % each way in half the tries, so 12 tries left about one launch in a
-hundred of ten planes unconfirmed; 40 leave one in 10^5 at 50 % loss each way). A vehicle that
+through a link losing 30 % each way in half the tries, so 12 tries left about one launch of
+ten planes in 80 unconfirmed; 40 leave one parameter in 10^5 at 50 % loss each way). A vehicle that
 refuses (answers another value) or never answers fails the launch with a line naming it and
 the fix.
 """

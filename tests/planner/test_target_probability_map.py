@@ -145,7 +145,7 @@ def test_shift_with_reflection_folds_mass_at_the_edge():
 def _track_with_exact_looks(velocity_cells, start_km, steps, cfg):
     """A known-velocity target flown exactly as the world moves it (reflected at the edges),
     looked at every step over the 5 x 5 cells around it with a perfect detection at its true
-    cell; returns the TPM, the true positions and where it is at the end."""
+    cell; returns the TPM and where the target is at the end."""
     speed = np.hypot(*velocity_cells) * 1000 / cfg.step_s
     heading = float(np.arctan2(velocity_cells[1], velocity_cells[0]))
     prior_x = start_km[0] - speed / 1000 * cfg.t0_s * np.cos(heading)
@@ -154,7 +154,6 @@ def _track_with_exact_looks(velocity_cells, start_km, steps, cfg):
     tpm = TargetProbabilityMaps((target,), cfg, n_uavs=1)
     position = np.array(start_km, dtype=float)
     step = np.array(velocity_cells, dtype=float)
-    truth = []
     offsets = np.array([(a, b) for a in range(-2, 3) for b in range(-2, 3)])
     for _ in range(steps):
         cell = np.floor(position).astype(int)
@@ -162,7 +161,6 @@ def _track_with_exact_looks(velocity_cells, start_km, steps, cfg):
         looked = looked[GRID.inside(looked)]
         tpm.apply_looks(np.array([0]), [looked], [(looked == cell).all(axis=1)], cell[None, :])
         tpm.renormalise()
-        truth.append(position.copy())
         tpm.forecast()
         position += step
         for axis in range(2):  # reflect at the area's edge, as the world does
@@ -170,7 +168,7 @@ def _track_with_exact_looks(velocity_cells, start_km, steps, cfg):
                 position[axis], step[axis] = -position[axis], -step[axis]
             if position[axis] > 100:
                 position[axis], step[axis] = 200 - position[axis], -step[axis]
-    return tpm, np.array(truth), position
+    return tpm, position
 
 
 def test_known_velocity_belief_stays_on_a_target_crossing_cell_boundaries():
@@ -179,7 +177,7 @@ def test_known_velocity_belief_stays_on_a_target_crossing_cell_boundaries():
     moves by whole cells, up to half a cell beside the target; a look that ignored that part
     ruled the belief out at the target's true cell)."""
     cfg = CFG.replace(delta_0_km=1.0)
-    tpm, truth, now = _track_with_exact_looks((0.3, 0.1), (40.2, 50.5), 40, cfg)
+    tpm, now = _track_with_exact_looks((0.3, 0.1), (40.2, 50.5), 40, cfg)
     cell = np.floor(now).astype(int)
     belief = tpm.layer_map(0, 0)
     assert belief[cell[0] - 1 : cell[0] + 2, cell[1] - 1 : cell[1] + 2].sum() > 0.9

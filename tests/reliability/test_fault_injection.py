@@ -95,9 +95,9 @@ def test_ten_uav_mission_at_20_percent_loss_and_100ms_jitter_has_no_violations(t
 
 @contextmanager
 def ten_vehicles_through(profile: FaultProfile, seed: int):
-    """paper-10uav's simulator behind the fault relay, the ten vehicles found on a SwarmLink:
+    """paper-10uav's simulator behind the fault relay, its vehicles found on a SwarmLink:
     yields (link, vehicles, relay); everything is stopped and closed after."""
-    ids = list(range(1, 11))
+    ids = list(range(1, load_scenario("paper-10uav").uav_count + 1))
     link = SwarmLink.open(["udpin:127.0.0.1:0"], accept_system_id=lambda s: s in ids)
     relay = FaultRelay(link.endpoints[0].port, len(ids), profile, seed=seed)
     relay.start()
