@@ -47,6 +47,8 @@ class FlightHome:
     #: keep the ways home d_min apart: only when the daemon stays to watch the flight home
     separate: bool = False
     holding: dict[int, np.ndarray] = field(default_factory=dict)
+    #: of ``holding``, the planes that fly through their point on the way home (a detour)
+    detouring: set[int] = field(default_factory=set)
     held: set[int] = field(default_factory=set)
     unresolved: set[int] = field(default_factory=set)
     routes: HomeRoutes | None = None  # the way home around threats, for the plane model in force
@@ -349,15 +351,22 @@ def hold_for_separation(
     for sid, (xy, _home, course, waypoint) in ways.items():
         leg = flights[sid] if waypoint is None else separation.leg(sid, xy, waypoint, False)
         waiting.append((leg, course))
-    plan = separation.plan(set_legs, waiting, keep=flight.holding)
+    plan = separation.plan(set_legs, waiting, keep=flight.holding, detouring=flight.detouring)
+    flight.detouring = set(plan.detours)
     for sid, point in plan.holds.items():
-        if sid not in flight.holding:
-            flight.held.add(sid)
+        if sid in plan.staggered:
+            daemon.say(
+                f"vehicle {sid} holds at ({point[0]:.1f}, {point[1]:.1f}) km while vehicle "
+                f"{plan.staggered[sid]} leaves first: their ways home cross, and they are too "
+                "close for either to wait or go around the other alone"
+            )
+        elif sid not in flight.holding:
             how = "flies home via" if sid in plan.detours else "holds at"
             daemon.say(
                 f"vehicle {sid} {how} ({point[0]:.1f}, {point[1]:.1f}) km: its way home "
                 f"would come within d_min of another plane's"
             )
+        flight.held.add(sid)
     for sid in set(plan.unresolved) - flight.unresolved:
         flight.unresolved.add(sid)
         daemon.say(

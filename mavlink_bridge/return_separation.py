@@ -236,8 +236,21 @@ class ReturnSeparation:
         at_aim = np.minimum(leg.stray_at_aim_km, flown)
         return np.where(t >= leg.arrival_s, at_aim, np.minimum(self.slack_km, flown))
 
+    def conflict(self, a: Homeward, b: Homeward) -> bool:
+        """``clearance_km(a, b) < d_min_km``, first judged at equal instants alone (a subset
+        of the pairs compared: most conflicts show there, at a fraction of the cost)."""
+        horizon = max(a.arrival_s, b.arrival_s) + self.sample_s
+        t = np.arange(0.0, horizon + self.sample_s, self.sample_s)
+        gap = np.hypot(*(a.positions(t) - b.positions(t)).T)
+        clear = gap - self._stray_km(a, t) - self._stray_km(b, t)
+        if a.at_home and b.at_home:
+            clear = clear[~((t >= a.arrival_s) & (t >= b.arrival_s))]
+        if len(clear) and clear.min() < self.d_min_km:
+            return True
+        return self.clearance_km(a, b) < self.d_min_km
+
     def conflicts(self, leg: Homeward, others: list[Homeward]) -> bool:
-        return any(self.clearance_km(leg, o) < self.d_min_km for o in others)
+        return any(self.conflict(leg, o) for o in others)
 
     def _rings(self, xy: np.ndarray, radii_km: tuple[float, ...]) -> np.ndarray:
         """Points on circles of ``radii_km`` around ``xy``, ``hold_directions`` to a circle,
@@ -316,42 +329,246 @@ class ReturnSeparation:
                 return point.copy()
         return None
 
+    def guided_flights(
+        self,
+        system_id: int,
+        xy_km: np.ndarray,
+        course_rad: float,
+        points_km: np.ndarray,
+        then_km: np.ndarray | None = None,
+        at_home: bool = False,
+    ) -> list[Homeward]:
+        """The flights of one plane (at ``xy_km`` on ``course_rad``, at cruise) guided to each
+        of ``points_km`` (K, 2) as the plane model flies them, in one batch: the turn onto the
+        way, the overshoot and the circle there; with ``then_km``, on from each point (once
+        within a loiter radius of it, or past it) to ``then_km`` and circling that (a detour).
+        Each is a :class:`Homeward` with its path, judged ``track_km`` wide: where planes start
+        a few km apart, the straight line and its strays (``leg``) cannot tell a turn away
+        from a turn into the other's way."""
+        plane = self.routes.plane
+        points = np.asarray(points_km, float).reshape(-1, 2)
+        if len(points) == 0:
+            return []
+        xy = np.asarray(xy_km, float)
+        speed = plane.speed_mps
+        radius_km = float(plane.loiter_radius_km(speed))
+        turn_s = math.pi / float(plane.turn_rate_radps(speed))
+        circle_s = 2 * math.pi * radius_km * 1e3 / speed
+
+        def horizon(a: np.ndarray, b: np.ndarray) -> float:
+            return float(np.hypot(*(b - a).T).max()) * 1e3 / speed + turn_s + circle_s
+
+        starts = np.repeat(xy[None], len(points), axis=0)
+        courses = np.full(len(points), float(course_rad))
+        paths = list(
+            predict_paths(
+                plane,
+                starts,
+                courses,
+                points,
+                horizon(starts, points),
+                sample_s=self.sample_s,
+                dt_s=0.5,
+            )  # fmt: skip
+        )
+        aims = points
+        if then_km is not None:
+            aim = np.asarray(then_km, float)
+            # leaves each point once within a loiter radius of it, or at its closest approach
+            cut = []
+            for path, point in zip(paths, points, strict=True):
+                dist = np.hypot(*(path - point).T)
+                near = dist <= radius_km
+                cut.append(int(np.argmax(near)) if near.any() else int(np.argmin(dist)))
+            cut_at = np.array(cut)
+            here = np.array([p[i] for p, i in zip(paths, cut, strict=True)])
+            before = np.array([p[max(i - 1, 0)] for p, i in zip(paths, cut, strict=True)])
+            heading = np.arctan2(*(here - before).T[::-1])
+            aims = np.repeat(aim[None], len(points), axis=0)
+            onward = predict_paths(
+                plane, here, heading, aims, horizon(here, aims), sample_s=self.sample_s, dt_s=0.5
+            )
+            paths = [
+                np.concatenate([p[: i + 1], o[1:]])
+                for p, i, o in zip(paths, cut_at, onward, strict=True)
+            ]
+        flights = []
+        for k, path in enumerate(paths):
+            near = np.hypot(*(path - aims[k]).T) <= 1.1 * radius_km
+            arrival = float(np.argmax(near)) * self.sample_s if near.any() else len(path) * 1.0
+            flights.append(
+                Homeward(
+                    system_id,
+                    xy,
+                    aims[k],
+                    speed / 1e3,
+                    2 * radius_km,
+                    at_home and then_km is not None,
+                    via_km=None if then_km is None else points[k],
+                    path_km=path,
+                    path_dt_s=self.sample_s,
+                    path_arrival_s=arrival,
+                )  # fmt: skip
+            )
+        return flights
+
+    def _safe_points(self, xy: np.ndarray, course_rad: float, points: np.ndarray) -> np.ndarray:
+        """Of ``points``, those a plane at ``xy`` on ``course_rad`` may be guided to: its
+        circle there, the leg and the turn onto it keep the threat margin."""
+        routes = self.routes
+        points = points[self._circle_and_leg_clear(xy, points)]
+        if len(points) == 0:
+            return points
+        return points[routes.turn_clearance(xy, course_rad, points) >= routes.turn_margin_km]
+
+    def stagger(
+        self,
+        leg: Homeward,
+        course_rad: float,
+        fixed: list[Homeward],
+        released: dict[int, float],
+    ) -> tuple[int, np.ndarray, np.ndarray | None, Homeward, Homeward] | None:
+        """Two planes that end the mission a few km apart with crossing ways: the one cleared
+        first (``released``: system id -> course, its way straight home set in this plan)
+        flies its way through where ``leg``'s plane is, and ``leg``'s plane cannot get out of
+        it in time, nor detour around it, so neither holding nor detouring ``leg`` clears it.
+        A staggered departure does: the other plane holds (the nearest safe point whose
+        flight there conflicts with none of the rest) and ``leg``'s plane flies its way, or
+        the nearest detour, clear of that hold and of the rest. Both are judged as the plane
+        model flies them (``guided_flights``): the turn onto each way decides it here.
+        Returns (the holding plane, its point, ``leg``'s detour point or None, the hold's
+        flight, ``leg``'s flight), or None when no pair clears it (or more than one plane is
+        in the way)."""
+        blocking = [o for o in fixed if self.conflict(leg, o)]
+        if len(blocking) != 1 or blocking[0].system_id not in released:
+            return None
+        other = blocking[0]
+        rest = [o for o in fixed if o is not other]
+        other_course = released[other.system_id]
+        rings = self._rings(other.start_km, (0.0, *(r for r in self.hold_rings_km if r > 0)))
+        holds = self._safe_points(other.start_km, other_course, rings)
+        detours = self._rings(leg.start_km, self.detour_rings_km)
+        total = np.hypot(*(detours - leg.start_km).T) + np.hypot(*(leg.aim_km - detours).T)
+        detours = self._safe_points(leg.start_km, course_rad, detours[np.argsort(total)])
+        routes = self.routes
+        detours = detours[
+            routes.leg_clearance(detours, np.broadcast_to(leg.aim_km, detours.shape))
+            >= routes.margin_km
+        ]
+        ways: list[tuple[np.ndarray | None, Homeward]] = [(None, leg)] + list(
+            zip(
+                detours,
+                self.guided_flights(
+                    leg.system_id, leg.start_km, course_rad, detours, leg.aim_km, leg.at_home
+                ),
+                strict=True,
+            )
+        )
+        ways = [(via, way) for via, way in ways if not self.conflicts(way, rest)]
+        if not ways:
+            return None
+        hold_flights = self.guided_flights(other.system_id, other.start_km, other_course, holds)
+        for point, hold in zip(holds, hold_flights, strict=True):
+            if self.conflicts(hold, rest):
+                continue
+            for via, way in ways:
+                if not self.conflict(way, hold):
+                    return other.system_id, point.copy(), via, hold, way
+        return None
+
     def plan(
         self,
         set_legs: list[Homeward],
         waiting: list[tuple[Homeward, float]],
         keep: dict[int, np.ndarray] | None = None,
+        detouring: set[int] | frozenset[int] = frozenset(),
     ) -> ReturnPlan:
         """Which of the ``waiting`` planes (their leg home and their course) must hold, and
         where. ``set_legs`` are flights nobody can change any more; ``keep``: the points planes
-        hold at now (kept while good). A plane that conflicts and finds no hold point flies
-        its leg (``unresolved``: the daemon says so)."""
+        hold at or detour through now (``detouring``: those that detour), kept while good.
+
+        A plane holding now keeps its hold (judged as the plane model flies it) while that
+        conflicts with none set, and the others are judged against it: a plane that another
+        holds for must not then fly through the hold. It flies home once its way conflicts
+        with none of what the others do. A plane that conflicts and finds no hold point,
+        detour or staggered departure (``stagger``) flies its leg (``unresolved``: the daemon
+        says so)."""
         keep = keep or {}
         fixed = list(set_legs)
         plan = ReturnPlan()
-        for leg, course in sorted(waiting, key=lambda lc: (lc[0].arrival_s, lc[0].system_id)):
-            blocking = [o for o in fixed if self.clearance_km(leg, o) < self.d_min_km]
+        order = sorted(waiting, key=lambda lc: (lc[0].arrival_s, lc[0].system_id))
+        kept: dict[int, Homeward] = {}  # planes holding at the point they hold at now
+        for leg, course in order:
+            point = keep.get(leg.system_id)
+            if point is None or leg.system_id in detouring:
+                continue
+            (hold,) = self.guided_flights(leg.system_id, leg.start_km, course, point[None])
+            if not self.conflicts(hold, fixed):
+                kept[leg.system_id] = hold
+                fixed.append(hold)
+        released: dict[int, float] = {}  # waiting planes whose way is set as it is: their course
+        for leg, course in order:
+            if leg.system_id in kept:
+                continue
+            blocking = [o for o in fixed if self.conflict(leg, o)]
             if not blocking:
                 fixed.append(leg)
+                released[leg.system_id] = course
                 continue
             previous = keep.get(leg.system_id)
-            # planes already circling their homes stay there, so holding would never clear
-            # the way (a plane held for one circled until the watch of the flight home ended):
-            # only a detour around their circles does
-            circling = all(o.at_home and o.settled for o in blocking)
+            # planes already circling their homes stay there, and so do planes holding until
+            # this one is out of their way: holding would never clear the way (a plane held
+            # for one circled until the watch of the flight home ended): only a detour does
+            circling = all((o.at_home and o.settled) or o.system_id in kept for o in blocking)
             point = None if circling else self.hold_point(leg, course, fixed, previous)
             if point is not None:
                 plan.holds[leg.system_id] = point
                 fixed.append(self.leg(leg.system_id, leg.start_km, point, at_home=False))
                 continue
             point = self.detour_point(leg, course, fixed, previous)
-            if point is None:
+            if point is not None:
+                plan.holds[leg.system_id] = point
+                plan.detours.append(leg.system_id)
+                fixed.append(self.leg(leg.system_id, leg.start_km, leg.aim_km, leg.at_home, point))
+                continue
+            staggered = self.stagger(leg, course, fixed, released)
+            if staggered is None:
                 plan.unresolved.append(leg.system_id)
                 fixed.append(leg)
                 continue
+            other, hold_km, via, hold, way = staggered
+            released.pop(other)
+            plan.holds[other] = hold_km
+            plan.staggered[other] = leg.system_id
+            fixed = [o for o in fixed if o.system_id != other] + [hold, way]
+            if via is None:
+                released[leg.system_id] = course
+            else:
+                plan.holds[leg.system_id] = via
+                plan.detours.append(leg.system_id)
+        # a plane holding now flies home once its way is clear of what every other one does;
+        # where only planes that stay (circling their homes, holding) are in its way, waiting
+        # does not clear it: it detours
+        for leg, course in order:
+            hold = kept.get(leg.system_id)
+            if hold is None:
+                continue
+            others = [o for o in fixed if o is not hold]
+            blocking = [o for o in others if self.conflict(leg, o)]
+            if not blocking:
+                fixed = [*others, leg]
+                continue
+            if not all((o.at_home and o.settled) or o.system_id in kept for o in blocking):
+                plan.holds[leg.system_id] = keep[leg.system_id]
+                continue
+            point = self.detour_point(leg, course, others)
+            if point is None:
+                plan.unresolved.append(leg.system_id)
+                fixed = [*others, leg]
+                continue
             plan.holds[leg.system_id] = point
             plan.detours.append(leg.system_id)
-            fixed.append(self.leg(leg.system_id, leg.start_km, leg.aim_km, leg.at_home, point))
+            fixed = [*others, self.leg(leg.system_id, leg.start_km, leg.aim_km, leg.at_home, point)]
         return plan
 
 
@@ -363,6 +580,8 @@ class ReturnPlan:
     #: of ``holds``, the planes that fly through their point on the way (a detour), not wait
     detours: list[int] = field(default_factory=list)
     unresolved: list[int] = field(default_factory=list)  # conflicting, no hold or detour found
+    #: of ``holds``, planes held so that another can leave first (``stagger``): -> that plane
+    staggered: dict[int, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -122,3 +122,54 @@ def test_the_flight_home_is_judged_along_the_turn_the_plane_flies():
     assert s.clearance_km(west, circling) < 1.0
     (south,) = s.flights_home([(4, np.array([84.46, 53.10]), home_4, -np.pi / 2, 100.0)])
     assert s.clearance_km(south, circling) > s.clearance_km(west, circling)
+
+
+def test_planes_too_close_for_either_to_wait_leave_one_after_the_other():
+    """Two planes end the mission 2.5 km apart, plane 2 heading west at plane 1, plane 1
+    south-east, their homes beyond each other: neither can hold or go around the other alone
+    (before: ``unresolved``, both flew home and met). Staggered: one holds, the other leaves
+    first, as the plane model flies them d_min apart; 6 s later the holding plane keeps its
+    hold and the other its way round; 30 s later both fly home."""
+    s = separation()
+    start_1, start_2 = np.array([15.0, 15.0]), np.array([17.5, 15.0])
+    home_1, home_2 = np.array([25.0, 25.0]), np.array([5.0, 25.0])
+    se, west = 7 * np.pi / 4, np.pi  # the planes' courses
+    way_1, way_2 = s.flights_home(
+        [(1, start_1, home_1, se, 100.0), (2, start_2, home_2, west, 100.0)]
+    )
+    assert s.clearance_km(way_1, way_2) < 1.0  # the premise: their ways home conflict
+    assert (
+        s.hold_point(way_2, west, [way_1]) is None and s.detour_point(way_2, west, [way_1]) is None
+    )
+    plan = s.plan([], [(way_1, se), (way_2, west)])
+    assert plan.unresolved == [] and list(plan.staggered.items()) == [(1, 2)]
+    hold_km = plan.holds[1]
+    (hold,) = s.guided_flights(1, start_1, se, hold_km[None])
+    via = plan.holds.get(2)
+    if via is None:
+        leaving = way_2
+    else:
+        (leaving,) = s.guided_flights(2, start_2, west, via[None], home_2, at_home=True)
+    t = np.arange(0.0, max(hold.arrival_s, leaving.arrival_s) + 60.0, 2.0)
+    apart = np.hypot(*(hold.positions(t) - leaving.positions(t)).T)
+    assert apart.min() >= 1.0 + 2 * s.track_km, apart.min()  # as the plane model flies them
+
+    def replan(after_s: float):
+        k = int(after_s / 2.0)  # the flights are sampled every 2 s
+        at = [f.path_km[k] for f in (hold, leaving)]
+        courses = [
+            float(np.arctan2(*(f.path_km[k] - f.path_km[k - 1])[::-1])) for f in (hold, leaving)
+        ]
+        ways = s.flights_home(
+            [(1, at[0], home_1, courses[0], 100.0), (2, at[1], home_2, courses[1], 100.0)]
+        )
+        return s.plan(
+            [], list(zip(ways, courses, strict=True)), dict(plan.holds), set(plan.detours)
+        )
+
+    # 6 s later, plane 2 still on its way round: plane 1 keeps its hold, plane 2 its detour
+    soon = replan(6.0)
+    assert soon.unresolved == [] and soon.detours == [2]
+    np.testing.assert_allclose(soon.holds[1], hold_km)
+    # 30 s later, plane 2 has gone round: both fly home
+    assert replan(30.0).holds == {}

@@ -7,6 +7,7 @@ the simulator and the daemon (``swarmplan demo`` or ``swarmplan sim`` + ``swarmp
 * the flight home at the end of a mission goes around a threat RTL's straight line would cross;
 * a plane switched to RTL mid-mission (a fence breach's action) is guided out, not through;
 * two planes that swapped sides during the mission fly home d_min apart (one holds);
+* two planes that end the mission heading at each other leave one after the other;
 * a daemon that falls behind the vehicles' clock holds them at safe points and says so;
 * a speedup the daemon cannot keep is refused at start, in one line.
 """
@@ -373,6 +374,35 @@ def test_planes_whose_ways_home_cross_fly_home_apart(tmp_path: Path):
     assert truth["separation_breaches"] == 0 and truth["min_separation_km"] >= d_min
     assert len(result["held_for_separation_home"]) == 1
     assert result["rtl_sent_to"] == [1, 2]  # the held plane was sent home once clear
+
+
+@pytest.mark.timeout(120)
+def test_planes_ending_the_mission_heading_at_each_other_leave_one_after_the_other(
+    tmp_path: Path,
+):
+    """The corridor above after 6 steps: the planes end 2.6 km apart flying at each other,
+    each home behind it, so both must turn about, and RTL's turns meet (0.42 km apart in the
+    track account and the simulator's truth before the fix, which found no hold or detour
+    for either and let both fly on with a warning). Now one holds while the other leaves
+    first, around it; then it flies home too."""
+    scenario = tmp_path / "facing.toml"
+    scenario.write_text(SWAPPED_SIDES.replace("steps = 16", "steps = 6"))
+    done = run_swarmplan(
+        ["demo", str(scenario), "--out", str(tmp_path / "out"), "--no-view"], timeout=110
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    (a, b) = (np.array(u["track_km"][-1]) for u in result["uavs"])
+    d_min = result["min_separation_limit_km"]
+    # the premise: the planes end close, not yet past each other, far from their homes
+    assert a[0] < b[0] and np.hypot(*(a - b)) < 3.0, (a, b)
+    assert "leaves first" in done.stderr and "no hold or detour clears it" not in done.stderr
+    rtl = result["track_audit"]["phases"]["rtl"]
+    assert rtl["separation_breaches"] == 0 and rtl["min_separation_km"] >= d_min, rtl
+    truth = result["simulator_truth"]["by_mode"]["rtl"]
+    assert truth["separation_breaches"] == 0 and truth["min_separation_km"] >= d_min, truth
+    assert result["held_for_separation_home"] == [1, 2]
+    assert result["rtl_sent_to"] == [1, 2]  # both sent home once clear
 
 
 @pytest.mark.timeout(150)
