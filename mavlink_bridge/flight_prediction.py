@@ -138,10 +138,15 @@ def predict_paths(
     dt_s: float = 0.2,
     speed_mps: np.ndarray | None = None,
     commanded_mps: np.ndarray | None = None,
+    turn_sign: np.ndarray | None = None,
 ) -> np.ndarray:
     """Positions (M, S + 1, 2) every ``sample_s`` from now (index 0) to ``horizon_s`` of planes
     at ``xy_km`` (M, 2) flying ``course_rad`` (M,) at ``speed_mps`` (M,; default cruise) after
-    being sent to ``aim_km`` (M, 2) and, when given, to the airspeed ``commanded_mps`` (M,)."""
+    being sent to ``aim_km`` (M, 2) and, when given, to the airspeed ``commanded_mps`` (M,).
+    A plane turns the shorter way onto its aim; with ``turn_sign`` (M,; +1 left, -1 right,
+    0 the shorter way) the given way, for as long as the aim is more than 90 degrees off its
+    nose (a turn about is near 180 degrees either way, and which way an autopilot takes it
+    depends on its bank at the instant the command takes hold)."""
     p = np.array(xy_km, dtype=float, copy=True).reshape(-1, 2)
     course = np.array(course_rad, dtype=float, copy=True).reshape(-1)
     aim = np.asarray(aim_km, dtype=float).reshape(-1, 2)
@@ -172,7 +177,11 @@ def predict_paths(
             from_centre = to_aim[orbiting] + np.pi
             correction = np.arctan(model.loiter_gain * (dist[orbiting] - loiter_km) / loiter_km)
             desired[orbiting] = from_centre - (np.pi / 2 + correction)
-        turn = np.clip(_wrap(desired - course), -max_turn, max_turn)
+        error = _wrap(desired - course)
+        if turn_sign is not None:
+            forced = (turn_sign != 0) & ~orbiting & (np.abs(error) > np.pi / 2)
+            error = np.where(forced & (error * turn_sign < 0), error + 2 * np.pi * turn_sign, error)
+        turn = np.clip(error, -max_turn, max_turn)
         mid = course + 0.5 * turn
         course = course + turn
         p = p + step_km[:, None] * np.stack([np.cos(mid), np.sin(mid)], axis=1)

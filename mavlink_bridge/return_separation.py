@@ -35,7 +35,7 @@ All geometry is in the mission's local km; times are the vehicles' seconds.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -61,6 +61,12 @@ class Homeward:
     path_km: np.ndarray | None = None  # (S + 1, 2) predicted positions from now
     path_dt_s: float = 2.0
     path_arrival_s: float = 0.0  # when the predicted path reaches its circle
+    #: the same flight turning about the other way (``ReturnSeparation.turns_about_rad``)
+    alternatives: tuple[Homeward, ...] = ()
+
+    @property
+    def variants(self) -> tuple[Homeward, ...]:
+        return (self, *self.alternatives)
 
     @property
     def length_km(self) -> float:
@@ -93,11 +99,14 @@ class Homeward:
         return self.length_km / max(self.speed_kmps, 1e-6)
 
     def positions(self, t_s: np.ndarray) -> np.ndarray:
-        """(len(t_s), 2) where the plane is at each instant (at the aim once arrived; on the
-        predicted path, its last point beyond it)."""
+        """(len(t_s), 2) where the plane is at each instant: at the aim once arrived (on a
+        predicted path too: where on its circle a plane will be minutes ahead is not known, so
+        the whole circle is its place, ``ReturnSeparation._stray_km``)."""
         if self.path_km is not None:
-            index = np.rint(np.asarray(t_s, float) / self.path_dt_s).astype(int)
-            return self.path_km[np.clip(index, 0, len(self.path_km) - 1)]
+            t = np.asarray(t_s, float)
+            index = np.rint(t / self.path_dt_s).astype(int)
+            out = self.path_km[np.clip(index, 0, len(self.path_km) - 1)]
+            return np.where((t >= self.path_arrival_s)[:, None], self.aim_km[None], out)
         flown = np.clip(np.asarray(t_s, float) * self.speed_kmps, 0.0, self.length_km)
         corners = [self.start_km] + ([] if self.via_km is None else [self.via_km]) + [self.aim_km]
         out = np.repeat(self.start_km[None], len(flown), axis=0)
@@ -130,6 +139,10 @@ class ReturnSeparation:
     speeds_mps: dict[int, float] = field(default_factory=dict)
     #: how far a plane may be from where the plane model flies it (``flights_home``)
     track_km: float = 0.3
+    #: a plane whose aim is more than this off its nose may turn about either way (the
+    #: simulator's plane, circling clockwise when its RTL came, turned right where the model
+    #: turned left, and passed 0.22 km from a plane circling its home: 30 % loss, 20x)
+    turns_about_rad: float = 2 * math.pi / 3
 
     def circle_km(self) -> float:
         """How far a plane strays from the point it circles: its loiter diameter (it arrives
@@ -182,32 +195,66 @@ class ReturnSeparation:
         # a half turn, the way, and a circle at home
         turn_s = math.pi / float(plane.turn_rate_radps(float(now.max())))
         horizon = float((straight_s + turn_s + 2 * math.pi * radius * 1e3 / home_mps).max())
-        paths = predict_paths(
-            plane, xy, course, home, horizon + self.sample_s, sample_s=self.sample_s,
-            dt_s=0.5, speed_mps=now, commanded_mps=home_mps,
-        )  # fmt: skip
+        flown = self._flown(xy, course, home, horizon + self.sample_s, now, home_mps)
         legs = []
         for k, sid in enumerate(ids):
-            near = np.hypot(*(paths[k] - home[k]).T) <= 1.1 * radius[k]
-            arrival = float(np.argmax(near)) * self.sample_s if near.any() else horizon
-            legs.append(
-                Homeward(
-                    sid,
-                    xy[k],
-                    home[k],
-                    home_mps[k] / 1e3,
-                    2 * radius[k],
-                    True,
-                    path_km=paths[k],
-                    path_dt_s=self.sample_s,
-                    path_arrival_s=arrival,
-                )  # fmt: skip
-            )
+            variants = []
+            for path in flown[k]:
+                near = np.hypot(*(path - home[k]).T) <= 1.1 * radius[k]
+                arrival = float(np.argmax(near)) * self.sample_s if near.any() else horizon
+                variants.append(
+                    Homeward(
+                        sid,
+                        xy[k],
+                        home[k],
+                        home_mps[k] / 1e3,
+                        2 * radius[k],
+                        True,
+                        path_km=path,
+                        path_dt_s=self.sample_s,
+                        path_arrival_s=arrival,
+                    )  # fmt: skip
+                )
+            legs.append(replace(variants[0], alternatives=tuple(variants[1:])))
         return legs
+
+    def _flown(
+        self,
+        xy: np.ndarray,
+        course: np.ndarray,
+        aims: np.ndarray,
+        horizon_s: float,
+        speed_mps: np.ndarray | None = None,
+        commanded_mps: np.ndarray | None = None,
+    ) -> list[list[np.ndarray]]:
+        """Per plane (M, all in one batch), its paths as the plane model flies them to its aim:
+        the shorter turn, and, when the aim is more than ``turns_about_rad`` off its nose, the
+        other way round too."""
+        plane = self.routes.plane
+        m = len(xy)
+        speed = np.broadcast_to(plane.speed_mps if speed_mps is None else speed_mps, (m,))
+        commanded = speed if commanded_mps is None else np.broadcast_to(commanded_mps, (m,))
+        bearing = np.arctan2(*(aims - xy).T[::-1])
+        off = (bearing - course + np.pi) % (2 * np.pi) - np.pi
+        about = np.abs(off) > self.turns_about_rad
+        rows = np.concatenate([np.arange(m), np.nonzero(about)[0]])
+        sign = np.concatenate([np.zeros(m), -np.sign(off[about])])
+        paths = predict_paths(
+            plane, xy[rows], course[rows], aims[rows], horizon_s, sample_s=self.sample_s,
+            dt_s=0.5, speed_mps=speed[rows], commanded_mps=commanded[rows], turn_sign=sign,
+        )  # fmt: skip
+        flown: list[list[np.ndarray]] = [[] for _ in range(m)]
+        for row, path in zip(rows, paths, strict=True):
+            flown[row].append(path)
+        return flown
 
     def clearance_km(self, a: Homeward, b: Homeward) -> float:
         """The smallest distance between ``a`` and ``b`` less what both may stray, over every
-        pair of instants within the timing tolerance (< ``d_min_km``: they conflict)."""
+        pair of instants within the timing tolerance and every variant of each (the turns
+        about either way; < ``d_min_km``: they conflict)."""
+        return min(self._clearance_km(x, y) for x in a.variants for y in b.variants)
+
+    def _clearance_km(self, a: Homeward, b: Homeward) -> float:
         horizon = max(a.arrival_s, b.arrival_s)
         horizon = horizon * (1 + self.tolerance_frac) + self.tolerance_s + self.sample_s
         t = np.arange(0.0, horizon + self.sample_s, self.sample_s)
@@ -228,17 +275,26 @@ class ReturnSeparation:
 
     def _stray_km(self, leg: Homeward, t: np.ndarray) -> np.ndarray:
         """How far ``leg``'s plane may be from its predicted place at each instant: never
-        more than it has flown; on a path the plane model flew, ``track_km``; on a straight
-        line, ``slack_km`` on the way and its circle's reach once there."""
+        more than it has flown; on a path the plane model flew, ``track_km`` on the way and
+        its circle (the radius it arrives on, 1.1 loiter radii) and ``track_km`` once there
+        (the phase on a circle the model predicts drifts: a plane passing 1.46 km from the
+        centre of another's home circle was judged 1.03 km clear of the predicted phase and
+        passed 0.22 km from the plane, at 30 % loss and 20x); on a straight line,
+        ``slack_km`` on the way and its circle's reach once there."""
         flown = leg.speed_kmps * t
         if leg.predicted:
-            return np.minimum(self.track_km, flown)
+            circle = 0.55 * leg.circle_km + self.track_km
+            return np.where(t >= leg.arrival_s, circle, np.minimum(self.track_km, flown))
         at_aim = np.minimum(leg.stray_at_aim_km, flown)
         return np.where(t >= leg.arrival_s, at_aim, np.minimum(self.slack_km, flown))
 
     def conflict(self, a: Homeward, b: Homeward) -> bool:
-        """``clearance_km(a, b) < d_min_km``, first judged at equal instants alone (a subset
-        of the pairs compared: most conflicts show there, at a fraction of the cost)."""
+        """``clearance_km(a, b) < d_min_km``, each pair of variants first judged at equal
+        instants alone (a subset of the pairs compared: most conflicts show there, at a
+        fraction of the cost)."""
+        return any(self._conflict(x, y) for x in a.variants for y in b.variants)
+
+    def _conflict(self, a: Homeward, b: Homeward) -> bool:
         horizon = max(a.arrival_s, b.arrival_s) + self.sample_s
         t = np.arange(0.0, horizon + self.sample_s, self.sample_s)
         gap = np.hypot(*(a.positions(t) - b.positions(t)).T)
@@ -247,7 +303,7 @@ class ReturnSeparation:
             clear = clear[~((t >= a.arrival_s) & (t >= b.arrival_s))]
         if len(clear) and clear.min() < self.d_min_km:
             return True
-        return self.clearance_km(a, b) < self.d_min_km
+        return self._clearance_km(a, b) < self.d_min_km
 
     def conflicts(self, leg: Homeward, others: list[Homeward]) -> bool:
         return any(self.conflict(leg, o) for o in others)
@@ -280,9 +336,9 @@ class ReturnSeparation:
         ``previous`` (the point it circles now) first, so a holding plane is not moved while its
         point stays good; ``None`` if no candidate does."""
         xy = leg.start_km
+        if previous is not None and self._still_good(leg, course_rad, others, previous, None):
+            return np.asarray(previous, float).copy()
         candidates = self._rings(xy, (0.0, *(r for r in self.hold_rings_km if r > 0)))
-        if previous is not None:
-            candidates = np.concatenate([np.asarray(previous, float)[None], candidates])
         routes = self.routes
         candidates = candidates[self._circle_and_leg_clear(xy, candidates)]
         if len(candidates) == 0:
@@ -294,6 +350,32 @@ class ReturnSeparation:
             if not self.conflicts(hold, others):
                 return point.copy()
         return None
+
+    def _still_good(
+        self,
+        leg: Homeward,
+        course_rad: float,
+        others: list[Homeward],
+        point: np.ndarray,
+        then_km: np.ndarray | None,
+    ) -> bool:
+        """The point a plane holds at (``then_km`` None) or detours through now is kept while
+        it is safe (its circle, the legs and the turn keep the threat margin) and the flight
+        there (and on) as the plane model flies it conflicts with none of ``others``: judged
+        as it was chosen (``stagger``), not by the straight line, which may condemn it a
+        decision period later and move the plane for nothing."""
+        xy, point = leg.start_km, np.asarray(point, float)
+        if len(self._safe_points(xy, course_rad, point[None])) == 0:
+            return False
+        routes = self.routes
+        if then_km is not None and routes.leg_clearance(point[None], then_km[None])[0] < (
+            routes.margin_km
+        ):
+            return False
+        (flight,) = self.guided_flights(
+            leg.system_id, xy, course_rad, point[None], then_km, leg.at_home
+        )
+        return not self.conflicts(flight, others)
 
     def detour_point(
         self,
@@ -309,11 +391,11 @@ class ReturnSeparation:
         conflicts with none of ``others``; ``previous`` (the point it flies to now) first, then
         the shortest way; ``None`` if no candidate does."""
         xy, aim = leg.start_km, leg.aim_km
+        if previous is not None and self._still_good(leg, course_rad, others, previous, aim):
+            return np.asarray(previous, float).copy()
         candidates = self._rings(xy, self.detour_rings_km)
         total = np.hypot(*(candidates - xy).T) + np.hypot(*(aim - candidates).T)
         candidates = candidates[np.argsort(total, kind="stable")]
-        if previous is not None:
-            candidates = np.concatenate([np.asarray(previous, float)[None], candidates])
         routes = self.routes
         keep = self._circle_and_leg_clear(xy, candidates)
         keep &= routes.leg_clearance(candidates, np.broadcast_to(aim, candidates.shape)) >= (
@@ -360,47 +442,38 @@ class ReturnSeparation:
 
         starts = np.repeat(xy[None], len(points), axis=0)
         courses = np.full(len(points), float(course_rad))
-        paths = list(
-            predict_paths(
-                plane,
-                starts,
-                courses,
-                points,
-                horizon(starts, points),
-                sample_s=self.sample_s,
-                dt_s=0.5,
-            )  # fmt: skip
-        )
-        aims = points
+        flown = self._flown(starts, courses, points, horizon(starts, points))
+        owner = np.array([k for k, paths in enumerate(flown) for _ in paths])
+        paths = [path for paths in flown for path in paths]  # every variant, candidate by candidate
+        aims = points[owner]
         if then_km is not None:
-            aim = np.asarray(then_km, float)
             # leaves each point once within a loiter radius of it, or at its closest approach
             cut = []
-            for path, point in zip(paths, points, strict=True):
+            for path, point in zip(paths, aims, strict=True):
                 dist = np.hypot(*(path - point).T)
                 near = dist <= radius_km
                 cut.append(int(np.argmax(near)) if near.any() else int(np.argmin(dist)))
-            cut_at = np.array(cut)
             here = np.array([p[i] for p, i in zip(paths, cut, strict=True)])
             before = np.array([p[max(i - 1, 0)] for p, i in zip(paths, cut, strict=True)])
             heading = np.arctan2(*(here - before).T[::-1])
-            aims = np.repeat(aim[None], len(points), axis=0)
+            aims = np.repeat(np.asarray(then_km, float)[None], len(paths), axis=0)
             onward = predict_paths(
                 plane, here, heading, aims, horizon(here, aims), sample_s=self.sample_s, dt_s=0.5
             )
             paths = [
                 np.concatenate([p[: i + 1], o[1:]])
-                for p, i, o in zip(paths, cut_at, onward, strict=True)
+                for p, i, o in zip(paths, cut, onward, strict=True)
             ]
-        flights = []
-        for k, path in enumerate(paths):
-            near = np.hypot(*(path - aims[k]).T) <= 1.1 * radius_km
-            arrival = float(np.argmax(near)) * self.sample_s if near.any() else len(path) * 1.0
-            flights.append(
+        variants: list[list[Homeward]] = [[] for _ in points]
+        for k, path in zip(owner, paths, strict=True):
+            aim = points[k] if then_km is None else np.asarray(then_km, float)
+            near = np.hypot(*(path - aim).T) <= 1.1 * radius_km
+            arrival = float(np.argmax(near) if near.any() else len(path)) * self.sample_s
+            variants[k].append(
                 Homeward(
                     system_id,
                     xy,
-                    aims[k],
+                    aim,
                     speed / 1e3,
                     2 * radius_km,
                     at_home and then_km is not None,
@@ -410,6 +483,7 @@ class ReturnSeparation:
                     path_arrival_s=arrival,
                 )  # fmt: skip
             )
+        flights = [replace(v[0], alternatives=tuple(v[1:])) for v in variants]
         return flights
 
     def _safe_points(self, xy: np.ndarray, course_rad: float, points: np.ndarray) -> np.ndarray:

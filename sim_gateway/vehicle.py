@@ -230,9 +230,15 @@ class Vehicle:
         if mode == modes.AUTO and len(self.missions.mission()) < 2:
             self.statustext("Mode change to AUTO failed: no mission", mavlink.MAV_SEVERITY_WARNING)
             return False
+        i, fleet, p = self.index, self.fleet, self.params
+        if mode != self.mode:
+            # a new mode drops a speed commanded with DO_CHANGE_SPEED: back to cruise
+            # (ArduPlane's Mode::enter resets new_airspeed_cm; the same mode is not re-entered).
+            # Kept, a plane sent 150 m/s for its last leg flew RTL at 150 m/s and circled
+            # home on a 2.3 km turn radius, into a threat 4.2 km from its home
+            fleet.set_airspeed(i, p["AIRSPEED_CRUISE"])
         self.mode = mode
         self.item_wait_until_s = None
-        i, fleet, p = self.index, self.fleet, self.params
         here = (float(fleet.x_m[i]), float(fleet.y_m[i]))
         if mode in modes.HOLD_COURSE_MODES:
             fleet.hold_course(i)

@@ -3,6 +3,8 @@ which ways home conflict, who holds, and where."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from mavlink_bridge.flight_prediction import PlaneModel
@@ -128,8 +130,8 @@ def test_planes_too_close_for_either_to_wait_leave_one_after_the_other():
     """Two planes end the mission 2.5 km apart, plane 2 heading west at plane 1, plane 1
     south-east, their homes beyond each other: neither can hold or go around the other alone
     (before: ``unresolved``, both flew home and met). Staggered: one holds, the other leaves
-    first, as the plane model flies them d_min apart; 6 s later the holding plane keeps its
-    hold and the other its way round; 30 s later both fly home."""
+    first, as the plane model flies them d_min apart; re-judged as they fly it, the holding
+    plane keeps its point and neither is left without a way; 30 s later both fly home."""
     s = separation()
     start_1, start_2 = np.array([15.0, 15.0]), np.array([17.5, 15.0])
     home_1, home_2 = np.array([25.0, 25.0]), np.array([5.0, 25.0])
@@ -167,9 +169,36 @@ def test_planes_too_close_for_either_to_wait_leave_one_after_the_other():
             [], list(zip(ways, courses, strict=True)), dict(plan.holds), set(plan.detours)
         )
 
-    # 6 s later, plane 2 still on its way round: plane 1 keeps its hold, plane 2 its detour
-    soon = replan(6.0)
-    assert soon.unresolved == [] and soon.detours == [2]
-    np.testing.assert_allclose(soon.holds[1], hold_km)
-    # 30 s later, plane 2 has gone round: both fly home
+    # re-judged every 2 s as they fly it: plane 1 keeps its point (or flies home), nobody is
+    # left unresolved; 30 s later both fly home
+    for after_s in range(2, 30, 2):
+        again = replan(float(after_s))
+        assert again.unresolved == [], after_s
+        assert 1 not in again.holds or np.allclose(again.holds[1], hold_km), after_s
     assert replan(30.0).holds == {}
+
+
+def test_a_plane_turning_about_may_turn_either_way_past_a_plane_circling_its_home():
+    """At 30 % loss and 20x a plane released from its hold at (26.2, 6.7) km, heading 37 deg,
+    its home 11 km to the west-south-west, turned right (it was circling clockwise when its RTL
+    took hold) where the model turned left, and passed 0.22 km from a plane circling its
+    home at (22.5, 4.5). Judged before: 1.03 km clear of the circle's predicted phase. Now a
+    turn about is flown both ways, and a circling plane is anywhere on its circle."""
+    plane = PlaneModel()
+    routes = HomeRoutes(Grid(30, 30, 1.0), np.zeros((0, 2)), np.zeros(0), plane, margin_km=1.0)
+    s = ReturnSeparation(routes, 1.0, slack_km=float(plane.loiter_radius_km()))
+    home_2, home_3 = np.array([15.5, 4.5]), np.array([22.5, 4.5])
+    leaving, circling = s.flights_home(
+        [
+            (2, np.array([26.21, 6.72]), home_2, np.radians(37.0), 100.0),
+            (3, np.array([22.8, 3.75]), home_3, np.radians(112.0), 100.0),
+        ]
+    )
+    assert circling.settled and circling.alternatives == ()
+    (other_way,) = leaving.alternatives  # 154 deg off its nose: both ways round
+    # the shorter turn is to the left (north of its position), the other to the right
+    assert leaving.path_km[:10, 1].max() > other_way.path_km[:10, 1].max() + 1.0
+    assert s.clearance_km(leaving, circling) < 0.0
+    # the turn the plane model prefers alone kept clear of the circle's predicted phase
+    shorter = replace(leaving, alternatives=())
+    assert s.clearance_km(shorter, circling) > s.clearance_km(leaving, circling)
