@@ -50,6 +50,8 @@ from mavlink_bridge.flight_envelope import FlightEnvelope
 from mavlink_bridge.flight_home import (
     FlightHome,
     guide_stray_returns,
+    reposition_to,
+    return_separation,
     return_to_launch,
     watch_rtl,
 )
@@ -59,6 +61,7 @@ from mavlink_bridge.guided_commands import (
 )
 from mavlink_bridge.keeping_up import (
     HoldWhenLate,
+    held_apart,
     measure_step_wall_s,
     refuse_unkeepable_time_scale,
 )
@@ -257,6 +260,8 @@ class MissionDaemon:
         self.launch: list[LaunchPhase] = launch_phases()
         self.phase = "connect"  # the phase the mission is in (launch phase names, "decisions")
         self.step_wall_s: float | None = None  # paced time: a step's computation, calibrated
+        #: held planes no point keeps d_min apart (said once: ``hold_apart``)
+        self.stuck_in_hold: set[int] = set()
         #: paced time: hold the planes at their last safe targets while late (keeping_up.py)
         self.hold_policy = (
             None
@@ -740,6 +745,7 @@ class MissionDaemon:
             late = pacing.current.late(instant) if step > 0 else False
             if self.holds(step, state, inputs.active):
                 self.audit.set_phase("hold")  # nothing new: the planes circle their last targets
+                self.hold_apart(state, inputs.active, instant.deadline)
             else:
                 self.audit.set_phase("mission")
                 sent = self.send(batch.commands, deadline=instant.deadline)
@@ -761,6 +767,38 @@ class MissionDaemon:
         if self.hold_policy is None or step == 0:
             return False
         return self.hold_policy.hold(step, state.positions_ms, self.vehicles(), active)
+
+    def hold_apart(self, state: LoopState, active: np.ndarray, deadline: float | None) -> None:
+        """Held planes whose circles at their last targets would come within d_min of each
+        other: one of each pair is moved apart (``keeping_up.held_apart``), and the point it
+        accepts becomes its last target. Says who moves, and who no point keeps apart."""
+        stages = self.stages
+        assert stages is not None
+        positions, courses, _speeds, _elapsed = stages.where_now(state, active)
+        planes, index = [], {}
+        for i, v in enumerate(self.vehicles()):
+            target = state.last_target[i]
+            if active[i] and target is not None and v.has_position and not v.lost:
+                planes.append((v.system_id, positions[i], float(courses[i]), np.array(target)))
+                index[v.system_id] = i
+        if len(planes) < 2:
+            return
+        moves, stuck = held_apart(return_separation(self), planes)
+        commands = [reposition_to(self, self.vehicle(index[sid]), xy) for sid, xy in moves.items()]
+        for c in self.send(commands, deadline=deadline) if commands else []:
+            sid = c.vehicle.system_id
+            if c.accepted:
+                state.last_target[index[sid]] = (float(moves[sid][0]), float(moves[sid][1]))
+                self.say(
+                    f"vehicle {sid} holds at ({moves[sid][0]:.1f}, {moves[sid][1]:.1f}) km: "
+                    "circling its last target it would come within d_min of another held plane"
+                )
+        for sid in set(stuck) - self.stuck_in_hold:
+            self.say(
+                f"warning: held vehicle {sid} circles within d_min of another held plane and "
+                "no point nearby keeps it apart"
+            )
+        self.stuck_in_hold = set(stuck)
 
     def tell_listeners(
         self, state: LoopState, inputs: Any, plan: Any, flight: Any, late: bool

@@ -329,12 +329,14 @@ class ReturnSeparation:
         course_rad: float,
         others: list[Homeward],
         previous: np.ndarray | None = None,
+        flown: bool = False,
     ) -> np.ndarray | None:
         """The nearest point for the plane of ``leg`` to circle until its way home is clear:
         the circle keeps the threat margin (the loiter diameter from the point), the leg there
         and the turn onto it keep it too, and that leg conflicts with none of ``others``;
         ``previous`` (the point it circles now) first, so a holding plane is not moved while its
-        point stays good; ``None`` if no candidate does."""
+        point stays good; ``None`` if no candidate does. ``flown``: each leg judged as the
+        plane model flies it (``guided_flights``), not as a straight line."""
         xy = leg.start_km
         if previous is not None and self._still_good(leg, course_rad, others, previous, None):
             return np.asarray(previous, float).copy()
@@ -345,8 +347,11 @@ class ReturnSeparation:
             return None
         turns = routes.turn_clearance(xy, course_rad, candidates)
         candidates = candidates[turns >= routes.turn_margin_km]
-        for point in candidates:  # nearest first (the rings are in order)
-            hold = self.leg(leg.system_id, xy, point, at_home=False)
+        if flown:
+            holds = self.guided_flights(leg.system_id, xy, course_rad, candidates)
+        else:
+            holds = [self.leg(leg.system_id, xy, point, at_home=False) for point in candidates]
+        for point, hold in zip(candidates, holds, strict=True):  # nearest first (ring order)
             if not self.conflicts(hold, others):
                 return point.copy()
         return None

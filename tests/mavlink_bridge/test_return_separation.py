@@ -202,3 +202,30 @@ def test_a_plane_turning_about_may_turn_either_way_past_a_plane_circling_its_hom
     # the turn the plane model prefers alone kept clear of the circle's predicted phase
     shorter = replace(leaving, alternatives=())
     assert s.clearance_km(shorter, circling) > s.clearance_km(leaving, circling)
+
+
+def test_held_planes_circling_within_d_min_of_each_other_are_moved_apart():
+    """A late daemon holds: every plane circles its last target, chosen a step apart for a
+    step. Planes 1 and 2 circle targets 2.5 km apart (two 1.07 km circles: within d_min of each
+    other for part of every lap); plane 3 is far. Plane 1, already on its circle, stays; plane
+    2 is moved to a point whose circle, flown by the plane model, keeps d_min from plane 1's
+    and the threat margin; plane 3 is left alone."""
+    from mavlink_bridge.keeping_up import held_apart
+
+    s = separation()
+    on_circle = np.array([20.0, 20.0]) + np.array([0.0, float(s.routes.plane.loiter_radius_km())])
+    planes = [
+        (1, on_circle, 0.0, np.array([20.0, 20.0])),  # on its circle, flying east (clockwise)
+        (2, np.array([24.5, 22.0]), np.pi, np.array([22.5, 20.0])),
+        (3, np.array([4.0, 25.0]), 0.0, np.array([4.0, 26.0])),
+    ]
+    flights = {sid: s.guided_flights(sid, xy, c, aim[None])[0] for sid, xy, c, aim in planes}
+    assert s.conflict(flights[1], flights[2])  # the premise: their circles come within d_min
+    moves, stuck = held_apart(s, planes)
+    assert stuck == [] and list(moves) == [2]
+    (moved,) = s.guided_flights(2, planes[1][1], np.pi, moves[2][None])
+    assert not s.conflict(moved, flights[1]) and not s.conflict(moved, flights[3])
+    n = min(len(moved.path_km), len(flights[1].path_km))  # as the plane model flies them
+    assert np.hypot(*(moved.path_km[:n] - flights[1].path_km[:n]).T).min() >= 1.0
+    reach = float(PlaneModel().loiter_reach_km())
+    assert np.hypot(*(moves[2] - THREAT_XY[0])) - THREAT_R[0] >= 1.0 + reach
