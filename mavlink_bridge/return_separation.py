@@ -42,6 +42,10 @@ import numpy as np
 from mavlink_bridge.flight_prediction import PlaneModel, predict_paths
 from mavlink_bridge.safe_return import HomeRoutes
 
+#: how long the plane model's place on a loiter circle is trusted: beyond, a circling plane is
+#: anywhere on its circle (its phase drifts with every late command and gust)
+PHASE_TRUSTED_S = 20.0
+
 
 @dataclass(frozen=True)
 class Homeward:
@@ -98,6 +102,13 @@ class Homeward:
             return self.path_arrival_s
         return self.length_km / max(self.speed_kmps, 1e-6)
 
+    def circling(self, t_s: np.ndarray) -> np.ndarray:
+        """At which instants a predicted flight counts as anywhere on its circle: once it is
+        there and ``PHASE_TRUSTED_S`` from now (the model's place on the circle is trusted
+        that long: a plane on its circle now is where it is, not anywhere on it)."""
+        t = np.asarray(t_s, float)
+        return (t >= self.path_arrival_s) & (t >= PHASE_TRUSTED_S)
+
     def positions(self, t_s: np.ndarray) -> np.ndarray:
         """(len(t_s), 2) where the plane is at each instant: at the aim once arrived (on a
         predicted path too: where on its circle a plane will be minutes ahead is not known, so
@@ -106,7 +117,7 @@ class Homeward:
             t = np.asarray(t_s, float)
             index = np.rint(t / self.path_dt_s).astype(int)
             out = self.path_km[np.clip(index, 0, len(self.path_km) - 1)]
-            return np.where((t >= self.path_arrival_s)[:, None], self.aim_km[None], out)
+            return np.where(self.circling(t)[:, None], self.aim_km[None], out)
         flown = np.clip(np.asarray(t_s, float) * self.speed_kmps, 0.0, self.length_km)
         corners = [self.start_km] + ([] if self.via_km is None else [self.via_km]) + [self.aim_km]
         out = np.repeat(self.start_km[None], len(flown), axis=0)
@@ -275,16 +286,16 @@ class ReturnSeparation:
 
     def _stray_km(self, leg: Homeward, t: np.ndarray) -> np.ndarray:
         """How far ``leg``'s plane may be from its predicted place at each instant: never
-        more than it has flown; on a path the plane model flew, ``track_km`` on the way and
-        its circle (the radius it arrives on, 1.1 loiter radii) and ``track_km`` once there
-        (the phase on a circle the model predicts drifts: a plane passing 1.46 km from the
-        centre of another's home circle was judged 1.03 km clear of the predicted phase and
-        passed 0.22 km from the plane, at 30 % loss and 20x); on a straight line,
-        ``slack_km`` on the way and its circle's reach once there."""
+        more than it has flown; on a path the plane model flew, ``track_km`` on the way, and
+        once it circles (``Homeward.circling``) its circle (the radius it arrives on, 1.1
+        loiter radii): the phase on a circle the model predicts drifts (a
+        plane passing 1.46 km from the centre of another's home circle was judged 1.03 km
+        clear of the predicted phase and passed 0.22 km from the plane, at 30 % loss and 20x);
+        on a straight line, ``slack_km`` on the way and its circle's reach once there."""
         flown = leg.speed_kmps * t
         if leg.predicted:
-            circle = 0.55 * leg.circle_km + self.track_km
-            return np.where(t >= leg.arrival_s, circle, np.minimum(self.track_km, flown))
+            circle = 0.55 * leg.circle_km  # the circle bounds it: no track error on top
+            return np.where(leg.circling(t), circle, np.minimum(self.track_km, flown))
         at_aim = np.minimum(leg.stray_at_aim_km, flown)
         return np.where(t >= leg.arrival_s, at_aim, np.minimum(self.slack_km, flown))
 
