@@ -282,6 +282,8 @@ def homeward_commands(
         before = flight.homing.get(v.system_id)
         if waypoint is None:
             flight.homing.pop(v.system_id, None)
+            if was_holding is not None and not announce:
+                daemon.say(f"vehicle {v.system_id}'s way home is clear: RTL sent")
             if before is not None or was_holding is not None or announce:
                 commands.append(set_mode_command(v, PLANE_MODE_RTL))
             continue

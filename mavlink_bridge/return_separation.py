@@ -351,13 +351,7 @@ class ReturnSeparation:
         xy = leg.start_km
         if previous is not None and self._still_good(leg, course_rad, others, previous, None):
             return np.asarray(previous, float).copy()
-        candidates = self._rings(xy, (0.0, *(r for r in self.hold_rings_km if r > 0)))
-        routes = self.routes
-        candidates = candidates[self._circle_and_leg_clear(xy, candidates)]
-        if len(candidates) == 0:
-            return None
-        turns = routes.turn_clearance(xy, course_rad, candidates)
-        candidates = candidates[turns >= routes.turn_margin_km]
+        candidates = self._hold_points(xy, course_rad)
         if flown:
             holds = self.guided_flights(leg.system_id, xy, course_rad, candidates)
         else:
@@ -383,10 +377,10 @@ class ReturnSeparation:
         xy, point = leg.start_km, np.asarray(point, float)
         if len(self._safe_points(xy, course_rad, point[None])) == 0:
             return False
-        routes = self.routes
-        if then_km is not None and routes.leg_clearance(point[None], then_km[None])[0] < (
-            routes.margin_km
-        ):
+        on_clear = then_km is None or (
+            self.routes.leg_clearance(point[None], then_km[None])[0] >= self.routes.margin_km
+        )
+        if not on_clear:
             return False
         (flight,) = self.guided_flights(
             leg.system_id, xy, course_rad, point[None], then_km, leg.at_home
@@ -409,19 +403,7 @@ class ReturnSeparation:
         xy, aim = leg.start_km, leg.aim_km
         if previous is not None and self._still_good(leg, course_rad, others, previous, aim):
             return np.asarray(previous, float).copy()
-        candidates = self._rings(xy, self.detour_rings_km)
-        total = np.hypot(*(candidates - xy).T) + np.hypot(*(aim - candidates).T)
-        candidates = candidates[np.argsort(total, kind="stable")]
-        routes = self.routes
-        keep = self._circle_and_leg_clear(xy, candidates)
-        keep &= routes.leg_clearance(candidates, np.broadcast_to(aim, candidates.shape)) >= (
-            routes.margin_km
-        )
-        candidates = candidates[keep]
-        if len(candidates) == 0:
-            return None
-        turns = routes.turn_clearance(xy, course_rad, candidates)
-        for point in candidates[turns >= routes.turn_margin_km]:
+        for point in self._detour_points(xy, course_rad, aim):
             way = self.leg(leg.system_id, xy, aim, leg.at_home, via_km=point)
             if not self.conflicts(way, others):
                 return point.copy()
@@ -499,8 +481,7 @@ class ReturnSeparation:
                     path_arrival_s=arrival,
                 )  # fmt: skip
             )
-        flights = [replace(v[0], alternatives=tuple(v[1:])) for v in variants]
-        return flights
+        return [replace(v[0], alternatives=tuple(v[1:])) for v in variants]
 
     def _safe_points(self, xy: np.ndarray, course_rad: float, points: np.ndarray) -> np.ndarray:
         """Of ``points``, those a plane at ``xy`` on ``course_rad`` may be guided to: its
@@ -510,6 +491,20 @@ class ReturnSeparation:
         if len(points) == 0:
             return points
         return points[routes.turn_clearance(xy, course_rad, points) >= routes.turn_margin_km]
+
+    def _hold_points(self, xy: np.ndarray, course_rad: float) -> np.ndarray:
+        """Safe points to hold at around ``xy``, nearest first (``hold_rings_km``)."""
+        rings = self._rings(xy, (0.0, *(r for r in self.hold_rings_km if r > 0)))
+        return self._safe_points(xy, course_rad, rings)
+
+    def _detour_points(self, xy: np.ndarray, course_rad: float, aim: np.ndarray) -> np.ndarray:
+        """Safe points to fly through from ``xy`` on to ``aim`` (the leg on keeps the threat
+        margin too), the shortest way first (``detour_rings_km``)."""
+        points = self._rings(xy, self.detour_rings_km)
+        total = np.hypot(*(points - xy).T) + np.hypot(*(aim - points).T)
+        points = self._safe_points(xy, course_rad, points[np.argsort(total, kind="stable")])
+        on = self.routes.leg_clearance(points, np.broadcast_to(aim, points.shape))
+        return points[on >= self.routes.margin_km]
 
     def stagger(
         self,
@@ -535,16 +530,8 @@ class ReturnSeparation:
         other = blocking[0]
         rest = [o for o in fixed if o is not other]
         other_course = released[other.system_id]
-        rings = self._rings(other.start_km, (0.0, *(r for r in self.hold_rings_km if r > 0)))
-        holds = self._safe_points(other.start_km, other_course, rings)
-        detours = self._rings(leg.start_km, self.detour_rings_km)
-        total = np.hypot(*(detours - leg.start_km).T) + np.hypot(*(leg.aim_km - detours).T)
-        detours = self._safe_points(leg.start_km, course_rad, detours[np.argsort(total)])
-        routes = self.routes
-        detours = detours[
-            routes.leg_clearance(detours, np.broadcast_to(leg.aim_km, detours.shape))
-            >= routes.margin_km
-        ]
+        holds = self._hold_points(other.start_km, other_course)
+        detours = self._detour_points(leg.start_km, course_rad, leg.aim_km)
         ways: list[tuple[np.ndarray | None, Homeward]] = [(None, leg)] + list(
             zip(
                 detours,
