@@ -269,6 +269,11 @@ def homeward_commands(
         if v.home is not None and v.has_position:
             ways[v.system_id] = way_home(daemon, routes, v)
     holds = hold_for_separation(daemon, vehicles, ways) if flight.separate else {}
+    deciding = {v.system_id for v in vehicles}
+    for sid, hold in holds.items():  # a plane in RTL held so that another leaves first
+        if sid not in deciding and daemon.link is not None and sid in daemon.link.vehicles:
+            flight.holding[sid] = hold
+            commands.append(reposition_to(daemon, daemon.link.vehicles[sid], hold))
     for v in vehicles:
         waypoint = ways[v.system_id][3] if v.system_id in ways else None
         was_holding = flight.holding.pop(v.system_id, None)
@@ -282,7 +287,7 @@ def homeward_commands(
         before = flight.homing.get(v.system_id)
         if waypoint is None:
             flight.homing.pop(v.system_id, None)
-            if was_holding is not None and not announce:
+            if was_holding is not None and not announce and v.system_id not in flight.unresolved:
                 daemon.say(f"vehicle {v.system_id}'s way home is clear: RTL sent")
             if before is not None or was_holding is not None or announce:
                 commands.append(set_mode_command(v, PLANE_MODE_RTL))
@@ -353,7 +358,11 @@ def hold_for_separation(
     for sid, (xy, _home, course, waypoint) in ways.items():
         leg = flights[sid] if waypoint is None else separation.leg(sid, xy, waypoint, False)
         waiting.append((leg, course))
-    plan = separation.plan(set_legs, waiting, keep=flight.holding, detouring=flight.detouring)
+    # planes in RTL may be guided again to let another leave first (``stagger``)
+    movable = {w[0]: w[3] for w in rtl[:set_count]}
+    plan = separation.plan(
+        set_legs, waiting, keep=flight.holding, detouring=flight.detouring, movable=movable
+    )
     flight.detouring = set(plan.detours)
     for sid, point in plan.holds.items():
         if sid in plan.staggered:

@@ -192,7 +192,7 @@ def held_apart(
         if not separation.conflicts(flight, kept):
             kept.append(flight)
             continue
-        point = separation.hold_point(flight, course, kept, flown=True)
+        point = separation.hold_point(flight, course, kept)
         if point is None:
             stuck.append(flight.system_id)
             kept.append(flight)

@@ -154,6 +154,10 @@ class ReturnSeparation:
     #: simulator's plane, circling clockwise when its RTL came, turned right where the model
     #: turned left, and passed 0.22 km from a plane circling its home: 30 % loss, 20x)
     turns_about_rad: float = 2 * math.pi / 3
+    #: a hold, detour or staggered departure is chosen this much beyond d_min, and kept while
+    #: it keeps d_min: chosen 0.01 km clear, one was condemned 2 s later by the drift of the
+    #: prediction, and the plane was left without a way
+    choose_margin_km: float = 0.1
 
     def circle_km(self) -> float:
         """How far a plane strays from the point it circles: its loiter diameter (it arrives
@@ -299,25 +303,26 @@ class ReturnSeparation:
         at_aim = np.minimum(leg.stray_at_aim_km, flown)
         return np.where(t >= leg.arrival_s, at_aim, np.minimum(self.slack_km, flown))
 
-    def conflict(self, a: Homeward, b: Homeward) -> bool:
-        """``clearance_km(a, b) < d_min_km``, each pair of variants first judged at equal
-        instants alone (a subset of the pairs compared: most conflicts show there, at a
-        fraction of the cost)."""
-        return any(self._conflict(x, y) for x in a.variants for y in b.variants)
+    def conflict(self, a: Homeward, b: Homeward, margin_km: float = 0.0) -> bool:
+        """``clearance_km(a, b) < d_min_km + margin_km``, each pair of variants first judged
+        at equal instants alone (a subset of the pairs compared: most conflicts show there, at
+        a fraction of the cost)."""
+        return any(self._conflict(x, y, margin_km) for x in a.variants for y in b.variants)
 
-    def _conflict(self, a: Homeward, b: Homeward) -> bool:
+    def _conflict(self, a: Homeward, b: Homeward, margin_km: float) -> bool:
+        limit = self.d_min_km + margin_km
         horizon = max(a.arrival_s, b.arrival_s) + self.sample_s
         t = np.arange(0.0, horizon + self.sample_s, self.sample_s)
         gap = np.hypot(*(a.positions(t) - b.positions(t)).T)
         clear = gap - self._stray_km(a, t) - self._stray_km(b, t)
         if a.at_home and b.at_home:
             clear = clear[~((t >= a.arrival_s) & (t >= b.arrival_s))]
-        if len(clear) and clear.min() < self.d_min_km:
+        if len(clear) and clear.min() < limit:
             return True
-        return self._clearance_km(a, b) < self.d_min_km
+        return self._clearance_km(a, b) < limit
 
-    def conflicts(self, leg: Homeward, others: list[Homeward]) -> bool:
-        return any(self.conflict(leg, o) for o in others)
+    def conflicts(self, leg: Homeward, others: list[Homeward], margin_km: float = 0.0) -> bool:
+        return any(self.conflict(leg, o, margin_km) for o in others)
 
     def _rings(self, xy: np.ndarray, radii_km: tuple[float, ...]) -> np.ndarray:
         """Points on circles of ``radii_km`` around ``xy``, ``hold_directions`` to a circle,
@@ -340,24 +345,22 @@ class ReturnSeparation:
         course_rad: float,
         others: list[Homeward],
         previous: np.ndarray | None = None,
-        flown: bool = False,
     ) -> np.ndarray | None:
         """The nearest point for the plane of ``leg`` to circle until its way home is clear:
         the circle keeps the threat margin (the loiter diameter from the point), the leg there
         and the turn onto it keep it too, and that leg conflicts with none of ``others``;
         ``previous`` (the point it circles now) first, so a holding plane is not moved while its
-        point stays good; ``None`` if no candidate does. ``flown``: each leg judged as the
-        plane model flies it (``guided_flights``), not as a straight line."""
+        point stays good; ``None`` if no candidate does. Each leg is judged as the plane model
+        flies it (``guided_flights``: the turn onto it both ways round where it turns about),
+        not as a straight line: a plane sent to hold 4 km behind it as a straight leg turned
+        about into another's way home (0.01 km apart at 10 % loss, 5x)."""
         xy = leg.start_km
         if previous is not None and self._still_good(leg, course_rad, others, previous, None):
             return np.asarray(previous, float).copy()
         candidates = self._hold_points(xy, course_rad)
-        if flown:
-            holds = self.guided_flights(leg.system_id, xy, course_rad, candidates)
-        else:
-            holds = [self.leg(leg.system_id, xy, point, at_home=False) for point in candidates]
+        holds = self.guided_flights(leg.system_id, xy, course_rad, candidates)
         for point, hold in zip(candidates, holds, strict=True):  # nearest first (ring order)
-            if not self.conflicts(hold, others):
+            if not self.conflicts(hold, others, self.choose_margin_km):
                 return point.copy()
         return None
 
@@ -403,9 +406,10 @@ class ReturnSeparation:
         xy, aim = leg.start_km, leg.aim_km
         if previous is not None and self._still_good(leg, course_rad, others, previous, aim):
             return np.asarray(previous, float).copy()
-        for point in self._detour_points(xy, course_rad, aim):
-            way = self.leg(leg.system_id, xy, aim, leg.at_home, via_km=point)
-            if not self.conflicts(way, others):
+        points = self._detour_points(xy, course_rad, aim)
+        ways = self.guided_flights(leg.system_id, xy, course_rad, points, aim, leg.at_home)
+        for point, way in zip(points, ways, strict=True):  # the shortest way first
+            if not self.conflicts(way, others, self.choose_margin_km):
                 return point.copy()
         return None
 
@@ -514,13 +518,13 @@ class ReturnSeparation:
         released: dict[int, float],
     ) -> tuple[int, np.ndarray, np.ndarray | None, Homeward, Homeward] | None:
         """Two planes that end the mission a few km apart with crossing ways: the one cleared
-        first (``released``: system id -> course, its way straight home set in this plan)
-        flies its way through where ``leg``'s plane is, and ``leg``'s plane cannot get out of
-        it in time, nor detour around it, so neither holding nor detouring ``leg`` clears it.
-        A staggered departure does: the other plane holds (the nearest safe point whose
-        flight there conflicts with none of the rest) and ``leg``'s plane flies its way, or
-        the nearest detour, clear of that hold and of the rest. Both are judged as the plane
-        model flies them (``guided_flights``): the turn onto each way decides it here.
+        first (``released``: system id -> course; its way home set in this plan, or already
+        flying RTL, which a DO_REPOSITION takes out of it) flies its way through where
+        ``leg``'s plane is, and ``leg``'s plane cannot get out of it in time, nor detour
+        around it. A staggered departure does: the other plane holds (the nearest safe point
+        whose flight there conflicts with none of the rest) and ``leg``'s plane flies its way,
+        or the nearest detour, clear of that hold and of the rest. Both are judged as the
+        plane model flies them (``guided_flights``): the turn onto each way decides it here.
         Returns (the holding plane, its point, ``leg``'s detour point or None, the hold's
         flight, ``leg``'s flight), or None when no pair clears it (or more than one plane is
         in the way)."""
@@ -541,15 +545,16 @@ class ReturnSeparation:
                 strict=True,
             )
         )
-        ways = [(via, way) for via, way in ways if not self.conflicts(way, rest)]
+        margin = self.choose_margin_km
+        ways = [(via, way) for via, way in ways if not self.conflicts(way, rest, margin)]
         if not ways:
             return None
         hold_flights = self.guided_flights(other.system_id, other.start_km, other_course, holds)
         for point, hold in zip(holds, hold_flights, strict=True):
-            if self.conflicts(hold, rest):
+            if self.conflicts(hold, rest, margin):
                 continue
             for via, way in ways:
-                if not self.conflict(way, hold):
+                if not self.conflict(way, hold, margin):
                     return other.system_id, point.copy(), via, hold, way
         return None
 
@@ -559,6 +564,7 @@ class ReturnSeparation:
         waiting: list[tuple[Homeward, float]],
         keep: dict[int, np.ndarray] | None = None,
         detouring: set[int] | frozenset[int] = frozenset(),
+        movable: dict[int, float] | None = None,
     ) -> ReturnPlan:
         """Which of the ``waiting`` planes (their leg home and their course) must hold, and
         where. ``set_legs`` are flights nobody can change any more; ``keep``: the points planes
@@ -569,7 +575,9 @@ class ReturnSeparation:
         holds for must not then fly through the hold. It flies home once its way conflicts
         with none of what the others do. A plane that conflicts and finds no hold point,
         detour or staggered departure (``stagger``) flies its leg (``unresolved``: the daemon
-        says so)."""
+        says so). ``movable``: of ``set_legs``, the planes (system id -> course) that may be
+        guided again to let another leave first (planes in RTL: a DO_REPOSITION takes them
+        out of it)."""
         keep = keep or {}
         fixed = list(set_legs)
         plan = ReturnPlan()
@@ -600,21 +608,23 @@ class ReturnSeparation:
             point = None if circling else self.hold_point(leg, course, fixed, previous)
             if point is not None:
                 plan.holds[leg.system_id] = point
-                fixed.append(self.leg(leg.system_id, leg.start_km, point, at_home=False))
+                fixed += self.guided_flights(leg.system_id, leg.start_km, course, point[None])
                 continue
             point = self.detour_point(leg, course, fixed, previous)
             if point is not None:
                 plan.holds[leg.system_id] = point
                 plan.detours.append(leg.system_id)
-                fixed.append(self.leg(leg.system_id, leg.start_km, leg.aim_km, leg.at_home, point))
+                fixed += self.guided_flights(
+                    leg.system_id, leg.start_km, course, point[None], leg.aim_km, leg.at_home
+                )
                 continue
-            staggered = self.stagger(leg, course, fixed, released)
+            staggered = self.stagger(leg, course, fixed, {**(movable or {}), **released})
             if staggered is None:
                 plan.unresolved.append(leg.system_id)
                 fixed.append(leg)
                 continue
             other, hold_km, via, hold, way = staggered
-            released.pop(other)
+            released.pop(other, None)
             plan.holds[other] = hold_km
             plan.staggered[other] = leg.system_id
             fixed = [o for o in fixed if o.system_id != other] + [hold, way]
@@ -645,7 +655,9 @@ class ReturnSeparation:
                 continue
             plan.holds[leg.system_id] = point
             plan.detours.append(leg.system_id)
-            fixed = [*others, self.leg(leg.system_id, leg.start_km, leg.aim_km, leg.at_home, point)]
+            fixed = others + self.guided_flights(
+                leg.system_id, leg.start_km, course, point[None], leg.aim_km, leg.at_home
+            )
         return plan
 
 
