@@ -229,3 +229,26 @@ def test_held_planes_circling_within_d_min_of_each_other_are_moved_apart():
     assert np.hypot(*(moved.path_km[:n] - flights[1].path_km[:n]).T).min() >= 1.0
     reach = float(PlaneModel().loiter_reach_km())
     assert np.hypot(*(moves[2] - THREAT_XY[0])) - THREAT_R[0] >= 1.0 + reach
+
+
+def test_a_plane_in_rtl_may_hold_off_its_home_for_another_to_pass():
+    """Plane 2 is 2.6 km from plane 3's home, where plane 3 circles, and its way home runs
+    through that circle: too close to hold or to go round alone, it flew on with a warning and
+    passed 0.01 km from plane 3 (10 % loss, 5x). A plane in RTL can still be guided: plane 3
+    holds off its home while plane 2 goes round it, both as the plane model flies them."""
+    s = separation()
+    home_2, home_3 = np.array([15.5, 24.5]), np.array([22.5, 24.5])
+    circling, way = s.flights_home(
+        [(3, home_3 - np.array([0.0, 1.07]), home_3, 0.0, 100.0),
+         (2, np.array([25.0, 25.5]), home_2, np.pi, 100.0)]
+    )  # fmt: skip
+    assert circling.settled and s.conflict(way, circling)
+    assert s.plan([circling], [(way, np.pi)]).unresolved == [2]  # not movable: no way
+    plan = s.plan([circling], [(way, np.pi)], movable={3: 0.0})
+    assert plan.unresolved == [] and plan.staggered == {3: 2}
+    (held,) = s.guided_flights(3, circling.start_km, 0.0, plan.holds[3][None])
+    if 2 in plan.holds:
+        (gone,) = s.guided_flights(2, way.start_km, np.pi, plan.holds[2][None], home_2, True)
+    else:
+        gone = way
+    assert not s.conflict(gone, held)
