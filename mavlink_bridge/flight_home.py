@@ -24,6 +24,7 @@ from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
 from mavlink_bridge.return_home import HomeWatch, rtl_line, rtl_recipients
 from mavlink_bridge.return_separation import (
     HomeCircles,
+    ReturnPlan,
     ReturnSeparation,
     home_circle_speeds,
 )
@@ -268,7 +269,8 @@ def homeward_commands(
     for v in vehicles:
         if v.home is not None and v.has_position:
             ways[v.system_id] = way_home(daemon, routes, v)
-    holds = hold_for_separation(daemon, vehicles, ways) if flight.separate else {}
+    plan = hold_for_separation(daemon, vehicles, ways) if flight.separate else ReturnPlan()
+    holds = plan.holds
     deciding = {v.system_id for v in vehicles}
     for sid, hold in holds.items():  # a plane in RTL held so that another leaves first
         if sid not in deciding and daemon.link is not None and sid in daemon.link.vehicles:
@@ -287,7 +289,7 @@ def homeward_commands(
         before = flight.homing.get(v.system_id)
         if waypoint is None:
             flight.homing.pop(v.system_id, None)
-            if was_holding is not None and not announce and v.system_id not in flight.unresolved:
+            if was_holding is not None and not announce and v.system_id not in plan.unresolved:
                 daemon.say(f"vehicle {v.system_id}'s way home is clear: RTL sent")
             if before is not None or was_holding is not None or announce:
                 commands.append(set_mode_command(v, PLANE_MODE_RTL))
@@ -331,11 +333,12 @@ def hold_for_separation(
     daemon: MissionDaemon,
     vehicles: list[VehicleState],
     ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]],
-) -> dict[int, np.ndarray]:
-    """The vehicles (of ``vehicles``) that must hold for another's way home, or detour around
-    it, and where (``ReturnSeparation.plan``): every other airborne vehicle heard is flying
-    RTL straight home, which nobody holds any more; a vehicle already holding keeps its point
-    while it is still good. Says who holds or detours, and who conflicts with neither found."""
+) -> ReturnPlan:
+    """Which vehicles must hold for another's way home, detour around it, or leave one after
+    another, and where (``ReturnSeparation.plan``, returned): every other airborne vehicle
+    heard flies RTL home, and may be held again only so that another leaves first; a vehicle
+    already holding keeps its point while it is still good. Says who holds or detours, and
+    who conflicts with no way found."""
     flight = daemon.flight_home
     separation = return_separation(daemon)
     deciding = {v.system_id for v in vehicles}
@@ -384,4 +387,4 @@ def hold_for_separation(
             f"warning: vehicle {sid}'s way home may come within d_min of another plane's "
             "and no hold or detour clears it: it flies on"
         )
-    return plan.holds
+    return plan

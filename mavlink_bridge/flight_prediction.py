@@ -86,7 +86,8 @@ class PlaneModel:
         return 2.0 * self.loiter_radius_km(speed_mps)
 
 
-def _wrap(angle: np.ndarray) -> np.ndarray:
+def wrap_angle(angle: np.ndarray) -> np.ndarray:
+    """Angles (rad) into [-pi, pi)."""
     return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
@@ -177,7 +178,7 @@ def predict_paths(
             from_centre = to_aim[orbiting] + np.pi
             correction = np.arctan(model.loiter_gain * (dist[orbiting] - loiter_km) / loiter_km)
             desired[orbiting] = from_centre - (np.pi / 2 + correction)
-        error = _wrap(desired - course)
+        error = wrap_angle(desired - course)
         if turn_sign is not None:
             forced = (turn_sign != 0) & ~orbiting & (np.abs(error) > np.pi / 2)
             error = np.where(forced & (error * turn_sign < 0), error + 2 * np.pi * turn_sign, error)

@@ -179,7 +179,7 @@ def held_apart(
     round the circle (``ReturnSeparation.guided_flights``), planes already on their circles
     first: a plane whose flight comes within d_min of one kept is moved to the nearest point
     whose circle keeps the threat margin and whose way there conflicts with none kept
-    (``ReturnSeparation.hold_point``). Returns the moves (system id -> point) and the planes
+    (``ReturnSeparation.hold``). Returns the moves (system id -> point) and the planes
     no point clears (left where they are)."""
     flights = []
     for sid, xy, course, target in planes:
@@ -192,12 +192,11 @@ def held_apart(
         if not separation.conflicts(flight, kept):
             kept.append(flight)
             continue
-        point = separation.hold_point(flight, course, kept)
-        if point is None:
+        found = separation.hold(flight, course, kept)
+        if found is None:
             stuck.append(flight.system_id)
             kept.append(flight)
             continue
-        moves[flight.system_id] = point
-        (moved,) = separation.guided_flights(flight.system_id, flight.start_km, course, point[None])
+        moves[flight.system_id], moved = found
         kept.append(moved)
     return moves, stuck

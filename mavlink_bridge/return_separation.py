@@ -39,7 +39,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from mavlink_bridge.flight_prediction import PlaneModel, predict_paths
+from mavlink_bridge.flight_prediction import PlaneModel, predict_paths, wrap_angle
 from mavlink_bridge.safe_return import HomeRoutes
 
 #: how long the plane model's place on a loiter circle is trusted: beyond, a circling plane is
@@ -143,7 +143,7 @@ class ReturnSeparation:
     sample_s: float = 2.0  # instants compared, this far apart (at 100 m/s: 0.2 km)
     hold_rings_km: tuple[float, ...] = (0.0, 2.0, 4.0, 6.0, 8.0)
     hold_directions: int = 16
-    #: detour points (``detour_point``), this far from the plane: far enough to pass a home
+    #: detour points (``detour``), this far from the plane: far enough to pass a home
     #: circle off the line by d_min plus the circle's reach and the plane's stray (~4.2 km)
     detour_rings_km: tuple[float, ...] = (3.0, 5.0, 7.0, 9.0, 12.0)
     #: planes that fly home slower than cruise (``home_circle_speeds``), by system id
@@ -211,27 +211,44 @@ class ReturnSeparation:
         turn_s = math.pi / float(plane.turn_rate_radps(float(now.max())))
         horizon = float((straight_s + turn_s + 2 * math.pi * radius * 1e3 / home_mps).max())
         flown = self._flown(xy, course, home, horizon + self.sample_s, now, home_mps)
-        legs = []
-        for k, sid in enumerate(ids):
-            variants = []
-            for path in flown[k]:
-                near = np.hypot(*(path - home[k]).T) <= 1.1 * radius[k]
-                arrival = float(np.argmax(near)) * self.sample_s if near.any() else horizon
-                variants.append(
-                    Homeward(
-                        sid,
-                        xy[k],
-                        home[k],
-                        home_mps[k] / 1e3,
-                        2 * radius[k],
-                        True,
-                        path_km=path,
-                        path_dt_s=self.sample_s,
-                        path_arrival_s=arrival,
-                    )  # fmt: skip
+        return [
+            self._predicted(sid, xy[k], home[k], home_mps[k], radius[k], True, flown[k])
+            for k, sid in enumerate(ids)
+        ]
+
+    def _predicted(
+        self,
+        system_id: int,
+        xy: np.ndarray,
+        aim: np.ndarray,
+        speed_mps: float,
+        radius_km: float,
+        at_home: bool,
+        paths: list[np.ndarray],
+        via: np.ndarray | None = None,
+    ) -> Homeward:
+        """One plane's flight from its predicted paths (the first, and the other ways round
+        as ``alternatives``): each arrives when it first comes within 1.1 loiter radii of
+        ``aim`` (else at its end) and then circles it."""
+        variants = []
+        for path in paths:
+            near = np.hypot(*(path - aim).T) <= 1.1 * radius_km
+            arrival = float(np.argmax(near) if near.any() else len(path) - 1) * self.sample_s
+            variants.append(
+                Homeward(
+                    system_id,
+                    xy,
+                    aim,
+                    speed_mps / 1e3,
+                    2 * radius_km,
+                    at_home,
+                    via_km=via,
+                    path_km=path,
+                    path_dt_s=self.sample_s,
+                    path_arrival_s=arrival,
                 )
-            legs.append(replace(variants[0], alternatives=tuple(variants[1:])))
-        return legs
+            )
+        return replace(variants[0], alternatives=tuple(variants[1:]))
 
     def _flown(
         self,
@@ -250,7 +267,7 @@ class ReturnSeparation:
         speed = np.broadcast_to(plane.speed_mps if speed_mps is None else speed_mps, (m,))
         commanded = speed if commanded_mps is None else np.broadcast_to(commanded_mps, (m,))
         bearing = np.arctan2(*(aims - xy).T[::-1])
-        off = (bearing - course + np.pi) % (2 * np.pi) - np.pi
+        off = wrap_angle(bearing - course)
         about = np.abs(off) > self.turns_about_rad
         rows = np.concatenate([np.arange(m), np.nonzero(about)[0]])
         sign = np.concatenate([np.zeros(m), -np.sign(off[about])])
@@ -339,29 +356,32 @@ class ReturnSeparation:
         leg = routes.leg_clearance(np.broadcast_to(xy, points.shape), points)
         return keep & (leg >= routes.margin_km)
 
-    def hold_point(
+    def hold(
         self,
         leg: Homeward,
         course_rad: float,
         others: list[Homeward],
         previous: np.ndarray | None = None,
-    ) -> np.ndarray | None:
-        """The nearest point for the plane of ``leg`` to circle until its way home is clear:
-        the circle keeps the threat margin (the loiter diameter from the point), the leg there
-        and the turn onto it keep it too, and that leg conflicts with none of ``others``;
-        ``previous`` (the point it circles now) first, so a holding plane is not moved while its
-        point stays good; ``None`` if no candidate does. Each leg is judged as the plane model
-        flies it (``guided_flights``: the turn onto it both ways round where it turns about),
-        not as a straight line: a plane sent to hold 4 km behind it as a straight leg turned
-        about into another's way home (0.01 km apart at 10 % loss, 5x)."""
+    ) -> tuple[np.ndarray, Homeward] | None:
+        """The nearest point for the plane of ``leg`` to circle until its way home is clear,
+        and its flight there: the circle keeps the threat margin (the loiter diameter from
+        the point), the leg there and the turn onto it keep it too, and that flight conflicts
+        with none of ``others``; ``previous`` (the point it circles now) first, so a holding
+        plane is not moved while its point stays good; ``None`` if no candidate does. Each
+        leg is judged as the plane model flies it (``guided_flights``: the turn onto it both
+        ways round where it turns about), not as a straight line: a plane sent to hold 4 km
+        behind it as a straight leg turned about into another's way home (0.01 km apart at
+        10 % loss, 5x)."""
         xy = leg.start_km
-        if previous is not None and self._still_good(leg, course_rad, others, previous, None):
-            return np.asarray(previous, float).copy()
+        if previous is not None:
+            kept = self._still_good(leg, course_rad, others, previous, None)
+            if kept is not None:
+                return np.asarray(previous, float).copy(), kept
         candidates = self._hold_points(xy, course_rad)
         holds = self.guided_flights(leg.system_id, xy, course_rad, candidates)
         for point, hold in zip(candidates, holds, strict=True):  # nearest first (ring order)
             if not self.conflicts(hold, others, self.choose_margin_km):
-                return point.copy()
+                return point.copy(), hold
         return None
 
     def _still_good(
@@ -371,46 +391,48 @@ class ReturnSeparation:
         others: list[Homeward],
         point: np.ndarray,
         then_km: np.ndarray | None,
-    ) -> bool:
-        """The point a plane holds at (``then_km`` None) or detours through now is kept while
-        it is safe (its circle, the legs and the turn keep the threat margin) and the flight
-        there (and on) as the plane model flies it conflicts with none of ``others``: judged
-        as it was chosen (``stagger``), not by the straight line, which may condemn it a
-        decision period later and move the plane for nothing."""
+    ) -> Homeward | None:
+        """The flight to the point a plane holds at (``then_km`` None) or detours through now,
+        while it is safe (its circle, the legs and the turn keep the threat margin) and that
+        flight (and on) as the plane model flies it conflicts with none of ``others``: judged
+        as it was chosen, not by the straight line, which may condemn it a decision period
+        later and move the plane for nothing. None when it is not."""
         xy, point = leg.start_km, np.asarray(point, float)
         if len(self._safe_points(xy, course_rad, point[None])) == 0:
-            return False
+            return None
         on_clear = then_km is None or (
             self.routes.leg_clearance(point[None], then_km[None])[0] >= self.routes.margin_km
         )
         if not on_clear:
-            return False
+            return None
         (flight,) = self.guided_flights(
             leg.system_id, xy, course_rad, point[None], then_km, leg.at_home
         )
-        return not self.conflicts(flight, others)
+        return None if self.conflicts(flight, others) else flight
 
-    def detour_point(
+    def detour(
         self,
         leg: Homeward,
         course_rad: float,
         others: list[Homeward],
         previous: np.ndarray | None = None,
-    ) -> np.ndarray | None:
+    ) -> tuple[np.ndarray, Homeward] | None:
         """A point for the plane of ``leg`` to fly through on its way to its aim, around what
-        is in the way (another plane circling its home on the line, or flying home near it):
-        its circle keeps the threat margin (if the ground station goes silent the plane
-        circles it), both legs and the turn onto the first keep it too, and the way through it
-        conflicts with none of ``others``; ``previous`` (the point it flies to now) first, then
-        the shortest way; ``None`` if no candidate does."""
+        is in the way (another plane circling its home on the line, or flying home near it),
+        and the flight through it: its circle keeps the threat margin (if the ground station
+        goes silent the plane circles it), both legs and the turn onto the first keep it
+        too, and the way through it conflicts with none of ``others``; ``previous`` (the
+        point it flies to now) first, then the shortest way; ``None`` if no candidate does."""
         xy, aim = leg.start_km, leg.aim_km
-        if previous is not None and self._still_good(leg, course_rad, others, previous, aim):
-            return np.asarray(previous, float).copy()
+        if previous is not None:
+            kept = self._still_good(leg, course_rad, others, previous, aim)
+            if kept is not None:
+                return np.asarray(previous, float).copy(), kept
         points = self._detour_points(xy, course_rad, aim)
         ways = self.guided_flights(leg.system_id, xy, course_rad, points, aim, leg.at_home)
         for point, way in zip(points, ways, strict=True):  # the shortest way first
             if not self.conflicts(way, others, self.choose_margin_km):
-                return point.copy()
+                return point.copy(), way
         return None
 
     def guided_flights(
@@ -466,26 +488,23 @@ class ReturnSeparation:
                 np.concatenate([p[: i + 1], o[1:]])
                 for p, i, o in zip(paths, cut, onward, strict=True)
             ]
-        variants: list[list[Homeward]] = [[] for _ in points]
+        by_point: list[list[np.ndarray]] = [[] for _ in points]
         for k, path in zip(owner, paths, strict=True):
-            aim = points[k] if then_km is None else np.asarray(then_km, float)
-            near = np.hypot(*(path - aim).T) <= 1.1 * radius_km
-            arrival = float(np.argmax(near) if near.any() else len(path)) * self.sample_s
-            variants[k].append(
-                Homeward(
-                    system_id,
-                    xy,
-                    aim,
-                    speed / 1e3,
-                    2 * radius_km,
-                    at_home and then_km is not None,
-                    via_km=None if then_km is None else points[k],
-                    path_km=path,
-                    path_dt_s=self.sample_s,
-                    path_arrival_s=arrival,
-                )  # fmt: skip
+            by_point[k].append(path)
+        detour = then_km is not None
+        return [
+            self._predicted(
+                system_id,
+                xy,
+                np.asarray(then_km, float) if detour else point,
+                speed,
+                radius_km,
+                at_home and detour,
+                flown,
+                via=point if detour else None,
             )
-        return [replace(v[0], alternatives=tuple(v[1:])) for v in variants]
+            for point, flown in zip(points, by_point, strict=True)
+        ]
 
     def _safe_points(self, xy: np.ndarray, course_rad: float, points: np.ndarray) -> np.ndarray:
         """Of ``points``, those a plane at ``xy`` on ``course_rad`` may be guided to: its
@@ -515,6 +534,7 @@ class ReturnSeparation:
         leg: Homeward,
         course_rad: float,
         fixed: list[Homeward],
+        blocking: list[Homeward],
         released: dict[int, float],
     ) -> tuple[int, np.ndarray, np.ndarray | None, Homeward, Homeward] | None:
         """Two planes that end the mission a few km apart with crossing ways: the one cleared
@@ -527,8 +547,7 @@ class ReturnSeparation:
         plane model flies them (``guided_flights``): the turn onto each way decides it here.
         Returns (the holding plane, its point, ``leg``'s detour point or None, the hold's
         flight, ``leg``'s flight), or None when no pair clears it (or more than one plane is
-        in the way)."""
-        blocking = [o for o in fixed if self.conflict(leg, o)]
+        in the way: ``blocking``, those of ``fixed`` ``leg`` conflicts with)."""
         if len(blocking) != 1 or blocking[0].system_id not in released:
             return None
         other = blocking[0]
@@ -605,20 +624,18 @@ class ReturnSeparation:
             # this one is out of their way: holding would never clear the way (a plane held
             # for one circled until the watch of the flight home ended): only a detour does
             circling = all((o.at_home and o.settled) or o.system_id in kept for o in blocking)
-            point = None if circling else self.hold_point(leg, course, fixed, previous)
-            if point is not None:
-                plan.holds[leg.system_id] = point
-                fixed += self.guided_flights(leg.system_id, leg.start_km, course, point[None])
+            found = None if circling else self.hold(leg, course, fixed, previous)
+            if found is not None:
+                plan.holds[leg.system_id], flight = found
+                fixed.append(flight)
                 continue
-            point = self.detour_point(leg, course, fixed, previous)
-            if point is not None:
-                plan.holds[leg.system_id] = point
+            found = self.detour(leg, course, fixed, previous)
+            if found is not None:
+                plan.holds[leg.system_id], flight = found
                 plan.detours.append(leg.system_id)
-                fixed += self.guided_flights(
-                    leg.system_id, leg.start_km, course, point[None], leg.aim_km, leg.at_home
-                )
+                fixed.append(flight)
                 continue
-            staggered = self.stagger(leg, course, fixed, {**(movable or {}), **released})
+            staggered = self.stagger(leg, course, fixed, blocking, {**(movable or {}), **released})
             if staggered is None:
                 plan.unresolved.append(leg.system_id)
                 fixed.append(leg)
@@ -648,16 +665,14 @@ class ReturnSeparation:
             if not all((o.at_home and o.settled) or o.system_id in kept for o in blocking):
                 plan.holds[leg.system_id] = keep[leg.system_id]
                 continue
-            point = self.detour_point(leg, course, others)
-            if point is None:
+            found = self.detour(leg, course, others)
+            if found is None:
                 plan.unresolved.append(leg.system_id)
                 fixed = [*others, leg]
                 continue
-            plan.holds[leg.system_id] = point
+            plan.holds[leg.system_id], flight = found
             plan.detours.append(leg.system_id)
-            fixed = others + self.guided_flights(
-                leg.system_id, leg.start_km, course, point[None], leg.aim_km, leg.at_home
-            )
+            fixed = [*others, flight]
         return plan
 
 

@@ -140,9 +140,7 @@ def test_planes_too_close_for_either_to_wait_leave_one_after_the_other():
         [(1, start_1, home_1, south, 100.0), (2, start_2, home_2, west, 100.0)]
     )
     assert s.clearance_km(way_1, way_2) < 1.0  # the premise: their ways home conflict
-    assert (
-        s.hold_point(way_2, west, [way_1]) is None and s.detour_point(way_2, west, [way_1]) is None
-    )
+    assert s.hold(way_2, west, [way_1]) is None and s.detour(way_2, west, [way_1]) is None
     plan = s.plan([], [(way_1, south), (way_2, west)])
     assert plan.unresolved == [] and list(plan.staggered.items()) == [(1, 2)]
     hold_km = plan.holds[1]
