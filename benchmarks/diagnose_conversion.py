@@ -11,6 +11,11 @@ the run; the planner never sees it) by the furthest stage of section 3.2.1 it re
 
 Engage misses (requests with no target within the engage radius) are counted per run.
 
+Then the conversion of every seen target by two things the planner does not choose alone: how
+close some UAV came to it (beyond d_in the sensor is weak, eq 17; a target never within the
+engage radius of a UAV cannot have been engaged) and when it was first seen (a target first
+seen late meets UAVs that must head home, ``home_by_end``).
+
 nice -n 10 python benchmarks/diagnose_conversion.py --scenario paper-10uav --seeds 1 2 3
 nice -n 10 python benchmarks/diagnose_conversion.py --scenario paper-2uav --seeds 1 2 3 4 5 6 \
     --set pursue_threshold=0.05
@@ -49,6 +54,29 @@ def closest_approach(steps: list[OfflineStep]) -> dict[int, float]:
     return best
 
 
+#: Bands of the closest approach (km) and of the first sighting (decision steps).
+APPROACH_BANDS_KM = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
+SIGHTING_BANDS = (0, 50, 100, 150, 200)
+
+
+def band_table(
+    label: str, values: np.ndarray, engaged: np.ndarray, edges: tuple, runs: int, unit: str
+) -> list[str]:
+    """Lines of a table: per band of ``values`` (the last band open above), seen targets per
+    run, engaged per run and the conversion."""
+    lines = [f"{label}:"]
+    bounds = list(edges) + [np.inf]
+    for low, high in zip(bounds[:-1], bounds[1:], strict=True):
+        inside = (values >= low) & (values < high)
+        span = f"{low:g}-{high:g} {unit}" if np.isfinite(high) else f">= {low:g} {unit}"
+        conversion = f"{engaged[inside].mean():.2f}" if inside.any() else "-"
+        lines.append(
+            f"  {span:14s} seen {inside.sum() / runs:5.2f} per run, engaged"
+            f" {engaged[inside].sum() / runs:5.2f}, conversion {conversion}"
+        )
+    return lines
+
+
 def classify(row: dict, cfg) -> str:
     if row["confirmed_step"] is not None:
         return CLASSES[3]
@@ -82,6 +110,7 @@ def main() -> None:
     coverage = []
     home = []
     violations = 0
+    approach, sighting, converted = [], [], []
     started = time.perf_counter()
     for seed in args.seeds:
         steps: list[OfflineStep] = []
@@ -95,6 +124,10 @@ def main() -> None:
         home.append(result["returned_count"])
         violations += sum(result["violations"].values())
         for row in account["targets"]:
+            if row["seen"]:
+                approach.append(near[row["id"]])
+                sighting.append(row["first_sighting"])
+                converted.append(row["outcome"] == "engaged")
             if not row["seen"] or row["outcome"] == "engaged":
                 continue
             kind = classify(row, cfg)
@@ -124,6 +157,15 @@ def main() -> None:
         print(f"  {kind:24s} {counts[kind]:3d}  ({counts[kind] / runs:.2f} per run)")
     for (looks, band), c in sorted(detail.items()):
         print(f"    no suspicion, {looks:14s} closest {band}: {c}")
+    converted_arr = np.array(converted, dtype=bool)
+    for line in band_table(
+        "seen targets by the closest approach of any UAV", np.array(approach), converted_arr,
+        APPROACH_BANDS_KM, runs, "km",
+    ) + band_table(
+        "seen targets by their first sighting", np.array(sighting), converted_arr,
+        SIGHTING_BANDS, runs, "steps",
+    ):  # fmt: skip
+        print(line)
     print(f"{time.perf_counter() - started:.0f} s")
 
 
