@@ -125,6 +125,9 @@ class HapfAcoPlanner:
         self.known_engaged = np.zeros((n, len(self.target_ids)), dtype=bool)
         self.engaged_applied = self.known_engaged.copy()  # removed from that UAV's TPM already
         self.engaged_cells = np.full((len(self.target_ids), 2), -1, dtype=np.int64)
+        # where each UAV last asked for an engagement: its outcome comes with the next step,
+        # when the UAV has moved on, and belongs to this cell
+        self.request_cells = np.full((self.n, 2), -1, dtype=np.int64)
         self.footprint = self.grid.disc_offsets(cfg.detection_radius_km)
         self.track_window = self.grid.disc_offsets(2.0 * cfg.cell_km)
         # a candidate is one cell away and the force needs one more cell around the footprint
@@ -245,18 +248,17 @@ class HapfAcoPlanner:
             for i, outcome in enumerate(engagements):
                 if outcome is None:
                     continue
+                where = self.request_cells[i] if self.request_cells[i, 0] >= 0 else self.cells[i]
                 if outcome.success:
                     index = np.flatnonzero(self.target_ids == outcome.target_id)
                     if index.size:
-                        self.engaged_cells[index[0]] = self.cells[i]
+                        self.engaged_cells[index[0]] = where
                         self.known_engaged[i, index[0]] = True
                 else:
-                    # nothing within the engage radius: a certain negative look at this cell
+                    # nothing within the engage radius: a certain negative look at the cell of
+                    # the request
                     self.tpm.apply_looks(
-                        np.array([i]),
-                        [self.cells[i][None, :]],
-                        [np.array([False])],
-                        self.cells[i][None, :],
+                        np.array([i]), [where[None, :]], [np.array([False])], where[None, :]
                     )
                 self.track[i] = -1
         self.known_engaged |= (hears.astype(np.int64) @ self.known_engaged.astype(np.int64)) > 0
@@ -565,6 +567,7 @@ class HapfAcoPlanner:
             engage[who] = (
                 self.engage_probability(who, self.cells[who]) >= self.cfg.confirm_threshold
             )
+            self.request_cells[engage] = self.cells[engage]
         return engage
 
     def _decide(

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from planner.engagement import EngagementOutcome
 from planner.hapf_aco import HapfAcoPlanner
 from planner.scenario import load_scenario, parse_scenario
 from planner.sensor_model import SensorReport
@@ -77,6 +78,33 @@ def test_without_the_keep_threshold_one_missed_look_ends_the_pursuit():
     # the same situation with the hysteresis switched off: the check above would fail
     _, kept = pursue_then_miss(pursue_keep_threshold=0.1, pursue_max_steps=1)
     assert not kept[0]
+
+
+def test_a_missed_engagement_lowers_the_belief_where_it_was_asked_not_where_the_uav_went():
+    # the outcome of an engagement comes with the next step, when the UAV has moved on
+    scenario = parse_scenario(ONE_UAV)
+    planner = HapfAcoPlanner(scenario, scenario.starts_for_seed(0), seed=0)
+    suspect = np.array([50, 50])
+    cells, headings = suspect[None], np.array([2])
+    for _ in range(8):  # looks from overhead that keep reporting it, until it is engaged
+        decision = planner.step(cells, headings, [look(planner, cells[0], [suspect])])
+        if decision.engage[0]:
+            break
+    assert decision.engage[0], "repeated detections below the UAV never led to an engagement"
+    moved = decision.next_cells
+    assert (moved[0] != suspect).any()
+
+    def belief(cell: np.ndarray) -> float:
+        return float(planner.tpm.existence_at(np.array([0]), cell[None])[0])
+
+    def odds(p: float) -> float:
+        return p / (1.0 - p)
+
+    asked_before, moved_before = belief(suspect), belief(moved[0])
+    planner.step(moved, decision.next_headings, [None], [EngagementOutcome(False)])
+    # a look from overhead that found nothing there: its odds fall by about (1 - P_D) / P_D
+    assert odds(belief(suspect)) < odds(asked_before) / 4
+    assert belief(moved[0]) >= 0.9 * moved_before
 
 
 HOMING_TOML = Path(__file__).with_name("homing.toml")
