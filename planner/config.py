@@ -8,6 +8,7 @@ Units are in the field names: ``_km``, ``_s``, ``_mps``, ``_deg``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -45,8 +46,13 @@ class PlannerConfig:
     sensor_d_in_km: float = 2.0  # d_in of eq 17 (open in the paper)
     p_detect: float = 0.9  # P_D
     p_false: float = 0.1  # P_F
+    #: P_F is the false alarm probability of a whole look, as eq 17's b_k is one bit for the
+    #: FOV ("no target in the sensor field of view"); each footprint cell then false-alarms with
+    #: ``cell_false_alarm``, so that a look false-alarms somewhere with probability P_F. False:
+    #: every cell with P_F (a look false-alarms in 1 - (1 - P_F)^K of its K cells' worth)
+    false_alarm_per_look: bool = True
     tpm_decay_tau: float = 1.0  # tau of eq 18 for cells outside the view (open; 1 = no decay)
-    confirm_threshold: float = 0.5  # cell existence probability that confirms a target (open)
+    confirm_threshold: float = 0.6  # probability within the engage radius that confirms (open)
     pursue_threshold: float = (
         0.05  # existence probability worth flying back for a closer look (open)
     )
@@ -196,6 +202,20 @@ class PlannerConfig:
         return self.speed_mps * self.step_s / 1000.0
 
     @property
+    def footprint_cells(self) -> int:
+        """K: cells whose centres lie within the detection radius R of a cell centre."""
+        return _disc_cells(self.detection_radius_km / self.cell_km)
+
+    @property
+    def cell_false_alarm(self) -> float:
+        """Probability that one footprint cell without a target reports b = 1 (eqs 17-18 per
+        cell): ``1 - (1 - P_F)^(1/K)`` when P_F is a look's (``false_alarm_per_look``), so
+        that the K cells of a look false-alarm with probability P_F together; else P_F."""
+        if not self.false_alarm_per_look:
+            return self.p_false
+        return 1.0 - (1.0 - self.p_false) ** (1.0 / self.footprint_cells)
+
+    @property
     def area_km(self) -> tuple[float, float]:
         return (self.grid_nx * self.cell_km, self.grid_ny * self.cell_km)
 
@@ -234,6 +254,15 @@ class PlannerConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+@functools.lru_cache(maxsize=16)
+def _disc_cells(radius_cells: float) -> int:
+    """Integer offsets (i, j) with hypot(i, j) <= radius_cells (the footprint's cell count,
+    as ``Grid.disc_offsets`` lists them)."""
+    r = int(math.floor(radius_cells + 1e-9))
+    span = range(-r, r + 1)
+    return sum(1 for i in span for j in span if math.hypot(i, j) <= radius_cells + 1e-9)
 
 
 DEFAULT_CONFIG = PlannerConfig()

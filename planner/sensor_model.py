@@ -25,11 +25,13 @@ class SensorReport:
 
 
 def detection_probability(distance_km: np.ndarray | float, cfg: PlannerConfig) -> np.ndarray:
-    """p(b_k = 1 | d_k) of eq 17: P_D up to d_in, falling linearly to P_F at d_out = R."""
+    """p(b_k = 1 | d_k) of eq 17 for the cell holding a target: P_D up to d_in, falling
+    linearly to the cell's false alarm probability (``cfg.cell_false_alarm``) at d_out = R."""
     d = np.asarray(distance_km, dtype=float)
     d_in, d_out = cfg.sensor_d_in_km, cfg.detection_radius_km
-    ramp = cfg.p_detect - (cfg.p_detect - cfg.p_false) * (d - d_in) / (d_out - d_in)
-    return np.where(d <= d_in, cfg.p_detect, np.where(d <= d_out, ramp, cfg.p_false))
+    floor = cfg.cell_false_alarm
+    ramp = cfg.p_detect - (cfg.p_detect - floor) * (d - d_in) / (d_out - d_in)
+    return np.where(d <= d_in, cfg.p_detect, np.where(d <= d_out, ramp, floor))
 
 
 def likelihood_ratio(

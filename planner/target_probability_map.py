@@ -511,7 +511,9 @@ class TargetProbabilityMaps:
         uav = np.repeat(np.asarray(receivers), sizes)
         origin = np.repeat(np.asarray(look_origin_cells), sizes, axis=0)
         distance = np.hypot(*((cells - origin) * grid.cell_km).T)
-        ratio = likelihood_ratio(detected, detection_probability(distance, cfg), cfg.p_false)
+        ratio = likelihood_ratio(
+            detected, detection_probability(distance, cfg), cfg.cell_false_alarm
+        )
         keys, where = np.unique(uav * grid.size + grid.flat(cells), return_inverse=True)
         with np.errstate(divide="ignore"):
             log_ratio = np.bincount(where.ravel(), weights=np.log(ratio), minlength=len(keys))

@@ -114,18 +114,21 @@ class World:
     def sense(self, uav_xy_km: np.ndarray) -> list[SensorReport]:
         """One look of each UAV's sensor (eq 17): every cell of the footprint of radius R around
         the UAV reports b = 1 with probability p(b=1|d) if a live target is in it (d = distance
-        UAV-target), and with probability P_F otherwise."""
+        UAV-target), and with the cell's false alarm probability otherwise (``cell_false_alarm``:
+        P_F for the whole look by default, eq 17's b_k being one bit for the FOV)."""
         cfg, grid = self.config, self.grid
         uav_xy_km = np.asarray(uav_xy_km, dtype=float).reshape(-1, 2)
         uav_cells = grid.cell_of(uav_xy_km)
         cells = uav_cells[:, None, :] + self.footprint[None]  # (N, K, 2)
-        p_b1 = np.full(cells.shape[:2], cfg.p_false)
+        p_b1 = np.full(cells.shape[:2], cfg.cell_false_alarm)
         live = np.flatnonzero(self.alive)
         if live.size:
             uav, target, k = self.footprint_hits(uav_cells, live)
             d = np.hypot(*(self.positions[live[target]] - uav_xy_km[uav]).T)
             # several targets in one cell: the nearest one decides the bit's probability
-            np.maximum.at(p_b1, (uav, k), np.maximum(detection_probability(d, cfg), cfg.p_false))
+            np.maximum.at(
+                p_b1, (uav, k), np.maximum(detection_probability(d, cfg), cfg.cell_false_alarm)
+            )
         detected = self.rng.random(p_b1.shape) < p_b1
         inside = grid.inside(cells)
         whole = inside.all(axis=1).tolist()  # footprint fully inside: no selection to copy

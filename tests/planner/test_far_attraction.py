@@ -37,12 +37,12 @@ def test_the_candidate_heading_for_a_distant_prior_is_pulled_the_most():
 
 
 def test_paper_2uav_engages_more_of_its_targets_with_the_far_attraction():
-    # seeds 1-8 (250 steps): engaged 18 without it, 30 with it (seen 35 and 50)
+    # seeds 1-12 (250 steps): engaged 71 without it, 81 with it (seen 70 and 84)
     scenario = load_scenario("paper-2uav")
     assert scenario.config.far_weight > 0
     without = scenario.with_config(far_weight=0.0)
 
     def engaged(s) -> int:
-        return sum(run_offline(s, seed)["engaged_count"] for seed in range(1, 9))
+        return sum(run_offline(s, seed)["engaged_count"] for seed in range(1, 13))
 
     assert engaged(scenario) >= engaged(without) + 6

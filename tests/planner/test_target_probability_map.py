@@ -68,13 +68,24 @@ def test_negative_look_lowers_the_cell_by_the_eq18_ratio():
     assert post < p < post_pos
 
 
-def test_detection_probability_follows_eq17():
-    cfg = CFG.replace(sensor_d_in_km=1.0)
+@pytest.mark.parametrize("per_look", [True, False])
+def test_detection_probability_follows_eq17(per_look):
+    cfg = CFG.replace(sensor_d_in_km=1.0, false_alarm_per_look=per_look)
+    floor = cfg.cell_false_alarm
     d = np.array([0.0, cfg.sensor_d_in_km, 2.0, cfg.detection_radius_km, 10.0])
     p = detection_probability(d, cfg)
     assert p[0] == p[1] == cfg.p_detect
-    assert p[2] == pytest.approx(cfg.p_detect - (cfg.p_detect - cfg.p_false) * 0.5)
-    assert p[3] == pytest.approx(cfg.p_false) and p[4] == cfg.p_false
+    assert p[2] == pytest.approx(cfg.p_detect - (cfg.p_detect - floor) * 0.5)
+    assert p[3] == pytest.approx(floor) and p[4] == floor
+
+
+def test_a_looks_false_alarm_probability_is_p_f_and_a_cells_its_share():
+    # eq 17's b_k is one bit for the FOV: the K = 29 cells of a 3 km footprint false-alarm
+    # together with P_F; with false_alarm_per_look off, each cell does
+    assert CFG.footprint_cells == len(GRID.disc_offsets(CFG.detection_radius_km)) == 29
+    together = 1.0 - (1.0 - CFG.cell_false_alarm) ** CFG.footprint_cells
+    assert together == pytest.approx(CFG.p_false)
+    assert CFG.replace(false_alarm_per_look=False).cell_false_alarm == CFG.p_false
 
 
 def test_maps_sum_to_target_counts_after_looks_and_forecasts():
@@ -176,7 +187,8 @@ def test_known_velocity_belief_stays_on_a_target_crossing_cell_boundaries():
     cell every step concentrate the belief there, whichever part of the cell it is in (the map
     moves by whole cells, up to half a cell beside the target; a look that ignored that part
     ruled the belief out at the target's true cell)."""
-    cfg = CFG.replace(delta_0_km=1.0)
+    # each cell false-alarming with P_F, so that one look is far from decisive
+    cfg = CFG.replace(delta_0_km=1.0, false_alarm_per_look=False)
     tpm, now = _track_with_exact_looks((0.3, 0.1), (40.2, 50.5), 40, cfg)
     cell = np.floor(now).astype(int)
     belief = tpm.layer_map(0, 0)

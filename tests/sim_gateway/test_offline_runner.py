@@ -33,19 +33,24 @@ def test_same_seed_same_result_and_other_seed_differs():
     assert strip(a) != strip(c)
 
 
-def test_sensor_reports_true_targets_more_often_than_false_alarms():
-    s = load_scenario("paper-2uav")
+@pytest.mark.parametrize("per_look", [True, False])
+def test_sensor_reports_true_targets_more_often_than_false_alarms(per_look):
+    s = load_scenario("paper-2uav").with_config(false_alarm_per_look=per_look)
     world = World(s, 3)
     grid = Grid()
     target = world.positions[12]  # a stationary target
-    hits, alarms, looks = 0, 0, 400
+    hits, alarms, alarmed_looks, looks = 0, 0, 0, 2000
     for _ in range(looks):
         report = world.sense(grid.centre_km(grid.cell_of(target[None])))[0]
         here = (report.cells == grid.cell_of(target[None])[0]).all(axis=1)
         hits += int(report.detected[here].sum())
         alarms += int(report.detected[~here].sum())
+        alarmed_looks += int(report.detected[~here].any())
     assert hits / looks > 0.8
-    assert alarms / (looks * 28) == pytest.approx(s.config.p_false, abs=0.03)
+    if per_look:  # P_F is a look's: about one look in ten reports a cell with no target
+        assert alarmed_looks / looks == pytest.approx(s.config.p_false, abs=0.02)
+    else:  # each of the other 28 cells false-alarms with P_F
+        assert alarms / (looks * 28) == pytest.approx(s.config.p_false, abs=0.01)
 
 
 def test_engagement_needs_a_target_within_the_engage_radius():
