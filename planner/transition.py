@@ -109,11 +109,54 @@ def claim_cells(
         else:
             separated = [True] * spots.shape[1]
         allowed_i, first = allowed[i].tolist(), int(ranked[i, 0])
+        found = False
         for c in ranked[i].tolist():
             if not allowed_i[c] and c != first:
                 continue
             if separated[c]:
-                choice[i] = c
+                choice[i], found = c, True
                 break
+        if not found:
+            _make_room(i, ranked, allowed, spots, claimed, choice, senses, movers, limit)
         claimed[i] = spots[i, choice[i]]
     return choice
+
+
+def _make_room(
+    i: int,
+    ranked: np.ndarray,
+    allowed: np.ndarray,
+    spots: np.ndarray,
+    claimed: np.ndarray,
+    choice: np.ndarray,
+    senses: np.ndarray,
+    movers: np.ndarray,
+    limit: float,
+) -> None:
+    """UAV ``i`` found every allowed candidate within d_min of a claimed cell: where exactly one
+    UAV claimed before it blocks one of them, move that UAV to another of its allowed
+    candidates that stays separated from everyone else (and from ``i`` there), and give ``i``
+    the freed cell. ``choice`` and ``claimed`` are updated in place; when no such swap exists
+    they are left as they are (``i`` keeps its first choice and the breach is seen). A UAV
+    holding still (not in ``movers``) is never moved."""
+    has = ~np.isnan(claimed[:, 0])
+    for c in ranked[i].tolist():
+        if not allowed[i, c]:
+            continue
+        spot = spots[i, c]
+        near = np.hypot(*(claimed - spot).T) < limit
+        blockers = np.flatnonzero(has & senses[i] & near)
+        if len(blockers) != 1 or not movers[blockers[0]]:
+            continue
+        j = int(blockers[0])
+        for cj in ranked[j].tolist():
+            if cj == choice[j] or not allowed[j, cj]:
+                continue
+            alt = spots[j, cj]
+            rest = has & senses[j]
+            rest[j] = False
+            apart = np.hypot(*(claimed[rest] - alt).T)
+            if (apart >= limit).all() and np.hypot(*(alt - spot)) >= limit:
+                choice[j], claimed[j] = cj, alt
+                choice[i] = c
+                return

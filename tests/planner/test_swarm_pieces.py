@@ -17,8 +17,10 @@ from planner.grid import (
 )
 from planner.pheromone import PheromoneMaps
 from planner.potential_field import attraction, morse_repulsion, threat_repulsion
+from planner.scenario import load_scenario
 from planner.topology import adapt_radius, adjacency, pairwise_distances
 from planner.transition import claim_cells, heuristic_choice, use_deterministic
+from sim_gateway.offline_runner import run_offline
 
 CFG = PlannerConfig()
 GRID = Grid()
@@ -170,6 +172,45 @@ def test_claim_cells_keeps_min_separation():
     pos = np.array([[9.5, 10.5], [10.5, 9.5]])
     pick = claim_cells(ranked, cand, np.ones((2, 3), bool), pos, np.ones(2, bool), 1.0, 1.0, 3.0)
     assert pick.tolist() == [0, 1]
+
+
+def test_a_uav_left_without_a_separated_move_gets_one_freed_by_the_uav_before_it():
+    # A and B may each go to X; B's other move is the cell of C, which holds still. A claims
+    # first (equal choice, lower index) and takes X, its first choice: B would have had to
+    # follow it into X. A has another allowed move, Y, so A takes Y and B takes X.
+    x, y, c_cell = [12, 11], [13, 13], [10, 10]
+    cand = np.array([[x, y, [0, 0]], [x, c_cell, [0, 0]], [c_cell, c_cell, c_cell]])
+    allowed = np.array([[True, True, False], [True, True, False], [True, True, True]])
+    ranked = np.array([[0, 1, 2], [0, 1, 2], [0, 1, 2]])
+    pos = np.array([[12.5, 12.5], [11.5, 11.5], [10.5, 10.5]])
+    movers = np.array([True, True, False])
+    pick = claim_cells(ranked, cand, allowed, pos, movers, 1.0, 1.0, 3.0)
+    assert pick[:2].tolist() == [1, 0]
+    spots = cand[[0, 1], pick[:2]] + 0.5
+    assert np.hypot(*(spots[0] - spots[1])) >= 1.0
+
+
+def test_the_swap_never_moves_a_uav_that_holds_still():
+    # the same, but the UAV blocking B's only other move is C, which does not move: no swap
+    # there; B takes X only if A can leave it
+    x, c_cell = [12, 11], [10, 10]
+    cand = np.array([[x, x, x], [x, c_cell, [0, 0]], [c_cell, c_cell, c_cell]])
+    allowed = np.array([[True, False, False], [True, True, False], [True, True, True]])
+    ranked = np.array([[0, 1, 2], [1, 0, 2], [0, 1, 2]])
+    pos = np.array([[12.5, 12.5], [11.5, 11.5], [10.5, 10.5]])
+    pick = claim_cells(ranked, cand, allowed, pos, np.array([True, True, False]), 1.0, 1.0, 3.0)
+    assert pick[2] == 0  # C's row is untouched
+    assert pick[0] == 0  # A has nowhere else to go: B's breach stays visible (its first choice)
+    assert pick[1] == 1
+
+
+def test_paper_10uav_seed_14_keeps_its_uavs_apart_where_the_greedy_claim_did_not():
+    # with pursue_threshold 0.1, two UAVs beside a threat both took one cell at step 193: the
+    # first to claim had another move, the second had none left
+    scenario = load_scenario("paper-10uav").with_config(pursue_threshold=0.1)
+    result = run_offline(scenario, 14, account=False)
+    assert result["violations"]["separation"] == 0
+    assert result["min_separation_km"] >= scenario.config.min_separation_km
 
 
 def test_config_rejects_bad_values_with_a_clear_message():
