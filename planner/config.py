@@ -49,7 +49,7 @@ class PlannerConfig:
     #: P_F is the false alarm probability of a whole look, as eq 17's b_k is one bit for the
     #: FOV ("no target in the sensor field of view"); each footprint cell then false-alarms with
     #: ``cell_false_alarm``, so that a look false-alarms somewhere with probability P_F. False:
-    #: every cell with P_F (a look false-alarms in 1 - (1 - P_F)^K of its K cells' worth)
+    #: every cell false-alarms with P_F (a look of K = 29 cells then does 95 % of the time)
     false_alarm_per_look: bool = True
     tpm_decay_tau: float = 1.0  # tau of eq 18 for cells outside the view (open; 1 = no decay)
     confirm_threshold: float = 0.6  # probability within the engage radius that confirms (open)

@@ -2,9 +2,12 @@
 Bayesian cell update (eq 18).
 
 One look of one UAV covers the cells whose centres lie within the detection radius R of the
-UAV; each of them reports a detection bit b. The planner treats eq 17's probability as the
-cell's P_D when it applies eq 18, so a look at the edge of the footprint (where p(b=1|d) falls
-to P_F) carries no information, and one straight below the UAV carries the most.
+UAV; each of them reports a detection bit b. The paper's b_k is one bit for the whole field of
+view, with P_F the false alarm probability of a look; here a cell without a target reports
+b = 1 with its share of it, ``cfg.cell_false_alarm`` (docs/parameters.md). The planner treats
+eq 17's probability as the cell's P_D when it applies eq 18, with that share as the cell's P_F,
+so a look at the edge of the footprint (where p(b=1|d) falls to it) carries no information,
+and one straight below the UAV carries the most.
 """
 
 from __future__ import annotations

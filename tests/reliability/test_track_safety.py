@@ -86,6 +86,10 @@ altitude_m = 500
 [parameters]
 grid_nx = 20
 grid_ny = 20
+# the sensor and confirmation these flights were measured with (every cell false-alarming with
+# P_F, confirmation at 0.5): they fix where the plane is at step 18 and at the end
+false_alarm_per_look = false
+confirm_threshold = 0.5
 [uavs]
 count = 1
 [[uavs.start]]
