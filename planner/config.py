@@ -8,12 +8,13 @@ Units are in the field names: ``_km``, ``_s``, ``_mps``, ``_deg``.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 from planner.errors import UserError
+from planner.grid import Grid
 
 
 class ConfigError(UserError, ValueError):
@@ -201,12 +202,12 @@ class PlannerConfig:
         """Distance flown in one decision step."""
         return self.speed_mps * self.step_s / 1000.0
 
-    @property
+    @cached_property
     def footprint_cells(self) -> int:
         """K: cells whose centres lie within the detection radius R of a cell centre."""
-        return _disc_cells(self.detection_radius_km / self.cell_km)
+        return len(Grid(cell_km=self.cell_km).disc_offsets(self.detection_radius_km))
 
-    @property
+    @cached_property
     def cell_false_alarm(self) -> float:
         """Probability that one footprint cell without a target reports b = 1 (eqs 17-18 per
         cell): ``1 - (1 - P_F)^(1/K)`` when P_F is a look's (``false_alarm_per_look``), so
@@ -254,15 +255,6 @@ class PlannerConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-
-
-@functools.lru_cache(maxsize=16)
-def _disc_cells(radius_cells: float) -> int:
-    """Integer offsets (i, j) with hypot(i, j) <= radius_cells (the footprint's cell count,
-    as ``Grid.disc_offsets`` lists them)."""
-    r = int(math.floor(radius_cells + 1e-9))
-    span = range(-r, r + 1)
-    return sum(1 for i in span for j in span if math.hypot(i, j) <= radius_cells + 1e-9)
 
 
 DEFAULT_CONFIG = PlannerConfig()

@@ -126,9 +126,7 @@ class World:
             uav, target, k = self.footprint_hits(uav_cells, live)
             d = np.hypot(*(self.positions[live[target]] - uav_xy_km[uav]).T)
             # several targets in one cell: the nearest one decides the bit's probability
-            np.maximum.at(
-                p_b1, (uav, k), np.maximum(detection_probability(d, cfg), cfg.cell_false_alarm)
-            )
+            np.maximum.at(p_b1, (uav, k), detection_probability(d, cfg))  # >= the floor
         detected = self.rng.random(p_b1.shape) < p_b1
         inside = grid.inside(cells)
         whole = inside.all(axis=1).tolist()  # footprint fully inside: no selection to copy

@@ -191,10 +191,10 @@ def test_a_uav_left_without_a_separated_move_gets_one_freed_by_the_uav_before_it
 
 
 def test_the_swap_never_moves_a_uav_that_holds_still():
-    # the same, but the UAV blocking B's only other move is C, which does not move: no swap
-    # there; B takes X only if A can leave it
-    x, c_cell = [12, 11], [10, 10]
-    cand = np.array([[x, x, x], [x, c_cell, [0, 0]], [c_cell, c_cell, c_cell]])
+    # A may only go to X; B's other move is the cell of C, which holds still and would have a
+    # free cell far off were it moving: C is not moved for B, and B's breach stays visible
+    x, c_cell, far = [12, 11], [10, 10], [20, 20]
+    cand = np.array([[x, x, x], [x, c_cell, [0, 0]], [c_cell, far, far]])
     allowed = np.array([[True, False, False], [True, True, False], [True, True, True]])
     ranked = np.array([[0, 1, 2], [1, 0, 2], [0, 1, 2]])
     pos = np.array([[12.5, 12.5], [11.5, 11.5], [10.5, 10.5]])
