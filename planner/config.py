@@ -122,7 +122,7 @@ class PlannerConfig:
     return_margin_km: float = 6.0  # slack below which the return term decides (open)
     # --- home by mission end (section 4.3: UAVs back at their start at the last step) ---
     home_by_end: bool = False  # plan C_r so every UAV is home at the scenario's last step
-    home_reserve_steps: int = 3  # steps kept back for the turns on the way home (open)
+    home_reserve_steps: int = 3  # steps kept back for detours on the way home (open)
     home_margin_steps: int = 0  # time slack below which the return term decides (open)
     #: clearance (km, beyond R_t) of the way home that C_r counts (hops and km home); 0: the
     #: same as the moves'. A flown plane keeps a wider berth (the daemon sets its own, open)

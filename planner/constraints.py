@@ -190,21 +190,30 @@ class SafetyModel:
         self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray, headings: np.ndarray
     ) -> np.ndarray:
         """Decision steps a UAV at cell ``(x[i], y[i])`` flying heading ``headings[i]`` needs to
-        reach ``homes_flat[i]``: the fewest safe moves (like ``distances_home_at`` but counting
-        moves, a diagonal one step) plus the turns beyond the first that it takes to point along
-        the first move of such a path (45 degrees per step: a UAV heading away turns for up to
-        three more steps). Fields computed once per home and model (breadth-first search)."""
+        reach ``homes_flat[i]``: the fewest turn-limited safe moves (phi_max a step, over
+        ``home_edge_safe``, each into a viable state as ``move_allowed`` asks; a diagonal one
+        step) from that cell and heading to the home cell, arriving with any heading (inf where
+        none does). Fields computed once per home and model: a breadth-first search over the
+        (heading, cell) states. Counting cell moves and the turns onto the first of them left
+        the turns further on uncounted: beside a threat the way home took more steps than were
+        kept (tests/planner/homing.toml)."""
         homes = np.asarray(homes_flat)
         key = homes.tobytes()
         rows = self._hop_index.get(key)
         if rows is None:
             missing = [h for h in dict.fromkeys(homes.tolist()) if h not in self._hop_rows]
             if missing:
-                hops = dijkstra(self._reversed_graph, indices=missing, unweighted=True)
-                hops = hops.reshape(-1, *self.grid.shape)
-                self._hop_fields = np.concatenate(
-                    [self._hop_fields, hops[:, None] + self._turn_extra(hops)]
-                )
+                size = self.grid.size
+                hops = [
+                    dijkstra(
+                        self._reversed_state_graph,
+                        indices=home + size * np.arange(8),  # the home cell, any heading
+                        unweighted=True,
+                        min_only=True,
+                    ).reshape(8, *self.grid.shape)
+                    for home in missing
+                ]
+                self._hop_fields = np.concatenate([self._hop_fields, np.stack(hops)])
                 for h in missing:
                     self._hop_rows[h] = len(self._hop_rows)
             rows = np.asarray([self._hop_rows[h] for h in homes.tolist()])
@@ -212,20 +221,28 @@ class SafetyModel:
         rows = rows.reshape((-1,) + (1,) * (np.ndim(x) - 1))
         return self._hop_fields[rows, headings, x, y]
 
-    def _turn_extra(self, hops: np.ndarray) -> np.ndarray:
-        """(M, 8, nx, ny): for hop fields (M, nx, ny), the steps of turning beyond the first that
-        a UAV with heading h needs before it can take the best first move home (0 at home)."""
-        best = np.full(hops.shape, np.inf)
-        direction = np.zeros(hops.shape, dtype=np.int64)
-        for h in range(8):
-            after = np.where(self.home_edge_safe[h][None], self._shifted(hops, h, np.inf), np.inf)
-            better = after < best
-            best = np.where(better, after, best)
-            direction = np.where(better, h, direction)
-        diff = np.abs(np.arange(8)[None, :, None, None] - direction[:, None])
-        turns = np.minimum(diff, 8 - diff)
-        extra = np.maximum(turns - 1, 0).astype(float)
-        return np.where((hops > 0)[:, None], extra, 0.0)
+    @cached_property
+    def _reversed_state_graph(self) -> csr_matrix:
+        """The turn-limited safe moves between (heading, cell) states, state ``h * size +
+        flat``: from (h, c) to (h', c + step(h')) for every h' within phi_max of h whose move
+        from c is in ``home_edge_safe`` and lands in a viable state; edges reversed (hops *to*
+        a state)."""
+        grid = self.grid
+        size = grid.size
+        flat = np.arange(size).reshape(grid.shape)
+        rows, cols = [], []
+        for h_next in range(8):
+            # a move the planner may make: safe, and into a state with a way on (``viable``)
+            lands_viable = self._shifted(self.viable[h_next], h_next)
+            start = flat[self.home_edge_safe[h_next] & lands_viable]
+            end = start + grid.flat(HEADING_STEPS[h_next]) + size * h_next
+            for t in self.turns:
+                rows.append(end)
+                cols.append(start + size * ((h_next - t) % 8))
+        rows_all, cols_all = np.concatenate(rows), np.concatenate(cols)
+        return csr_matrix(
+            (np.ones(len(rows_all)), (rows_all, cols_all)), shape=(8 * size, 8 * size)
+        )
 
     def _field_rows(self, homes: list[int]) -> list[int]:
         missing = [h for h in dict.fromkeys(homes) if h not in self._home_rows]

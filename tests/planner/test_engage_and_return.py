@@ -119,12 +119,17 @@ def homing(home: bool):
     return parse_scenario(text.replace("home_by_end = true", f"home_by_end = {str(home).lower()}"))
 
 
-@pytest.mark.parametrize("seed", [2, 4])  # seeds 3 and 5 leave one UAV short of home
+# seeds 3 and 5 left one UAV short of home while the way home was counted in cell moves plus
+# the turns onto the first of them (the turns beside the threat further on were not counted)
+@pytest.mark.parametrize("seed", [2, 3, 4, 5])
 def test_uavs_are_home_at_the_last_step_when_the_scenario_asks(seed):
     home = run_offline(homing(True), seed)
     assert home["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
     assert home["returned_count"] == 3, [u["track_km"][-1] for u in home["uavs"]]
-    # the rule is what brings them home: without it they end the mission out in the area
+
+
+@pytest.mark.parametrize("seed", [2, 4])
+def test_without_the_rule_they_end_the_mission_out_in_the_area(seed):
     away = run_offline(homing(False), seed)
     assert away["returned_count"] < 3
     assert away["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
