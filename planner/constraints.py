@@ -42,6 +42,12 @@ def segment_clearance(
     return np.min(d - radii, axis=-1)
 
 
+#: how many steps a turn-limited way home may be longer than its count in cell moves (plus the
+#: turns onto the first) before ``SafetyModel.hops_home_at`` must search the (heading, cell)
+#: states: twice the most measured (10, see there)
+HOP_SEARCH_SLACK = 20
+
+
 class SafetyModel:
     """Move safety and viability for one set of known threats (cached by the planner)."""
 
@@ -67,6 +73,8 @@ class SafetyModel:
         self._hop_fields = np.zeros((0, 8, grid.nx, grid.ny))
         self._home_index: dict[bytes, np.ndarray] = {}  # homes array's bytes -> rows
         self._hop_index: dict[bytes, np.ndarray] = {}  # homes array's bytes -> rows (per step)
+        self._state_rows: dict[int, int] = {}  # home cell -> row of _state_fields
+        self._state_fields = np.zeros((0, 8, grid.nx, grid.ny), dtype=np.float32)
 
     def _cells(self) -> np.ndarray:
         """(nx, ny, 2): every cell's index."""
@@ -187,39 +195,110 @@ class SafetyModel:
         return self._fields[rows.reshape((-1,) + (1,) * (np.ndim(x) - 1)), x, y]
 
     def hops_home_at(
-        self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray, headings: np.ndarray
+        self,
+        homes_flat: np.ndarray,
+        x: np.ndarray,
+        y: np.ndarray,
+        headings: np.ndarray,
+        within: int | None = None,
     ) -> np.ndarray:
         """Decision steps a UAV at cell ``(x[i], y[i])`` flying heading ``headings[i]`` needs to
         reach ``homes_flat[i]``: the fewest turn-limited safe moves (phi_max a step, over
         ``home_edge_safe``, each into a viable state as ``move_allowed`` asks; a diagonal one
         step) from that cell and heading to the home cell, arriving with any heading (inf where
-        none does). Fields computed once per home and model: a breadth-first search over the
-        (heading, cell) states. Counting cell moves and the turns onto the first of them left
+        none does): a breadth-first search over the (heading, cell) states, once per home and
+        model. Counting cell moves and the turns onto the first of them (``_cell_hops``) left
         the turns further on uncounted: beside a threat the way home took more steps than were
-        kept (tests/planner/homing.toml)."""
+        kept (tests/planner/homing.toml).
+
+        With ``within`` (the steps the caller has: only whether a count is within it matters),
+        that search, 8 times the cells, is left out for a UAV (row of ``homes_flat``) whose
+        fewest count by cell moves is more than ``HOP_SEARCH_SLACK`` from ``within``, either
+        way: the cell count is then returned, as no turn-limited way differs from it that much
+        (longer by 10 at most, shorter by 3, over the paper's threats with homes every 6 cells;
+        ``tests/planner/test_swarm_pieces.py``). The search is made once the UAV's time gets
+        near, bounded by ``within`` + ``HOP_SEARCH_SLACK``: a state further is counted inf,
+        which a later, smaller ``within`` cannot change."""
+        homes = np.asarray(homes_flat)
+        cell_hops = self._cell_hops(homes, x, y, headings)
+        if within is None:
+            return self._state_hops(homes, x, y, headings, None)
+        rows = cell_hops.reshape(len(homes), -1)
+        near = np.abs(within - rows.min(axis=1)) <= HOP_SEARCH_SLACK
+        if not near.any():
+            return cell_hops
+        out = np.array(cell_hops, copy=True)
+        out[near] = self._state_hops(homes[near], x[near], y[near], headings[near], within)
+        return out
+
+    def _state_hops(
+        self, homes: np.ndarray, x: np.ndarray, y: np.ndarray, headings: np.ndarray,
+        within: int | None,
+    ) -> np.ndarray:  # fmt: skip
+        """The breadth-first count over (heading, cell) states (``hops_home_at``); a field is
+        computed at most once per home and model, up to ``within`` + ``HOP_SEARCH_SLACK`` (all
+        of it with None)."""
+        missing = [h for h in dict.fromkeys(homes.tolist()) if h not in self._state_rows]
+        if missing:
+            size = self.grid.size
+            limit = np.inf if within is None else float(within + HOP_SEARCH_SLACK)
+            fresh = [
+                dijkstra(
+                    self._reversed_state_graph,
+                    indices=home + size * np.arange(8),  # the home cell, any heading
+                    unweighted=True,
+                    min_only=True,
+                    limit=limit,
+                ).reshape(8, *self.grid.shape)
+                for home in missing
+            ]
+            self._state_fields = np.concatenate(
+                [self._state_fields, np.stack(fresh).astype(np.float32)]
+            )
+            for h in missing:
+                self._state_rows[h] = len(self._state_rows)
+        rows = np.asarray([self._state_rows[h] for h in homes.tolist()])
+        rows = rows.reshape((-1,) + (1,) * (np.ndim(x) - 1))
+        return self._state_fields[rows, headings, x, y].astype(float)
+
+    def _cell_hops(
+        self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray, headings: np.ndarray
+    ) -> np.ndarray:
+        """The fewest safe cell moves home (a diagonal one step) plus the turns beyond the first
+        that the heading needs to point along the first move of such a path (``hops_home_at``
+        without the turns further on). Fields computed once per home and model."""
         homes = np.asarray(homes_flat)
         key = homes.tobytes()
         rows = self._hop_index.get(key)
         if rows is None:
             missing = [h for h in dict.fromkeys(homes.tolist()) if h not in self._hop_rows]
             if missing:
-                size = self.grid.size
-                hops = [
-                    dijkstra(
-                        self._reversed_state_graph,
-                        indices=home + size * np.arange(8),  # the home cell, any heading
-                        unweighted=True,
-                        min_only=True,
-                    ).reshape(8, *self.grid.shape)
-                    for home in missing
-                ]
-                self._hop_fields = np.concatenate([self._hop_fields, np.stack(hops)])
+                hops = dijkstra(self._reversed_graph, indices=missing, unweighted=True)
+                hops = hops.reshape(-1, *self.grid.shape)
+                self._hop_fields = np.concatenate(
+                    [self._hop_fields, hops[:, None] + self._turn_extra(hops)]
+                )
                 for h in missing:
                     self._hop_rows[h] = len(self._hop_rows)
             rows = np.asarray([self._hop_rows[h] for h in homes.tolist()])
             self._hop_index[key] = rows
         rows = rows.reshape((-1,) + (1,) * (np.ndim(x) - 1))
         return self._hop_fields[rows, headings, x, y]
+
+    def _turn_extra(self, hops: np.ndarray) -> np.ndarray:
+        """(M, 8, nx, ny): for hop fields (M, nx, ny), the steps of turning beyond the first that
+        a UAV with heading h needs before it can take the best first move home (0 at home)."""
+        best = np.full(hops.shape, np.inf)
+        direction = np.zeros(hops.shape, dtype=np.int64)
+        for h in range(8):
+            after = np.where(self.home_edge_safe[h][None], self._shifted(hops, h, np.inf), np.inf)
+            better = after < best
+            best = np.where(better, after, best)
+            direction = np.where(better, h, direction)
+        diff = np.abs(np.arange(8)[None, :, None, None] - direction[:, None])
+        turns = np.minimum(diff, 8 - diff)
+        extra = np.maximum(turns - 1, 0).astype(float)
+        return np.where((hops > 0)[:, None], extra, 0.0)
 
     @cached_property
     def _reversed_state_graph(self) -> csr_matrix:

@@ -73,7 +73,10 @@ def feasible_moves(
         homes = np.asarray(home_flat)[members]  # fields computed once per (model, home)
         home_km[members] = model.distances_home_at(homes, cx[members], cy[members])
         if steps_left is not None:
-            hops[members] = model.hops_home_at(homes, cx[members], cy[members], cand_head[members])
+            hops[members] = model.hops_home_at(
+                homes, cx[members], cy[members], cand_head[members],
+                within=steps_left - cfg.home_reserve_steps,
+            )  # fmt: skip
     home_km = np.where(grid.inside(cand), home_km, np.inf)
     if np.isfinite(cfg.max_range_km):
         slack = cfg.max_range_km - (

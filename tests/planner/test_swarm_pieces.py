@@ -151,6 +151,36 @@ def test_the_way_home_can_be_counted_wider_of_the_threats_than_the_moves():
     assert np.isfinite(wide.distance_home_km(home)[50, 61])
 
 
+def test_the_way_home_is_counted_in_turn_limited_moves_and_searched_only_when_time_is_near():
+    """``hops_home_at`` counts the turn-limited moves home over (heading, cell) states. The
+    count in cell moves plus the turns onto the first (``_cell_hops``) stands in for it while a
+    UAV has ``HOP_SEARCH_SLACK`` steps to spare: over paper-10uav's threats, homes every 11
+    cells and every cell and heading, the turn-limited way is at most 10 steps longer, so the
+    stand-in never lets a move through that the search would refuse."""
+    from planner.constraints import HOP_SEARCH_SLACK
+
+    scenario = load_scenario("paper-10uav")
+    threats = np.array([[t.x_km, t.y_km] for t in scenario.threats])
+    model = SafetyModel(GRID, threats, np.array([t.radius_km for t in scenario.threats]), 0.0, 45.0)
+    x, y, h = np.meshgrid(np.arange(GRID.nx), np.arange(GRID.ny), np.arange(8), indexing="ij")
+    x, y, h = x[None], y[None], h[None]
+    longest = 0.0
+    for hx in range(5, 100, 11):
+        for hy in range(5, 100, 11):
+            home = np.array([GRID.flat(np.array([hx, hy]))])
+            exact = model.hops_home_at(home, x, y, h)
+            cells = model._cell_hops(home, x, y, h)
+            both = np.isfinite(exact) & np.isfinite(cells)
+            longest = max(longest, float((exact[both] - cells[both]).max()))
+    assert 0 < longest <= HOP_SEARCH_SLACK / 2, longest
+    # the UAV whose time is near gets the search (bounded by its time), the others the stand-in
+    home = np.array([GRID.flat(np.array([40, 40]))] * 2)
+    cells = np.array([[40 + 15], [40 + 55]]), np.array([[40], [40]]), np.array([[0], [0]])
+    searched = model.hops_home_at(home, *cells, within=30)
+    assert searched[0, 0] == model.hops_home_at(home[:1], *(c[:1] for c in cells))[0, 0]
+    assert searched[1, 0] == model._cell_hops(home[1:], *(c[1:] for c in cells))[0, 0]
+
+
 def test_deterministic_switch_and_heuristic_choice():
     q = np.array([0.1, 0.9, 0.1])
     det = use_deterministic(np.array([1.0, 1.0, 1e-9]), np.array([1.0, 1.0, 1e-9]), q, CFG)
