@@ -74,6 +74,7 @@ class SafetyModel:
         self._home_index: dict[bytes, np.ndarray] = {}  # homes array's bytes -> rows
         self._hop_index: dict[bytes, np.ndarray] = {}  # homes array's bytes -> rows (per step)
         self._state_rows: dict[int, int] = {}  # home cell -> row of _state_fields
+        self._state_limits: dict[int, float] = {}  # home cell -> how far it was searched
         self._state_fields = np.zeros((0, 8, grid.nx, grid.ny), dtype=np.float32)
 
     def _cells(self) -> np.ndarray:
@@ -235,13 +236,17 @@ class SafetyModel:
         self, homes: np.ndarray, x: np.ndarray, y: np.ndarray, headings: np.ndarray,
         within: int | None,
     ) -> np.ndarray:  # fmt: skip
-        """The breadth-first count over (heading, cell) states (``hops_home_at``); a field is
-        computed at most once per home and model, up to ``within`` + ``HOP_SEARCH_SLACK`` (all
-        of it with None)."""
-        missing = [h for h in dict.fromkeys(homes.tolist()) if h not in self._state_rows]
+        """The breadth-first count over (heading, cell) states (``hops_home_at``), up to
+        ``within`` + ``HOP_SEARCH_SLACK`` (all of it with None); a field is kept per home and
+        model, and searched again only when asked further than it was."""
+        limit = np.inf if within is None else float(within + HOP_SEARCH_SLACK)
+        missing = [
+            h
+            for h in dict.fromkeys(homes.tolist())
+            if self._state_limits.get(h, -np.inf) < limit  # none yet, or searched less far
+        ]
         if missing:
             size = self.grid.size
-            limit = np.inf if within is None else float(within + HOP_SEARCH_SLACK)
             fresh = [
                 dijkstra(
                     self._reversed_state_graph,
@@ -252,11 +257,13 @@ class SafetyModel:
                 ).reshape(8, *self.grid.shape)
                 for home in missing
             ]
-            self._state_fields = np.concatenate(
-                [self._state_fields, np.stack(fresh).astype(np.float32)]
-            )
-            for h in missing:
+            for h, field in zip(missing, fresh, strict=True):
+                self._state_limits[h] = limit
+                if h in self._state_rows:  # searched again, further
+                    self._state_fields[self._state_rows[h]] = field
+                    continue
                 self._state_rows[h] = len(self._state_rows)
+                self._state_fields = np.concatenate([self._state_fields, field[None]])
         rows = np.asarray([self._state_rows[h] for h in homes.tolist()])
         rows = rows.reshape((-1,) + (1,) * (np.ndim(x) - 1))
         return self._state_fields[rows, headings, x, y].astype(float)

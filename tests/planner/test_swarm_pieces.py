@@ -176,9 +176,14 @@ def test_the_way_home_is_counted_in_turn_limited_moves_and_searched_only_when_ti
     # the UAV whose time is near gets the search (bounded by its time), the others the stand-in
     home = np.array([GRID.flat(np.array([40, 40]))] * 2)
     cells = np.array([[40 + 15], [40 + 55]]), np.array([[40], [40]]), np.array([[0], [0]])
-    searched = model.hops_home_at(home, *cells, within=30)
+    fresh = SafetyModel(GRID, threats, np.array([t.radius_km for t in scenario.threats]), 0.0, 45.0)
+    searched = fresh.hops_home_at(home, *cells, within=30)
     assert searched[0, 0] == model.hops_home_at(home[:1], *(c[:1] for c in cells))[0, 0]
     assert searched[1, 0] == model._cell_hops(home[1:], *(c[1:] for c in cells))[0, 0]
+    # searched up to 30 + HOP_SEARCH_SLACK steps: further is inf until asked for all of it
+    far = np.array([[95]]), np.array([[95]]), np.array([[0]])
+    assert not np.isfinite(fresh._state_hops(home[:1], *far, within=30)[0, 0])
+    assert fresh.hops_home_at(home[:1], *far)[0, 0] == model.hops_home_at(home[:1], *far)[0, 0]
 
 
 def test_deterministic_switch_and_heuristic_choice():
