@@ -221,9 +221,9 @@ class SafetyModel:
         near, bounded by ``within`` + ``HOP_SEARCH_SLACK``: a state further is counted inf,
         which a later, smaller ``within`` cannot change."""
         homes = np.asarray(homes_flat)
-        cell_hops = self._cell_hops(homes, x, y, headings)
         if within is None:
             return self._state_hops(homes, x, y, headings, None)
+        cell_hops = self._cell_hops(homes, x, y, headings)
         rows = cell_hops.reshape(len(homes), -1)
         near = np.abs(within - rows.min(axis=1)) <= HOP_SEARCH_SLACK
         if not near.any():

@@ -161,7 +161,8 @@ def test_the_way_home_is_counted_in_turn_limited_moves_and_searched_only_when_ti
 
     scenario = load_scenario("paper-10uav")
     threats = np.array([[t.x_km, t.y_km] for t in scenario.threats])
-    model = SafetyModel(GRID, threats, np.array([t.radius_km for t in scenario.threats]), 0.0, 45.0)
+    radii = np.array([t.radius_km for t in scenario.threats])
+    model = SafetyModel(GRID, threats, radii, 0.0, 45.0)
     x, y, h = np.meshgrid(np.arange(GRID.nx), np.arange(GRID.ny), np.arange(8), indexing="ij")
     x, y, h = x[None], y[None], h[None]
     longest = 0.0
@@ -176,7 +177,7 @@ def test_the_way_home_is_counted_in_turn_limited_moves_and_searched_only_when_ti
     # the UAV whose time is near gets the search (bounded by its time), the others the stand-in
     home = np.array([GRID.flat(np.array([40, 40]))] * 2)
     cells = np.array([[40 + 15], [40 + 55]]), np.array([[40], [40]]), np.array([[0], [0]])
-    fresh = SafetyModel(GRID, threats, np.array([t.radius_km for t in scenario.threats]), 0.0, 45.0)
+    fresh = SafetyModel(GRID, threats, radii, 0.0, 45.0)  # nothing searched yet
     searched = fresh.hops_home_at(home, *cells, within=30)
     assert searched[0, 0] == model.hops_home_at(home[:1], *(c[:1] for c in cells))[0, 0]
     assert searched[1, 0] == model._cell_hops(home[1:], *(c[1:] for c in cells))[0, 0]
