@@ -508,15 +508,18 @@ class HapfAcoPlanner:
         """C_r: the return term takes over once the range slack is nearly spent (eqs 35/37,
         omega_2 = 1), or, when the scenario asks for the UAVs home by its last step
         (``home_by_end``), once the steps to spare are; a returning UAV back next to its start
-        is done."""
+        is done. Both are judged over the moves a UAV may take: one left with none (boxed in by
+        a threat it found too close to turn away from) is not sent home for good, since the
+        slack of no move says nothing of the way home."""
         cfg = self.cfg
+        can_move = opts.feasible.any(axis=1) & flying
         bounded = np.isfinite(cfg.max_range_km)
         past_half = self.distance_km + opts.step_km.min(axis=1) > cfg.max_range_km / 2
         best_slack = np.where(opts.feasible, opts.slack_km, -np.inf).max(axis=1)
-        self.returning |= bounded & past_half & (best_slack < cfg.return_margin_km) & flying
+        self.returning |= bounded & past_half & (best_slack < cfg.return_margin_km) & can_move
         if cfg.home_by_end:
             best_time = np.where(opts.feasible, opts.time_slack, -np.inf).max(axis=1)
-            self.returning |= (best_time < cfg.home_margin_steps) & flying
+            self.returning |= (best_time < cfg.home_margin_steps) & can_move
         near_home = np.abs(self.cells - self.home).max(axis=1) <= 1
         self.done |= self.returning & near_home & flying
 

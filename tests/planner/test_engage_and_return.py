@@ -240,3 +240,19 @@ def test_paper_10uav_confirms_at_0_7_and_misses_less_for_it():
 
     at_seven, at_six = misses(scenario), misses(scenario.with_config(confirm_threshold=0.6))
     assert 3 * at_seven <= 2 * at_six, (at_seven, at_six)
+
+
+def test_a_uav_boxed_in_by_a_threat_it_just_found_searches_on():
+    """With threat_margin_km 2 a UAV can find a threat (at R + R_t) already too close to turn
+    away from its widened circle: no move is allowed that step. The return rule judged that as
+    no time left to get home and sent it home for good; in seed 6 two UAVs were back and done
+    by step 17 of 250. Now they search on, and every UAV is still home by the last step."""
+    scenario = load_scenario("paper-10uav")
+    scenario = scenario.with_config(threat_margin_km=2.0)
+    result = run_offline(scenario, 6, account=False)
+    for uav in result["uavs"]:
+        track = np.array(uav["track_km"])
+        moved = np.flatnonzero(np.hypot(*np.diff(track, axis=0).T) > 1e-9)
+        assert moved[-1] >= result["steps"] - 15, (uav["id"], int(moved[-1]))  # searched on
+    assert result["returned_count"] == scenario.uav_count
+    assert result["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
