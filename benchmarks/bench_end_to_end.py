@@ -12,7 +12,8 @@ run took under 60 s, had zero violations, and had coverage / engaged value withi
 (min..max) of the offline runs of the same seeds; and, since one MAVLink run of a seed is not
 the offline run of that seed (telemetry noise and real turns change every later decision), the
 paired comparison over the seeds: mean difference and a Wilcoxon signed-rank p-value (no
-systematic difference when p is large). ``--speedup X`` flies paced instead of lockstep;
+systematic difference when p is large); last, the UAV-steps the planner spent in each decision
+mode, offline and flown. ``--speedup X`` flies paced instead of lockstep;
 ``--no-leg-timing`` flies every leg at the scenario's speed (docs/daemon.md, "Leg timing").
 """
 
@@ -146,6 +147,19 @@ def verdict(offline: list[dict], mavlink: list[dict]) -> None:
     print(f"mavlink violations, all seeds: {violations} (target 0)")
     for line in lines:
         print(line)
+    print(modes_line(offline, mavlink))
+
+
+def modes_line(offline: list[dict], mavlink: list[dict]) -> str:
+    """The planner's UAV-steps a run in each decision mode, offline -> MAVLink (means): how the
+    flown runs' conduct differs (e.g. more of the return mode, docs/results.md)."""
+
+    def mean(runs: list[dict], mode: str) -> float:
+        return sum(r["decision_modes"][mode] for r in runs) / len(runs)
+
+    modes = offline[0]["decision_modes"]
+    parts = [f"{m} {mean(offline, m):.0f} -> {mean(mavlink, m):.0f}" for m in modes]
+    return "UAV-steps a run by planner mode, offline -> mavlink: " + ", ".join(parts)
 
 
 if __name__ == "__main__":

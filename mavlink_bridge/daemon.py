@@ -741,6 +741,8 @@ class MissionDaemon:
             plan = stages.plan(state, inputs)
             flight = stages.envelope(state, inputs, plan)
             stages.record(state, inputs, plan, flight)
+            if step < self.steps:  # the decisions of the mission's steps, as offline counts them
+                state.recorder.record_modes(plan.decision.modes)
             batch = stages.command_batch(state, inputs, plan, flight)
             late = pacing.current.late(instant) if step > 0 else False
             if self.holds(step, state, inputs.active):

@@ -9,6 +9,9 @@ get the same result dictionary (the ``result.json`` of a run):
   steps (``coverage_slope_50``, share per step);
 - separation: minimum pairwise distance of the airborne UAVs, per step and overall;
 - distance flown per UAV, whether it came back to its start;
+- UAV-steps the planner spent in each of its decision modes (``decision_modes``: search by the
+  transition rules, the potential field's deterministic move, escape, pursuit and engagement,
+  the return of C_r, hold), so a flown run's conduct can be set beside the offline one's;
 - violations of C_t (inside a threat, or a leg crossing one), C_c (pair closer than d_min),
   C_m (turn over phi_max between consecutive legs) and C_r (distance over L_max).
 """
@@ -23,6 +26,7 @@ from scipy import stats
 
 from planner.constraints import segment_clearance
 from planner.grid import Grid
+from planner.hapf_aco import MODES
 from planner.scenario import Scenario, UavStart
 from planner.topology import pairwise_distances
 
@@ -61,6 +65,7 @@ class MissionRecorder:
         self.mean_min_separation_curve: list[float] = []
         self.engagements: list[dict] = []
         self.engage_misses = 0  # engagements requested where no target was within the radius
+        self.mode_steps = np.zeros(len(MODES), dtype=np.int64)  # UAV-steps in each decision mode
         self.violations = {"threat": 0, "separation": 0, "turn": 0, "range": 0}
         self._last = np.full((self.n, 2), np.nan)
         self._last_leg = np.full((self.n, 2), np.nan)
@@ -146,6 +151,16 @@ class MissionRecorder:
         self._last[:] = np.nan
         self._last_leg[:] = np.nan
 
+    def __setstate__(self, state: dict) -> None:
+        """Unpickled from a daemon checkpoint written before decision modes were counted: they
+        are counted from the resumed step on."""
+        state.setdefault("mode_steps", np.zeros(len(MODES), dtype=np.int64))
+        self.__dict__.update(state)
+
+    def record_modes(self, modes: np.ndarray) -> None:
+        """The planner's decision mode of every UAV at one step (indices into ``MODES``)."""
+        self.mode_steps += np.bincount(np.asarray(modes, dtype=np.int64), minlength=len(MODES))
+
     def record_engagement_miss(self) -> None:
         """An engagement was requested and nothing was within the engage radius."""
         self.engage_misses += 1
@@ -190,6 +205,7 @@ class MissionRecorder:
             "engaged_value": float(sum(e["value"] for e in self.engagements)),
             "engaged_curve": list(self.engaged_curve),
             "engage_misses": int(self.engage_misses),
+            "decision_modes": {m: int(c) for m, c in zip(MODES, self.mode_steps, strict=True)},
             "min_separation_km": float(min(finite_sep)) if finite_sep else None,
             "min_separation_curve": [
                 None if not math.isfinite(s) else round(s, 4) for s in self.min_separation_curve

@@ -81,6 +81,7 @@ def run_offline(
         if truth is not None:
             truth.observe(k, positions, ~done, reports)
         decision = planner.step(cells, headings, reports, outcomes)
+        recorder.record_modes(decision.modes)
         outcomes = [None] * len(starts)
         for i in np.flatnonzero(decision.engage):
             outcome = world.engage(positions[i], k)

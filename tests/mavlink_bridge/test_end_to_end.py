@@ -119,6 +119,7 @@ def test_demo_json_short_mission_has_no_violations(tmp_path):
     assert result["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
     assert result["coverage"] > 0.1
     assert len(result["uavs"]) == 10 and all(len(u["track_km"]) == 36 for u in result["uavs"])
+    assert sum(result["decision_modes"].values()) == 35 * 10, result["decision_modes"]
     # leg timing: the planes keep the grid's clock, a diagonal cell per step included (at
     # constant speed they fly ~12 % less than the cells the planner sent them to)
     flown = sum(np.hypot(*np.diff(u["track_km"], axis=0).T).sum() for u in result["uavs"])

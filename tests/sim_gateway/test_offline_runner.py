@@ -23,6 +23,26 @@ def test_paper_scenarios_fly_without_any_violation(name, seeds, steps):
         assert result["min_separation_km"] >= scenario.config.min_separation_km
         if np.isfinite(scenario.config.max_range_km):
             assert max(u["distance_km"] for u in result["uavs"]) <= scenario.config.max_range_km
+        modes = result["decision_modes"]  # every UAV's mode at every step, counted once
+        assert sum(modes.values()) == steps * scenario.uav_count, modes
+        assert modes["heuristic"] > sum(modes.values()) / 2, modes
+        if scenario.config.home_by_end:  # back home at the end: returned, then held
+            assert modes["return"] > 0 and modes["hold"] > 0, modes
+
+
+def test_a_recorder_from_an_older_checkpoint_counts_modes_from_the_resume_on():
+    """A daemon checkpoint pickled before decision modes were counted still resumes."""
+    import pickle
+
+    from planner.metrics import MissionRecorder
+
+    scenario = load_scenario("paper-2uav")
+    old = MissionRecorder(scenario, scenario.starts_for_seed(1))
+    del old.mode_steps  # as the recorder was pickled before the count existed
+    resumed = pickle.loads(pickle.dumps(old))
+    resumed.record_modes(np.array([5, 1]))
+    modes = resumed.result(1, "hapf-aco", 0.0)["decision_modes"]
+    assert modes["heuristic"] == 1 and modes["return"] == 1 and sum(modes.values()) == 2
 
 
 def test_same_seed_same_result_and_other_seed_differs():
