@@ -257,13 +257,16 @@ class SafetyModel:
                 ).reshape(8, *self.grid.shape)
                 for home in missing
             ]
+            added = []
             for h, field in zip(missing, fresh, strict=True):
                 self._state_limits[h] = limit
                 if h in self._state_rows:  # searched again, further
                     self._state_fields[self._state_rows[h]] = field
-                    continue
-                self._state_rows[h] = len(self._state_rows)
-                self._state_fields = np.concatenate([self._state_fields, field[None]])
+                else:
+                    self._state_rows[h] = len(self._state_rows)
+                    added.append(field)
+            if added:  # one copy of the fields however many homes are new
+                self._state_fields = np.concatenate([self._state_fields, np.stack(added)])
         rows = np.asarray([self._state_rows[h] for h in homes.tolist()])
         rows = rows.reshape((-1,) + (1,) * (np.ndim(x) - 1))
         return self._state_fields[rows, headings, x, y].astype(float)

@@ -65,6 +65,8 @@ def feasible_moves(
     hops = np.zeros(cand_head.shape)
     cx = np.minimum(np.maximum(cand[..., 0], 0), grid.nx - 1)  # clipped into the area
     cy = np.minimum(np.maximum(cand[..., 1], 0), grid.ny - 1)
+    # the steps a UAV has for the way home: the steps left but the reserve (home_by_end)
+    spare = None if steps_left is None else steps_left - cfg.home_reserve_steps
     for known, members in threat_groups(known_threats):
         model = safety_model(known)
         here = np.broadcast_to(cells[members][:, None, :], cand[members].shape)
@@ -72,11 +74,10 @@ def feasible_moves(
         freedom[members] = model.freedom[cand_head[members], cx[members], cy[members]]
         homes = np.asarray(home_flat)[members]  # fields computed once per (model, home)
         home_km[members] = model.distances_home_at(homes, cx[members], cy[members])
-        if steps_left is not None:
+        if spare is not None:
             hops[members] = model.hops_home_at(
-                homes, cx[members], cy[members], cand_head[members],
-                within=steps_left - cfg.home_reserve_steps,
-            )  # fmt: skip
+                homes, cx[members], cy[members], cand_head[members], within=spare
+            )
     home_km = np.where(grid.inside(cand), home_km, np.inf)
     if np.isfinite(cfg.max_range_km):
         slack = cfg.max_range_km - (
@@ -85,12 +86,10 @@ def feasible_moves(
     else:
         slack = np.full(home_km.shape, np.inf)
     slack = np.where(np.isfinite(home_km), slack, -np.inf)
-    if steps_left is None:
+    if spare is None:
         time_slack = np.full(home_km.shape, np.inf)
     else:
-        time_slack = np.where(
-            np.isfinite(home_km), steps_left - cfg.home_reserve_steps - hops, -np.inf
-        )
+        time_slack = np.where(np.isfinite(home_km), spare - hops, -np.inf)
     safe = allowed & (slack >= 0)
     # If range cannot be kept (only when the start is boxed in), keep safety only.
     safe = np.where(safe.any(axis=1, keepdims=True), safe, allowed)
