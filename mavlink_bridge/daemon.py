@@ -55,6 +55,7 @@ from mavlink_bridge.flight_home import (
     return_to_launch,
     watch_rtl,
 )
+from mavlink_bridge.flown_planning import flight_margin_km, planning_scenario
 from mavlink_bridge.guided_commands import (
     Command,
     send_commands,
@@ -594,6 +595,7 @@ class MissionDaemon:
         if log is not None:  # joined with a simulator's truth by swarmplan demo / account
             extra["planner_facts"] = log.facts()
         extra["look_times_ms"] = self.look_times.rows()
+        extra["planned_with"] = self.state.planner.cfg.changed_from(self.scenario.config)
         return self.state.recorder.result(self.options.seed, ALGORITHM, wall_s, extra=extra)
 
     def close(self) -> None:
@@ -634,20 +636,20 @@ class MissionDaemon:
 
     _course_heading = staticmethod(course_heading)
 
-    def home_path_margin_km(self) -> float:
-        """How far from the threat circles the planner counts the way home (``SafetyModel``'s
-        ``home_margin_km``): the clearance the flight envelope keeps for a guided target, its
-        loiter circle as flown at cruise plus the predicted margin (2.29 km for the simulator's
-        100 m/s plane, 0.41 km for ArduPlane's defaults), at least the cell-level margin. The
-        planner's own way home hugs a threat that close; the envelope then replaced its moves
-        one by one and the plane came home late (paper-10uav demo: 8.2 of 10 home over seeds
-        1-6 against 9.9 offline; docs/parameters.md)."""
-        margin = self.envelope.threat_margin_km
-        if self.flight_envelope is not None:
-            fe = self.flight_envelope
-            reach = float(fe.model.loiter_reach_km(fe.model.speed_mps))
-            margin = max(margin, reach + fe.threat_margin_km)
-        return margin
+    def flight_margin_km(self) -> float:
+        """The threat clearance the planner plans every move and the way home with
+        (``flown_planning.flight_margin_km``): the flight envelope's for a guided target, its
+        loiter circle as flown at cruise plus the predicted margin (2.39 km for the simulator's
+        100 m/s plane, 0.41 km for ArduPlane's defaults), at least the cell-level margin.
+        Planned at the paper's 0 km, the planner's way home hugged a threat that close and the
+        envelope replaced its moves one by one: the plane came home late (paper-10uav demo: 8.2
+        of 10 home over seeds 1-6 against 9.9 offline; docs/parameters.md)."""
+        fe = self.flight_envelope
+        return flight_margin_km(
+            self.envelope.threat_margin_km,
+            None if fe is None else fe.model,
+            0.0 if fe is None else fe.threat_margin_km,
+        )
 
     def make_stages(self) -> DecisionStep:
         """The decision step's stages over the expected vehicles."""
@@ -685,25 +687,13 @@ class MissionDaemon:
     def start_state(self, planner_cls: Any, recorder_cls: Any) -> LoopState:
         """The loop's state at step 0: the planner and recorder from the UAVs' launch points.
         Real planes stray from cell centres (turn circle ~1 km, 14 s diagonal legs), so the
-        planner itself claims cells with the flight margin on top of d_min; the recorder keeps
-        judging against the scenario's true d_min."""
-        scenario, cfg = self.scenario, self.scenario.config
+        planner plans with the margins a flown plane needs (``flown_planning.planning_scenario``);
+        the recorder keeps judging against the scenario's own limits."""
+        scenario = self.scenario
         starts = self.starts_from_telemetry()
-        planning = scenario.with_config(
-            min_separation_km=cfg.min_separation_km + self.options.separation_margin_km,
-            separation_sense_km=max(
-                cfg.separation_sense_km,
-                cfg.min_separation_km + 2 * self.options.separation_margin_km,
-            ),
-        )
-        # the planner's last step is this mission's (home_by_end plans to be home by then)
-        planning = replace(planning, steps=self.steps)
-        # the way home as the flight envelope flies it (home_by_end and the range slack): wide of
-        # the threats, and a few steps kept back for the envelope's replacements on the way
-        planning = planning.with_config(
-            home_path_margin_km=max(cfg.home_path_margin_km, self.home_path_margin_km()),
-            home_reserve_steps=cfg.home_reserve_steps + self.options.home_reserve_extra_steps,
-        )
+        # the margins a flown plane needs (flown_planning.py): separation on top of d_min, the
+        # flight envelope's threat clearance, a few steps more kept back for the way home
+        planning = planning_scenario(scenario, self.steps, self.options, self.flight_margin_km())
         planner = planner_cls(planning, starts, self.options.seed)
         PursuitLog().attach(planner)  # the planner's half of the per-target account (read-only)
         recorder = recorder_cls(

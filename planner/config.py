@@ -223,6 +223,15 @@ class PlannerConfig:
     def replace(self, **changes: Any) -> PlannerConfig:
         return dataclasses.replace(self, **changes)
 
+    def changed_from(self, base: PlannerConfig) -> dict[str, Any]:
+        """The fields whose value differs from ``base``'s, with this configuration's values
+        (a result's ``planned_with``: what a planner planned with beyond its scenario)."""
+        return {
+            f.name: getattr(self, f.name)
+            for f in dataclasses.fields(self)
+            if getattr(self, f.name) != getattr(base, f.name)
+        }
+
     @classmethod
     def from_mapping(
         cls, values: dict[str, Any], base: PlannerConfig | None = None

@@ -53,11 +53,15 @@ def run_offline(
     progress: Callable[[int], None] | None = None,
     account: bool = True,
     observer: Callable[[OfflineStep], None] | None = None,
+    planning: Scenario | None = None,
 ) -> dict:
     """Fly ``scenario`` for ``steps`` decision steps with one seed; returns the result dict,
     with the per-target account (``sim_gateway.target_account``) unless ``account`` is False
     (the flight is the same either way: the account only reads). ``observer`` gets an
-    ``OfflineStep`` after every decision step and one for the end (the mission view's replay)."""
+    ``OfflineStep`` after every decision step and one for the end (the mission view's replay).
+    ``planning``: the scenario the planner plans with, when not ``scenario`` itself (the
+    daemon's margins, ``swarmplan run --as-flown``); the world and the recorder keep
+    ``scenario``'s limits."""
     started = time.perf_counter()
     cfg = scenario.config
     steps = scenario.steps if steps is None else steps
@@ -65,7 +69,8 @@ def run_offline(
     grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
     starts = scenario.starts_for_seed(seed)
     world = World(scenario, seed)
-    planner = PLANNERS[algorithm](scenario, starts, seed)
+    planned = scenario if planning is None else dataclasses.replace(planning, steps=steps)
+    planner = PLANNERS[algorithm](planned, starts, seed)
     recorder = MissionRecorder(scenario, starts)
     truth = TargetAccount(world) if account else None  # beside the planner, never passed to it
     log = PursuitLog().attach(planner) if account else None  # the planner's facts, read-only
@@ -104,9 +109,9 @@ def run_offline(
         positions = grid.centre_km(cells)
         observer(_observed(steps, positions, headings, None, [None] * len(starts), recorder, world,
                            planner))  # fmt: skip
-    extra = None
+    extra: dict = {"planned_with": planned.config.changed_from(cfg)}
     if truth is not None and log is not None:
-        extra = {"target_account": account_of(truth.truth(), log.facts())}
+        extra["target_account"] = account_of(truth.truth(), log.facts())
     return recorder.result(seed, algorithm, time.perf_counter() - started, extra=extra)
 
 

@@ -34,6 +34,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", type=Path, default=None, help="output folder (default runs/<scenario>-seed<S>)"
     )
+    parser.add_argument(
+        "--as-flown",
+        action="store_true",
+        help="plan with the margins the daemon flies the simulator's planes with (separation, "
+        "threat clearance, home reserve: the offline run a 'swarmplan demo' is measured against)",
+    )
     parser.add_argument("--json", action="store_true", help="print only the result JSON on stdout")
 
 
@@ -118,13 +124,18 @@ def written_line(out: Path, files: list[Path]) -> str:
 def main(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     steps = args.steps or scenario.steps
+    planning = None
+    if args.as_flown:
+        from mavlink_bridge.flown_planning import simulator_planning_scenario
+
+        planning = simulator_planning_scenario(scenario, steps)
     out_dir = writable_folder(args.out or Path("runs") / f"{scenario.name}-seed{args.seed}")
     recording = record_replay(scenario, args.seed, steps, out_dir)
     with progress_bar(steps, f"{scenario.name} seed {args.seed}", args.json) as bar:
         try:
             result = run_offline(
                 scenario, args.seed, steps, args.algorithm, progress=lambda k: bar.update(1),
-                observer=recording.observe,
+                observer=recording.observe, planning=planning,
             )  # fmt: skip
         finally:
             recording.close()

@@ -120,6 +120,16 @@ def test_demo_json_short_mission_has_no_violations(tmp_path):
     assert result["coverage"] > 0.1
     assert len(result["uavs"]) == 10 and all(len(u["track_km"]) == 36 for u in result["uavs"])
     assert sum(result["decision_modes"].values()) == 35 * 10, result["decision_modes"]
+    # the daemon's planner planned with the margins `swarmplan run --as-flown` plans with
+    offline = run_swarmplan(
+        ["run", "paper-10uav", "--as-flown", "--seed", "1", "--steps", "35", "--json",
+         "--out", str(tmp_path / "as-flown")],
+        60,
+    )  # fmt: skip
+    assert offline.returncode == 0, offline.stderr[-2000:]
+    planned_with = json.loads(offline.stdout)["planned_with"]
+    assert planned_with["threat_margin_km"] > 2.0, planned_with
+    assert result["planned_with"] == planned_with
     # leg timing: the planes keep the grid's clock, a diagonal cell per step included (at
     # constant speed they fly ~12 % less than the cells the planner sent them to)
     flown = sum(np.hypot(*np.diff(u["track_km"], axis=0).T).sum() for u in result["uavs"])

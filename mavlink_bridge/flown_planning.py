@@ -1,0 +1,82 @@
+"""The scenario as the daemon's planner plans it: the paper's grid plus what a flown plane needs.
+
+A plane does not fly cell centres. It turns on a circle of about 1 km at 100 m/s, lags after
+turns, and circles the last target it was sent when no newer one comes. So the daemon's
+planner plans with margins the paper's grid UAVs do not need (docs/daemon.md, "What the
+planner plans with"):
+
+* **separation**: ``min_separation_km`` plus ``separation_margin_km`` (telemetry positions lag
+  the cells), and the UAVs within twice the margin of d_min always seen;
+* **threats**: every move, and the way home, at least the flight envelope's clearance of a
+  guided target from the threat circles (``flight_margin_km``: the loiter circle as flown,
+  judged out to a loiter diameter, plus the predicted margin; 2.39 km for the simulator's
+  100 m/s plane, 0.41 km for ArduPlane's defaults). Planned at the paper's 0 km, the flight
+  envelope replaced 150 of the planner's cells a mission (paper-10uav demo seed 1) and the
+  planner's picture of where its UAVs were went wrong after each;
+* **home**: a few steps more kept back for the way home (``home_reserve_extra_steps``).
+
+``swarmplan run --as-flown`` plans the offline run the same way, for the simulator's plane with
+the daemon's default options: the offline run a flown one is measured against
+(benchmarks/bench_end_to_end.py). The recorder of either judges the scenario's own limits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+from mavlink_bridge.airframe import scenario_plane_model, threat_margin_km
+from mavlink_bridge.flight_prediction import PlaneModel
+from planner.scenario import Scenario
+
+if TYPE_CHECKING:
+    from mavlink_bridge.daemon import DaemonOptions
+
+
+def flight_margin_km(
+    cell_margin_km: float, model: PlaneModel | None, predicted_margin_km: float
+) -> float:
+    """The clearance from the threat circles the flight envelope keeps for a guided target: its
+    loiter circle at cruise, judged out to a loiter diameter (``loiter_reach_km``), plus the
+    predicted margin; at least the cell-level envelope's margin. ``model`` None: no flight-path
+    envelope, the cell-level margin alone."""
+    if model is None:
+        return cell_margin_km
+    reach = float(model.loiter_reach_km(model.speed_mps))
+    return max(cell_margin_km, reach + predicted_margin_km)
+
+
+def planning_scenario(
+    scenario: Scenario, steps: int, options: DaemonOptions, flight_margin: float
+) -> Scenario:
+    """``scenario`` as the daemon's planner plans it for ``steps`` decision steps (its last
+    step is the mission's: ``home_by_end`` plans to be home by then), with ``options``'
+    separation margin and home reserve and the threat clearance ``flight_margin`` (km)."""
+    cfg = scenario.config
+    planning = scenario.with_config(
+        min_separation_km=cfg.min_separation_km + options.separation_margin_km,
+        separation_sense_km=max(
+            cfg.separation_sense_km, cfg.min_separation_km + 2 * options.separation_margin_km
+        ),
+        threat_margin_km=max(cfg.threat_margin_km, flight_margin),
+        home_path_margin_km=max(cfg.home_path_margin_km, flight_margin),
+        home_reserve_steps=cfg.home_reserve_steps + options.home_reserve_extra_steps,
+    )
+    return replace(planning, steps=steps)
+
+
+def simulator_planning_scenario(scenario: Scenario, steps: int | None = None) -> Scenario:
+    """``scenario`` as the daemon plans it for the simulator's planes with its default options
+    (the airframe the simulator reports: the scenario's speed, 45 deg bank, v .. 1.5 v)."""
+    from mavlink_bridge.daemon import DaemonOptions  # the daemon imports this module
+
+    options = DaemonOptions(connect=[])
+    plane = scenario_plane_model(scenario.config)
+    cell_margin = (
+        threat_margin_km(plane, options.predicted_threat_margin_km)
+        if options.threat_margin_km is None
+        else options.threat_margin_km
+    )
+    model = plane if options.prediction_horizon_steps > 0 else None
+    margin = flight_margin_km(cell_margin, model, options.predicted_threat_margin_km)
+    return planning_scenario(scenario, steps or scenario.steps, options, margin)
