@@ -44,9 +44,23 @@ def test_an_as_flown_run_plans_every_leg_the_flight_margin_clear_of_known_threat
     options = DaemonOptions(connect=[])
     assert flown["planned_with"] == {
         "min_separation_km": 1.0 + options.separation_margin_km,
+        "separation_sense_km": 1.0 + options.separation_margin_km + 2 * np.sqrt(2),
         "threat_margin_km": margin,
         "home_path_margin_km": margin,
         "home_reserve_steps": scenario.config.home_reserve_steps + options.home_reserve_extra_steps,
     }
     assert flown["min_separation_limit_km"] == 1.0  # judged by the scenario's d_min
     assert flown["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
+
+
+def test_two_uavs_planned_as_flown_that_meet_head_on_keep_apart():
+    """paper-10uav seed 11 planned as flown: UAVs 5 and 9 fly one diagonal towards each other
+    at step 223, 2.83 km apart. Sensing each other only within 3 km with the planned d_min of
+    2 km, the second to claim had no move left 2 km from the first's cell and both flew into
+    one cell at step 224. Seen from d_min + 2 diagonal cells on, they keep apart."""
+    scenario = load_scenario("paper-10uav")
+    planning = simulator_planning_scenario(scenario)
+    assert planning.config.separation_sense_km == pytest.approx(2.0 + 2 * np.sqrt(2))
+    result = run_offline(scenario, 11, planning=planning, account=False)
+    assert result["min_separation_km"] >= scenario.config.min_separation_km
+    assert result["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
