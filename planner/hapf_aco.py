@@ -651,7 +651,9 @@ class HapfAcoPlanner:
             modes[engaging] = MODES.index("engage")
         returning = self.returning & flying
         if returning.any():
-            scores = np.where(returning[:, None], range_scores(opts.home_km, feasible), scores)
+            scores = np.where(
+                returning[:, None], range_scores(opts.home_km, feasible, opts.time_slack), scores
+            )
             modes[returning] = MODES.index("return")
 
         chosen_first = np.where(

@@ -141,7 +141,9 @@ class PsoPlanner(HapfAcoPlanner):
             scores[idx], paths, turns = self._optimise(idx, engaging[idx], opts, hears)
             best_paths = {int(i): (paths[a], turns[a]) for a, i in enumerate(idx)}
         if returning.any():
-            scores[returning] = range_scores(opts.home_km, opts.feasible)[returning]
+            scores[returning] = range_scores(opts.home_km, opts.feasible, opts.time_slack)[
+                returning
+            ]
             modes[returning] = MODES.index("return")
 
         ranked = np.argsort(-np.where(np.isfinite(scores), scores, -1e300), axis=1, kind="stable")

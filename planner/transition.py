@@ -69,11 +69,28 @@ def heuristic_choice(
     return np.where(q1 <= cfg.q0, best, drawn)
 
 
-def range_scores(distance_home_km: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+#: ranks one decision step to spare above any difference of path length home (km)
+STEP_RANK_KM = 1e4
+
+
+def range_scores(
+    distance_home_km: np.ndarray, allowed: np.ndarray, time_slack: np.ndarray | None = None
+) -> np.ndarray:
     """Eqs 35/37 with omega_2 = 1: once the return slack is spent, the candidate that keeps
     |L_max - L_past(k+1) - D_left(k+1)| smallest among the feasible ones is the one that heads
-    home along the shortest safe path."""
-    return np.where(allowed, -distance_home_km, -np.inf)
+    home along the shortest safe path.
+
+    With ``time_slack`` (``home_by_end``: the steps to spare after the fewest turn-limited
+    moves home, ``SafetyModel.hops_home_at``) the most steps to spare come first and the km
+    decide between equals. The km know no heading: a UAV flying away from home along a threat
+    took the straight move, the least bad by 0.4 km, step after step, where a turn about was
+    two moves shorter (paper-10uav demo seed 27: 17 cells the wrong way, never home)."""
+    scores = -distance_home_km
+    if time_slack is not None:
+        spare = np.where(np.isfinite(time_slack), time_slack, 0.0)  # no bound: the km alone
+        spare = np.where(np.isneginf(time_slack), -STEP_RANK_KM, spare)  # no way home: last
+        scores = scores + STEP_RANK_KM * spare
+    return np.where(allowed, scores, -np.inf)
 
 
 def claim_cells(

@@ -2,13 +2,15 @@
 suspect is kept through a missed look until it is confirmed or ruled out, and a scenario that
 asks for it (``home_by_end``) ends with every UAV back at its start, with no constraint broken."""
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from planner.engagement import EngagementOutcome
-from planner.hapf_aco import HapfAcoPlanner
+from planner.hapf_aco import MODES, HapfAcoPlanner
+from planner.pso import PsoPlanner
 from planner.scenario import load_scenario, parse_scenario
 from planner.sensor_model import SensorReport
 from sim_gateway.offline_runner import run_offline
@@ -256,3 +258,29 @@ def test_a_uav_boxed_in_by_a_threat_it_just_found_searches_on():
         assert moved[-1] >= result["steps"] - 15, (uav["id"], int(moved[-1]))  # searched on
     assert result["returned_count"] == scenario.uav_count
     assert result["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
+
+
+@pytest.mark.parametrize("planner_cls", [HapfAcoPlanner, PsoPlanner])
+def test_a_late_uav_flying_away_from_home_beside_a_threat_turns_about(planner_cls):
+    """paper-10uav as the daemon plans it (2.39 km clear of the threats), the state a flown
+    plane of seed 27 was measured in: at (66, 38) flying east along the top of the threat at
+    (63, 30), its home at (6, 8), late. Its home lies back west, round the threat's top. The
+    shortest path in km from the next cells made the straight move the least bad (73.4 km
+    against 73.8 for either diagonal), so it flew on east 17 cells and never came home. Counted
+    in turn-limited moves, turning north first is two moves shorter: it turns."""
+    from planner.scenario import UavStart
+
+    scenario = dataclasses.replace(
+        load_scenario("paper-10uav").with_config(
+            threat_margin_km=2.39, home_path_margin_km=2.39, min_separation_km=2.0
+        ),
+        uav_count=1,
+        uav_starts=(UavStart(6.5, 8.5, 0.0),),
+        threats_known=True,
+    )
+    planner = planner_cls(scenario, scenario.uav_starts, 27)
+    planner.k = 185  # 64 steps left: fewer than the way home takes
+    planner.returning[0] = True
+    decision = planner.step(np.array([[66, 38]]), np.array([0]), [None])
+    assert decision.modes[0] == MODES.index("return")
+    assert decision.next_cells[0].tolist() == [67, 39]  # north-east: the turn about begins
