@@ -651,6 +651,12 @@ class MissionDaemon:
             0.0 if fe is None else fe.threat_margin_km,
         )
 
+    def planning_scenario(self) -> Scenario:
+        """The scenario as this daemon's planner plans it, for the airframes flown: the margins a
+        flown plane needs (``flown_planning.planning_scenario``): separation on top of d_min,
+        the flight envelope's threat clearance, a few steps more kept back for the way home."""
+        return planning_scenario(self.scenario, self.steps, self.options, self.flight_margin_km())
+
     def make_stages(self) -> DecisionStep:
         """The decision step's stages over the expected vehicles."""
         return DecisionStep(
@@ -691,10 +697,7 @@ class MissionDaemon:
         the recorder keeps judging against the scenario's own limits."""
         scenario = self.scenario
         starts = self.starts_from_telemetry()
-        # the margins a flown plane needs (flown_planning.py): separation on top of d_min, the
-        # flight envelope's threat clearance, a few steps more kept back for the way home
-        planning = planning_scenario(scenario, self.steps, self.options, self.flight_margin_km())
-        planner = planner_cls(planning, starts, self.options.seed)
+        planner = planner_cls(self.planning_scenario(), starts, self.options.seed)
         PursuitLog().attach(planner)  # the planner's half of the per-target account (read-only)
         recorder = recorder_cls(
             scenario,

@@ -19,9 +19,10 @@ planner plans with"):
   planner's picture of where its UAVs were went wrong after each;
 * **home**: a few steps more kept back for the way home (``home_reserve_extra_steps``).
 
-``swarmplan run --as-flown`` plans the offline run the same way, for the simulator's plane with
-the daemon's default options: the offline run a flown one is measured against
-(benchmarks/bench_end_to_end.py). The recorder of either judges the scenario's own limits.
+``swarmplan run --as-flown`` (swarmplan/as_flown.py) asks a daemon with its default options,
+flying the airframe the simulator reports, for the same scenario: the offline run a flown one
+is measured against (benchmarks/bench_end_to_end.py). The recorder of either judges the
+scenario's own limits.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ import math
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
-from mavlink_bridge.airframe import scenario_plane_model, threat_margin_km
 from mavlink_bridge.flight_prediction import PlaneModel
 from planner.scenario import Scenario
 
@@ -70,20 +70,3 @@ def planning_scenario(
         home_reserve_steps=cfg.home_reserve_steps + options.home_reserve_extra_steps,
     )
     return replace(planning, steps=steps)
-
-
-def simulator_planning_scenario(scenario: Scenario, steps: int | None = None) -> Scenario:
-    """``scenario`` as the daemon plans it for the simulator's planes with its default options
-    (the airframe the simulator reports: the scenario's speed, 45 deg bank, v .. 1.5 v)."""
-    from mavlink_bridge.daemon import DaemonOptions  # the daemon imports this module
-
-    options = DaemonOptions(connect=[])
-    plane = scenario_plane_model(scenario.config)
-    cell_margin = (
-        threat_margin_km(plane, options.predicted_threat_margin_km)
-        if options.threat_margin_km is None
-        else options.threat_margin_km
-    )
-    model = plane if options.prediction_horizon_steps > 0 else None
-    margin = flight_margin_km(cell_margin, model, options.predicted_threat_margin_km)
-    return planning_scenario(scenario, steps or scenario.steps, options, margin)

@@ -523,6 +523,17 @@ class HapfAcoPlanner:
         near_home = np.abs(self.cells - self.home).max(axis=1) <= 1
         self.done |= self.returning & near_home & flying
 
+    @staticmethod
+    def _return_scores(
+        scores: np.ndarray, modes: np.ndarray, opts: MoveOptions, returning: np.ndarray
+    ) -> None:
+        """C_r decides for the ``returning`` UAVs (``range_scores``), in place."""
+        if returning.any():
+            scores[returning] = range_scores(
+                opts.home_km[returning], opts.feasible[returning], opts.time_slack[returning]
+            )
+            modes[returning] = MODES.index("return")
+
     def _claim(
         self,
         ranked: np.ndarray,
@@ -649,12 +660,7 @@ class HapfAcoPlanner:
                 engaging[:, None], self._pursuit_scores(cand, cand_head, moves, feasible), scores
             )
             modes[engaging] = MODES.index("engage")
-        returning = self.returning & flying
-        if returning.any():
-            scores = np.where(
-                returning[:, None], range_scores(opts.home_km, feasible, opts.time_slack), scores
-            )
-            modes[returning] = MODES.index("return")
+        self._return_scores(scores, modes, opts, self.returning & flying)
 
         chosen_first = np.where(
             modes == MODES.index("heuristic"), choice, np.argmax(scores, axis=1)

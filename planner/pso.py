@@ -43,7 +43,6 @@ from planner.feasibility import MoveOptions, threat_groups
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, turn_options
 from planner.hapf_aco import MODES, HapfAcoPlanner, StepDecision
 from planner.scenario import Scenario, UavStart
-from planner.transition import range_scores
 
 
 def _clamp(a: np.ndarray, low: float, high: float) -> np.ndarray:
@@ -140,11 +139,7 @@ class PsoPlanner(HapfAcoPlanner):
             idx = np.flatnonzero(search)
             scores[idx], paths, turns = self._optimise(idx, engaging[idx], opts, hears)
             best_paths = {int(i): (paths[a], turns[a]) for a, i in enumerate(idx)}
-        if returning.any():
-            scores[returning] = range_scores(opts.home_km, opts.feasible, opts.time_slack)[
-                returning
-            ]
-            modes[returning] = MODES.index("return")
+        self._return_scores(scores, modes, opts, returning)
 
         ranked = np.argsort(-np.where(np.isfinite(scores), scores, -1e300), axis=1, kind="stable")
         pick = self._claim(ranked, opts, positions, distances, flying)

@@ -87,8 +87,8 @@ def range_scores(
     two moves shorter (paper-10uav demo seed 27: 17 cells the wrong way, never home)."""
     scores = -distance_home_km
     if time_slack is not None:
-        spare = np.where(np.isfinite(time_slack), time_slack, 0.0)  # no bound: the km alone
-        spare = np.where(np.isneginf(time_slack), -STEP_RANK_KM, spare)  # no way home: last
+        # no bound (+inf): the km alone; no way home (-inf): last
+        spare = np.nan_to_num(time_slack, posinf=0.0, neginf=-STEP_RANK_KM)
         scores = scores + STEP_RANK_KM * spare
     return np.where(allowed, scores, -np.inf)
 

@@ -126,7 +126,7 @@ def main(args: argparse.Namespace) -> int:
     steps = args.steps or scenario.steps
     planning = None
     if args.as_flown:
-        from mavlink_bridge.flown_planning import simulator_planning_scenario
+        from swarmplan.as_flown import simulator_planning_scenario
 
         planning = simulator_planning_scenario(scenario, steps)
     out_dir = writable_folder(args.out or Path("runs") / f"{scenario.name}-seed{args.seed}")

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from mavlink_bridge.daemon import DaemonOptions
-from mavlink_bridge.flown_planning import simulator_planning_scenario
 from planner.constraints import segment_clearance
 from planner.scenario import load_scenario
 from sim_gateway.offline_runner import run_offline
+from swarmplan.as_flown import simulator_planning_scenario
 
 
 def closest_leg_to_a_threat(result: dict, scenario) -> float:
