@@ -26,8 +26,10 @@ import pytest
 from loopback import free_udp_port, run_swarmplan, start_swarmplan, stop
 from pymavlink import mavutil
 from reliability_harness import last_json
+from udp_fault_relay import FaultProfile, FaultRelay, GrantHold
 
 from mavlink_bridge.checkpoint import CheckpointError, read_checkpoint
+from planner.scenario import Origin
 
 #: two planes taking off towards each other 0.4 km abeam: they pass between decision instants
 HEAD_ON = """
@@ -238,24 +240,40 @@ def test_the_flight_home_goes_around_a_threat_between_plane_and_home(tmp_path: P
     assert audit["threat_entries"] == 0 and audit["min_threat_margin_km"] > 0
 
 
+def _line_depth_km(a_km, b_km, centre_km, radius_km: float) -> float:
+    """How deep the straight line from a to b gets into the circle (negative: its clearance)."""
+    a, b, c = (np.asarray(p, dtype=float) for p in (a_km, b_km, centre_km))
+    t = np.clip(np.dot(c - a, b - a) / np.dot(b - a, b - a), 0.0, 1.0)
+    return radius_km - float(np.linalg.norm(a + t * (b - a) - c))
+
+
 @pytest.mark.timeout(120)
 def test_a_plane_switched_to_rtl_mid_mission_is_guided_out_not_through(tmp_path: Path):
     """Mid-mission the plane's autopilot switches it to RTL, as ArduPlane's fence action does
     after a breach (here a third party's DO_SET_MODE while the lockstep daemon is held). It is
     north of a threat, its home south: RTL's straight line crosses the zone (0.27 km deep at
     30 % loss, 20x, issue 12: the plane, lost to the planner for leaving GUIDED, got no more
-    targets). The daemon guides it out around the threat at its next step."""
+    targets). The daemon guides it out around the threat at its next step.
+
+    Simulated time stops where the plane is, not where the test's process happens to look: a
+    relay withholds the daemon's grants from the first decision instant at which RTL's line home
+    would cross the threat 0.5 km deep (a test that stopped the daemon when its log said step 18
+    ran late on a loaded machine, at the mission's last step, where the flight home takes over)."""
     scenario = tmp_path / "behind.toml"
     scenario.write_text(BEHIND_THREAT)
-    port = free_udp_port()
+    home, threat = (10.5, 3.5), (10.0, 10.0)
+    hold = GrantHold(Origin(), lambda x, y: _line_depth_km((x, y), home, threat, 3.0) > 0.5)
+    daemon_port = free_udp_port()
+    relay = FaultRelay(daemon_port, 1, FaultProfile(), seed=1, withhold=hold)
+    relay.start()
     sim_log, daemon_log = tmp_path / "sim.log", tmp_path / "daemon.log"
     sim = start_swarmplan(
         ["sim", "--scenario", str(scenario), "--lockstep", "--speedup", "100",
-         "--gcs-port", str(port), "--boot-s", "2", "--quiet"],
+         "--per-vehicle-ports", str(relay.base_port), "--boot-s", "2", "--quiet"],
         sim_log,
     )  # fmt: skip
     daemon = start_swarmplan(
-        ["daemon", "--connect", f"udpin:127.0.0.1:{port}", "--scenario", str(scenario),
+        ["daemon", "--connect", f"udpin:127.0.0.1:{daemon_port}", "--scenario", str(scenario),
          "--lockstep", "--out", str(tmp_path / "out"), "--timeout", "30"],
         daemon_log,
     )  # fmt: skip
@@ -266,10 +284,10 @@ def test_a_plane_switched_to_rtl_mid_mission_is_guided_out_not_through(tmp_path:
         assert found, sim_log.read_text()[-2000:]
         vehicle_port = re.search(r"ports (\d+)", sim_log.read_text()).group(1)
         pilot = mavutil.mavlink_connection(f"udpout:127.0.0.1:{vehicle_port}", source_system=240)
-        # at step 18 the plane is north of the threat (lockstep, seed 1: (14.8, 16.6) km). The
-        # daemon is held meanwhile (simulated time waits), so it hears the plane's heartbeats in
-        # RTL before its next step
-        assert _wait(lambda: "step   18/" in daemon_log.read_text(), 90, [sim, daemon])
+        assert _wait(hold.holding.is_set, 90, [sim, daemon]), daemon_log.read_text()[-2000:]
+        at_km = hold.position_km
+        assert at_km is not None and at_km[1] > 13.0, at_km  # north of the threat
+        # the daemon is held too, so it hears the plane's heartbeats in RTL before its next step
         daemon.send_signal(signal.SIGSTOP)
         for _ in range(5):
             pilot.mav.command_long_send(
@@ -278,6 +296,7 @@ def test_a_plane_switched_to_rtl_mid_mission_is_guided_out_not_through(tmp_path:
             )  # fmt: skip
             time.sleep(0.1)
         time.sleep(2.0)  # two heartbeats in RTL
+        hold.release()
         daemon.send_signal(signal.SIGCONT)
         daemon.wait(90)
     finally:
@@ -285,6 +304,7 @@ def test_a_plane_switched_to_rtl_mid_mission_is_guided_out_not_through(tmp_path:
             pilot.close()
         stop(daemon)
         stop(sim)
+        relay.stop()
     log = daemon_log.read_text()
     assert "vehicle 1 is in RTL during the mission" in log, log[-3000:]
     truth = last_json(sim_log)["safety"]

@@ -14,6 +14,11 @@ datagram independently:
 
 All randomness comes from one ``random.Random(seed)``; the timing of the operating system still
 varies, so a run is reproducible in its fault rates, not to the datagram.
+
+A :class:`GrantHold` given as ``withhold`` stops a lockstep simulator at a chosen place: it
+withholds the daemon's time grants from the first hold at which the vehicle is where the test
+wants it, until released, so simulated time stops at that decision instant however late the
+test's own process gets to run.
 """
 
 from __future__ import annotations
@@ -24,9 +29,14 @@ import selectors
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from loopback import bind_port_block
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from planner.geodesy import geodetic_to_local_km
+from planner.scenario import Origin
 
 Address = tuple[str, int]
 
@@ -48,14 +58,23 @@ class RelayCounters:
     dropped: int = 0
     duplicated: int = 0
     reordered: int = 0
+    withheld: int = 0
     by_direction: dict[str, int] = field(default_factory=lambda: {"up": 0, "down": 0})
 
 
 class FaultRelay(threading.Thread):
     """Relays N vehicles to one daemon port through a faulty link (see the module docstring)."""
 
-    def __init__(self, daemon_port: int, count: int, profile: FaultProfile, seed: int) -> None:
+    def __init__(
+        self,
+        daemon_port: int,
+        count: int,
+        profile: FaultProfile,
+        seed: int,
+        withhold: Callable[[bytes, str], bool] | None = None,
+    ) -> None:
         super().__init__(daemon=True, name="fault-relay")
+        self.withhold = withhold  # (datagram, "up" | "down") -> True: not forwarded
         self.daemon_addr: Address = ("127.0.0.1", daemon_port)
         self.profile = profile
         self.rng = random.Random(seed)
@@ -78,6 +97,9 @@ class FaultRelay(threading.Thread):
     def _schedule(self, index: int, data: bytes, dest: Address, direction: str) -> None:
         p, rng, c = self.profile, self.rng, self.counters
         c.received += 1
+        if self.withhold is not None and self.withhold(data, direction):
+            c.withheld += 1
+            return
         faulty = self.enabled.is_set()
         if faulty and rng.random() < p.loss:
             c.dropped += 1
@@ -134,3 +156,40 @@ class FaultRelay(threading.Thread):
         self._selector.close()
         for s in self.socks:
             s.close()
+
+
+class GrantHold:
+    """Withholds the daemon's lockstep grants (SYSTEM_TIME without UTC, daemon to vehicle) from
+    the first one sent while ``hold_at(x_km, y_km)`` is true of the vehicle's last reported
+    position (GLOBAL_POSITION_INT, in the scenario's frame from ``origin``), until
+    :meth:`release`. The simulator holds at the decision instant it reached; the daemon re-grants
+    meanwhile (every 0.5 s) and its first grant after the release goes through. One vehicle."""
+
+    def __init__(self, origin: Origin, hold_at: Callable[[float, float], bool]) -> None:
+        self.origin = origin
+        self.hold_at = hold_at
+        self.holding = threading.Event()
+        self.released = False
+        self.position_km: tuple[float, float] | None = None
+        self._parsers = {"up": mavlink.MAVLink(None), "down": mavlink.MAVLink(None)}
+        for parser in self._parsers.values():
+            parser.robust_parsing = True
+
+    def __call__(self, data: bytes, direction: str) -> bool:
+        messages = self._parsers[direction].parse_buffer(data) or []
+        if direction == "up":
+            for m in messages:
+                if m.get_type() == "GLOBAL_POSITION_INT":
+                    x, y = geodetic_to_local_km(m.lat / 1e7, m.lon / 1e7, self.origin)
+                    self.position_km = (float(x[0]), float(y[0]))
+            return False
+        grant = any(m.get_type() == "SYSTEM_TIME" and m.time_unix_usec == 0 for m in messages)
+        if not grant or self.released:
+            return False
+        at = self.position_km
+        if not self.holding.is_set() and at is not None and self.hold_at(*at):
+            self.holding.set()
+        return self.holding.is_set()
+
+    def release(self) -> None:
+        self.released = True
