@@ -278,8 +278,9 @@ class DecisionStep:
         """The planner's step from the gathered inputs and the last step's engagement outcomes."""
         given = state.engagements
         decision = state.planner.step(
-            state.cells.copy(), state.headings.copy(), inputs.reports, given, inputs.active.copy()
-        )
+            state.cells.copy(), state.headings.copy(), inputs.reports, given,
+            inputs.active.copy(), state.positions.copy(),
+        )  # fmt: skip
         state.engagements = [None] * self.n
         done = np.asarray(decision.done, dtype=bool)
         proposed = np.where(done[:, None], self.home_cells(state), np.asarray(decision.next_cells))

@@ -116,6 +116,7 @@ class AcoApfPlanner(HapfAcoPlanner):
         reports: Sequence[SensorReport | None],
         engagements: Sequence[EngagementOutcome | None] | None = None,
         active: np.ndarray | None = None,
+        positions_km: np.ndarray | None = None,
     ) -> StepDecision:
         """HAPF-ACO's step (section 3.5) with the two omissions above; UAVs out of fuel are
         passed to it as inactive, so they hold and the others keep clear of them (C_c)."""
@@ -127,7 +128,7 @@ class AcoApfPlanner(HapfAcoPlanner):
             np.ones(self.n, dtype=bool) if active is None else np.asarray(active, dtype=bool)
         )
         decision = super().step(
-            cells, headings, reports, engagements, reachable & ~self.out_of_fuel
+            cells, headings, reports, engagements, reachable & ~self.out_of_fuel, positions_km
         )
         return StepDecision(
             decision.next_cells,

@@ -133,16 +133,27 @@ def disc_overlap(
     """Cells overlapping a disc of ``radius_km`` around a cell centre: ``(offsets (K, 2),
     fractions (K,))``, the share of each cell's area inside the disc (midpoint quadrature), so
     that a target uniform in cell o lies within the radius with probability ``fractions[o]``."""
-    r = int(np.ceil(radius_km / cell_km + 0.5))
+    offsets, fractions = disc_overlap_at(np.zeros((1, 2)), radius_km, cell_km, samples)
+    inside = fractions[0] > 0
+    return offsets[inside], fractions[0, inside]
+
+
+def disc_overlap_at(
+    points_km: np.ndarray, radius_km: float, cell_km: float, samples: int = 32
+) -> tuple[np.ndarray, np.ndarray]:
+    """``disc_overlap`` for discs around points anywhere in a cell: ``points_km`` (M, 2) are
+    offsets from the centre of the cell each point lies in (at most half a cell). Returns the
+    cell offsets (K, 2) of a window that holds every such disc and ``fractions`` (M, K)."""
+    points = np.asarray(points_km, dtype=float).reshape(-1, 2)
+    r = int(np.ceil(radius_km / cell_km + 0.5 + (np.abs(points).max(initial=0.0) > 0)))
+    span = np.arange(-r, r + 1)
+    offsets = np.stack(np.meshgrid(span, span, indexing="ij"), axis=-1).reshape(-1, 2)
     u = ((np.arange(samples) + 0.5) / samples - 0.5) * cell_km
-    offsets, fractions = [], []
-    for dx in range(-r, r + 1):
-        for dy in range(-r, r + 1):
-            inside = np.hypot(dx * cell_km + u[:, None], dy * cell_km + u[None, :]) <= radius_km
-            if inside.any():
-                offsets.append((dx, dy))
-                fractions.append(inside.mean())
-    return np.array(offsets, dtype=np.int64).reshape(-1, 2), np.array(fractions)
+    # (M, K, samples, samples) distances of the sample points of every window cell
+    dx = offsets[None, :, 0, None] * cell_km + u[None, None, :] - points[:, None, 0, None]
+    dy = offsets[None, :, 1, None] * cell_km + u[None, None, :] - points[:, None, 1, None]
+    inside = np.hypot(dx[..., :, None], dy[..., None, :]) <= radius_km
+    return offsets.astype(np.int64), inside.mean(axis=(2, 3))
 
 
 @lru_cache(maxsize=8)

@@ -39,6 +39,7 @@ from planner.grid import (
     Grid,
     corridor_offsets,
     disc_overlap,
+    disc_overlap_at,
     heading_of_angle,
     steps_to_reach,
 )
@@ -128,6 +129,7 @@ class HapfAcoPlanner:
         # where each UAV last asked for an engagement: its outcome comes with the next step,
         # when the UAV has moved on, and belongs to this cell
         self.request_cells = np.full((self.n, 2), -1, dtype=np.int64)
+        self.measured_km: np.ndarray | None = None  # (N, 2) this step's measured positions
         self.footprint = self.grid.disc_offsets(cfg.detection_radius_km)
         self.track_window = self.grid.disc_offsets(2.0 * cfg.cell_km)
         # a candidate is one cell away and the force needs one more cell around the footprint
@@ -180,11 +182,16 @@ class HapfAcoPlanner:
         reports: Sequence[SensorReport | None],
         engagements: Sequence[EngagementOutcome | None] | None = None,
         active: np.ndarray | None = None,
+        positions_km: np.ndarray | None = None,
     ) -> StepDecision:
         """One decision step. ``cells``/``headings`` are where the UAVs are now (from telemetry
         or the offline world), ``reports`` their looks, ``engagements`` the outcomes of the
-        engagements requested at the previous step, ``active`` which UAVs can be reached."""
+        engagements requested at the previous step, ``active`` which UAVs can be reached.
+        ``positions_km`` (N, 2), where the UAVs measure themselves within their cells (a
+        plane is rarely at its cell's centre), is what an engagement request is judged from;
+        without it, the cell centres (the paper's grid UAVs)."""
         cfg, n = self.cfg, self.n
+        self.measured_km = None if positions_km is None else np.asarray(positions_km, float)
         active = np.ones(n, dtype=bool) if active is None else np.asarray(active, dtype=bool)
         cells = np.asarray(cells, dtype=np.int64).reshape(n, 2)
         moved = np.hypot(*((cells - self.cells) * cfg.cell_km).T)
@@ -574,15 +581,33 @@ class HapfAcoPlanner:
         """Engage once a target lies within the engage radius with probability at least
         ``confirm_threshold`` (``engage_probability`` at the UAV's own cell), whether or not the
         UAV was going for it: a UAV that finds itself on top of a confirmed target while
-        searching or returning engages it on the way."""
+        searching or returning engages it on the way. A UAV whose measured position is known
+        (``step``'s ``positions_km``) also needs that probability within the engage radius of
+        where it is: a plane 0.4 km off its cell's centre does not reach the far side of the
+        cell, and a request from there missed targets the cell's centre would have reached."""
         engage = engaging.copy()
         if engage.any():
             who = np.flatnonzero(engage)
             engage[who] = (
                 self.engage_probability(who, self.cells[who]) >= self.cfg.confirm_threshold
             )
-            self.request_cells[engage] = self.cells[engage]
+        if engage.any() and self.measured_km is not None:
+            who = np.flatnonzero(engage)
+            engage[who] = self.engage_probability_at(who) >= self.cfg.confirm_threshold
+        self.request_cells[engage] = self.cells[engage]
         return engage
+
+    def engage_probability_at(self, uavs: np.ndarray) -> np.ndarray:
+        """``engage_probability`` within the engage radius of the UAVs' measured positions."""
+        cfg = self.cfg
+        cells = self.cells[uavs]
+        within = self.measured_km[uavs] - self.grid.centre_km(cells)
+        offsets, fractions = disc_overlap_at(
+            np.clip(within, -cfg.cell_km / 2, cfg.cell_km / 2), cfg.engage_radius_km, cfg.cell_km
+        )
+        around = cells[:, None, :] + offsets[None]
+        p = self.tpm.existence_at(np.asarray(uavs)[:, None], around) * fractions
+        return 1.0 - np.prod(1.0 - p, axis=1)
 
     def _decide(
         self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray, distances: np.ndarray

@@ -76,6 +76,8 @@ def test_one_step_through_every_stage(paper10):
 
     plan = stages.plan(state, inputs)
     assert plan.proposed_cells.shape == (3, 2)
+    # the planner judges an engagement from where a plane measures itself, not its cell centre
+    np.testing.assert_allclose(planner.measured_km[:2], here[:2], atol=1e-3)
     flight = stages.envelope(state, inputs, plan)
     assert flight.aims_km.shape == (3, 2) and np.isfinite(flight.speeds_mps).all()
 

@@ -112,6 +112,34 @@ def test_a_missed_engagement_lowers_the_belief_where_it_was_asked_not_where_the_
     assert belief(moved[0]) >= 0.9 * moved_before
 
 
+def engage_from(offset_km: tuple[float, float]) -> bool:
+    """Whether a UAV over a suspect it keeps detecting asks for an engagement, at the step its
+    belief within the engage radius of its cell's centre reaches the confirmation threshold,
+    when it measures itself ``offset_km`` from that centre (confirmation at 0.9, so that the
+    share of the cell within the engage radius decides)."""
+    scenario = parse_scenario(ONE_UAV).with_config(confirm_threshold=0.9)
+    planner = HapfAcoPlanner(scenario, scenario.starts_for_seed(0), seed=0)
+    suspect = np.array([50, 50])
+    cells, headings = suspect[None], np.array([2])
+    at_km = planner.grid.centre_km(cells) + np.asarray(offset_km)
+    for _ in range(12):  # looks from overhead that report it, until it is confirmed
+        decision = planner.step(
+            cells, headings, [look(planner, cells[0], [suspect])], positions_km=at_km
+        )
+        if planner.engage_probability(np.array([0]), cells)[0] >= 0.9:
+            return bool(decision.engage[0])
+    pytest.fail("twelve detections from overhead did not confirm the suspect")
+
+
+def test_a_plane_off_its_cell_centre_asks_for_an_engagement_only_where_it_reaches():
+    # at the centre, the engage radius (1 km) holds the whole cell: it asks. At the cell's
+    # corner it holds pi/4 of it (and next to nothing of the neighbours, where nothing was
+    # seen): below 0.9, so it does not ask for an engagement that would likely miss
+    assert engage_from((0.0, 0.0))
+    assert not engage_from((0.49, 0.49))
+    assert engage_from((0.2, 0.0))  # most of the cell within reach: it asks
+
+
 HOMING_TOML = Path(__file__).with_name("homing.toml")
 
 
