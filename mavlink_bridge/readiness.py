@@ -38,9 +38,12 @@ GPS_BIT = mavlink.MAV_SYS_STATUS_SENSOR_GPS
 HOME_REQUEST_PERIOD_S = 3.0
 #: pause between arm attempts of a vehicle that refused, or accepted and is not armed yet (wall s)
 ARM_RETRY_S = 1.0
-#: how long an accepted arm waits for the heartbeat that shows it, without granting time to a
-#: lockstep simulator (wall s)
-ARM_CONFIRM_S = 1.0
+#: how long an answer owed at this very instant is waited for without granting time to a
+#: lockstep simulator (wall s): the heartbeat that shows an accepted arm, the HOME_POSITION that
+#: follows an accepted request for it. Three heartbeat periods: at one (1 s), a heartbeat lost
+#: or late on a loaded machine granted a decision period meanwhile, and the seed's planes armed
+#: 10 simulated s later, into another mission
+ANSWER_WAIT_S = 3.0
 
 
 class NotReadyError(UserError):
@@ -108,7 +111,9 @@ def arm_when_ready(
     ``attempts`` times) and collects their ACKs;
     ``wait(done, timeout_s)`` pumps the link (and grants time to a lockstep simulator);
     ``listen(done, timeout_s)`` pumps it without granting time (by default ``wait``): an
-    accepted arm shows in the heartbeat of the same instant.
+    accepted arm shows in the heartbeat of the same instant, and an accepted request for
+    HOME_POSITION is followed by the message (each waited for up to ``ANSWER_WAIT_S``), so a
+    lockstep seed arms at the same simulated instant however late the answers are.
 
     Raises NotReadyError naming every vehicle not armed at the end, what it lacks and its
     newest PreArm reasons."""
@@ -136,7 +141,11 @@ def arm_when_ready(
                 home_asked[v.system_id] = now
             # one try each: the message itself is what counts, and it is asked for again
             home = mavlink.MAVLINK_MSG_ID_HOME_POSITION
-            send([request_message_command(v, home) for v in missing_home], 1)
+            asked = send([request_message_command(v, home) for v in missing_home], 1)
+            answering = [cmd.vehicle for cmd in asked if cmd.accepted]
+            if answering:  # the message follows its ACK (at the same instant of a lockstep clock)
+                (listen or wait)(partial(_all_have_homes, answering), ANSWER_WAIT_S)
+                now = time.monotonic()
         due = [
             v
             for v in vehicles
@@ -146,7 +155,7 @@ def arm_when_ready(
             sent = send([arm_command(v) for v in due], arm_attempts)
             accepted = [cmd.vehicle for cmd in sent if cmd.accepted]
             if accepted:  # the heartbeat that shows it, at the same instant of a lockstep clock
-                (listen or wait)(partial(_all_armed, accepted), ARM_CONFIRM_S)
+                (listen or wait)(partial(_all_armed, accepted), ANSWER_WAIT_S)
             for cmd in sent:
                 # accepted or not, the next try waits (without the pause, a paced 20x mission
                 # sent one vehicle 160 arm commands in the second before its heartbeat said armed)
@@ -166,6 +175,10 @@ def arm_when_ready(
 
 def _all_armed(vehicles: list[VehicleState]) -> bool:
     return all(v.armed for v in vehicles)
+
+
+def _all_have_homes(vehicles: list[VehicleState]) -> bool:
+    return all(v.home is not None for v in vehicles)
 
 
 def _newly_ready(vehicles: list[VehicleState], next_arm: dict[int, float]) -> bool:
