@@ -16,6 +16,7 @@ from pathlib import Path
 
 from mavlink_bridge.cli import add_leg_timing_arguments
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, MissionInterrupted, StepStatus
+from mavlink_bridge.discovery import DiscoveryError
 from mavlink_bridge.mission_result import lost_vehicle_lines
 from mavlink_bridge.vehicle_loss import paced_lost_after_s
 from mavlink_bridge.view_feed import DaemonViewFeed
@@ -231,11 +232,21 @@ def main(args: argparse.Namespace) -> int:
         if daemon.report is None:
             raise
         report = daemon.report
-    except UserError:
+    except UserError as exc:
         if sim.poll() is not None:
             raise UserError(
                 f"the simulator exited (status {sim.returncode}): "
                 f"{last_line(sim_log) or 'no output'}"
+            ) from None
+        heard = len(link.vehicles)
+        if isinstance(exc, DiscoveryError) and heard < scenario.uav_count:
+            # the daemon's advice (start them, check where they send to) is not the demo's
+            raise UserError(
+                f"the demo's simulator (pid {sim.pid}) was not heard within "
+                f"{options.discovery_timeout_s:g} s of its start ({heard} of "
+                f"{scenario.uav_count} vehicles): the machine is too busy to start it in time, "
+                f"or the process is stopped; run the demo again on a less loaded machine (the "
+                f"simulator's log: {sim_log})"
             ) from None
         raise
     finally:
