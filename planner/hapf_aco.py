@@ -412,13 +412,22 @@ class HapfAcoPlanner:
         )
         self.track[(same & nearer).any(axis=1)] = -1
 
-    def engage_probability(self, uavs: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    def engage_probability(
+        self, uavs: np.ndarray, cells: np.ndarray, within_km: np.ndarray | None = None
+    ) -> np.ndarray:
         """Probability, as UAV ``uavs[m]`` believes, that a target lies within the engage radius
         of the centre of ``cells[m]``: ``1 - prod_cells (1 - p_cell * share of the cell inside
         the radius)``. A moving target's belief spreads over neighbouring cells, so this, not a
-        single cell's p, is what confirms it and what an engagement needs."""
-        around = cells[:, None, :] + self.engage_cells[None]
-        p = self.tpm.existence_at(np.asarray(uavs)[:, None], around) * self.engage_fractions[None]
+        single cell's p, is what confirms it and what an engagement needs. ``within_km`` (M, 2):
+        around these points of the cells instead (km from their centres; a measured position)."""
+        offsets, fractions = self.engage_cells, self.engage_fractions[None]
+        if within_km is not None:
+            half = self.cfg.cell_km / 2
+            offsets, fractions = disc_overlap_at(
+                np.clip(within_km, -half, half), self.cfg.engage_radius_km, self.cfg.cell_km
+            )
+        around = cells[:, None, :] + offsets[None]
+        p = self.tpm.existence_at(np.asarray(uavs)[:, None], around) * fractions
         return 1.0 - np.prod(1.0 - p, axis=1)
 
     def _update_pheromone(self, flying: np.ndarray) -> None:
@@ -593,21 +602,11 @@ class HapfAcoPlanner:
             )
         if engage.any() and self.measured_km is not None:
             who = np.flatnonzero(engage)
-            engage[who] = self.engage_probability_at(who) >= self.cfg.confirm_threshold
+            cells = self.cells[who]
+            within = self.measured_km[who] - self.grid.centre_km(cells)
+            engage[who] = self.engage_probability(who, cells, within) >= self.cfg.confirm_threshold
         self.request_cells[engage] = self.cells[engage]
         return engage
-
-    def engage_probability_at(self, uavs: np.ndarray) -> np.ndarray:
-        """``engage_probability`` within the engage radius of the UAVs' measured positions."""
-        cfg = self.cfg
-        cells = self.cells[uavs]
-        within = self.measured_km[uavs] - self.grid.centre_km(cells)
-        offsets, fractions = disc_overlap_at(
-            np.clip(within, -cfg.cell_km / 2, cfg.cell_km / 2), cfg.engage_radius_km, cfg.cell_km
-        )
-        around = cells[:, None, :] + offsets[None]
-        p = self.tpm.existence_at(np.asarray(uavs)[:, None], around) * fractions
-        return 1.0 - np.prod(1.0 - p, axis=1)
 
     def _decide(
         self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray, distances: np.ndarray

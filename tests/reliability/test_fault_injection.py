@@ -18,7 +18,7 @@ import pytest  # noqa: E402
 from loopback import start_swarmplan, stop  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
 from reliability_harness import last_json  # noqa: E402
-from udp_fault_relay import FaultProfile, FaultRelay  # noqa: E402
+from udp_fault_relay import FaultProfile, FaultRelay, MessageWithhold  # noqa: E402
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
 from mavlink_bridge.discovery import wait_for_vehicles  # noqa: E402
@@ -110,22 +110,20 @@ value = 1
 """
 
 
-class FirstArmedHeartbeatLost:
+class FirstArmedHeartbeatLost(MessageWithhold):
     """``FaultRelay`` withhold: the first HEARTBEAT a vehicle sends armed is lost on its way."""
 
     def __init__(self) -> None:
-        self.parser = ml.MAVLink(None)
-        self.parser.robust_parsing = True
+        super().__init__()
         self.dropped = 0
 
-    def __call__(self, data: bytes, direction: str) -> bool:
-        if direction != "up" or self.dropped:
-            return False
-        for m in self.parser.parse_buffer(data) or []:
-            armed = m.get_type() == "HEARTBEAT" and m.base_mode & ml.MAV_MODE_FLAG_SAFETY_ARMED
-            if armed and m.get_srcComponent() == 1:
-                self.dropped += 1
-                return True
+    def judge(self, message: ml.MAVLink_message, direction: str) -> bool:
+        armed = (
+            message.get_type() == "HEARTBEAT" and message.base_mode & ml.MAV_MODE_FLAG_SAFETY_ARMED
+        )
+        if direction == "up" and not self.dropped and armed and message.get_srcComponent() == 1:
+            self.dropped += 1
+            return True
         return False
 
 

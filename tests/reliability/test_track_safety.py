@@ -29,6 +29,7 @@ from reliability_harness import last_json
 from udp_fault_relay import FaultProfile, FaultRelay, GrantHold
 
 from mavlink_bridge.checkpoint import CheckpointError, read_checkpoint
+from planner.constraints import segment_clearance
 from planner.scenario import Origin
 
 #: two planes taking off towards each other 0.4 km abeam: they pass between decision instants
@@ -240,13 +241,6 @@ def test_the_flight_home_goes_around_a_threat_between_plane_and_home(tmp_path: P
     assert audit["threat_entries"] == 0 and audit["min_threat_margin_km"] > 0
 
 
-def _line_depth_km(a_km, b_km, centre_km, radius_km: float) -> float:
-    """How deep the straight line from a to b gets into the circle (negative: its clearance)."""
-    a, b, c = (np.asarray(p, dtype=float) for p in (a_km, b_km, centre_km))
-    t = np.clip(np.dot(c - a, b - a) / np.dot(b - a, b - a), 0.0, 1.0)
-    return radius_km - float(np.linalg.norm(a + t * (b - a) - c))
-
-
 @pytest.mark.timeout(120)
 def test_a_plane_switched_to_rtl_mid_mission_is_guided_out_not_through(tmp_path: Path):
     """Mid-mission the plane's autopilot switches it to RTL, as ArduPlane's fence action does
@@ -261,8 +255,10 @@ def test_a_plane_switched_to_rtl_mid_mission_is_guided_out_not_through(tmp_path:
     ran late on a loaded machine, at the mission's last step, where the flight home takes over)."""
     scenario = tmp_path / "behind.toml"
     scenario.write_text(BEHIND_THREAT)
-    home, threat = (10.5, 3.5), (10.0, 10.0)
-    hold = GrantHold(Origin(), lambda x, y: _line_depth_km((x, y), home, threat, 3.0) > 0.5)
+    home, threat, radius = np.array([10.5, 3.5]), np.array([[10.0, 10.0]]), np.array([3.0])
+    hold = GrantHold(
+        Origin(), lambda x, y: segment_clearance(np.array([x, y]), home, threat, radius) < -0.5
+    )
     daemon_port = free_udp_port()
     relay = FaultRelay(daemon_port, 1, FaultProfile(), seed=1, withhold=hold)
     relay.start()

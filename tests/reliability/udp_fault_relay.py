@@ -158,7 +158,25 @@ class FaultRelay(threading.Thread):
             s.close()
 
 
-class GrantHold:
+class MessageWithhold:
+    """A ``FaultRelay`` withhold that reads the MAVLink messages of each datagram (one parser a
+    direction): the datagram is withheld when :meth:`judge` says so of any of them (every one
+    is judged)."""
+
+    def __init__(self) -> None:
+        self._parsers = {"up": mavlink.MAVLink(None), "down": mavlink.MAVLink(None)}
+        for parser in self._parsers.values():
+            parser.robust_parsing = True
+
+    def __call__(self, data: bytes, direction: str) -> bool:
+        messages = self._parsers[direction].parse_buffer(data) or []
+        return any([self.judge(m, direction) for m in messages])
+
+    def judge(self, message: mavlink.MAVLink_message, direction: str) -> bool:
+        raise NotImplementedError
+
+
+class GrantHold(MessageWithhold):
     """Withholds the daemon's lockstep grants (SYSTEM_TIME without UTC, daemon to vehicle) from
     the first one sent while ``hold_at(x_km, y_km)`` is true of the vehicle's last reported
     position (GLOBAL_POSITION_INT, in the scenario's frame from ``origin``), until
@@ -166,25 +184,20 @@ class GrantHold:
     meanwhile (every 0.5 s) and its first grant after the release goes through. One vehicle."""
 
     def __init__(self, origin: Origin, hold_at: Callable[[float, float], bool]) -> None:
+        super().__init__()
         self.origin = origin
         self.hold_at = hold_at
         self.holding = threading.Event()
         self.released = False
         self.position_km: tuple[float, float] | None = None
-        self._parsers = {"up": mavlink.MAVLink(None), "down": mavlink.MAVLink(None)}
-        for parser in self._parsers.values():
-            parser.robust_parsing = True
 
-    def __call__(self, data: bytes, direction: str) -> bool:
-        messages = self._parsers[direction].parse_buffer(data) or []
-        if direction == "up":
-            for m in messages:
-                if m.get_type() == "GLOBAL_POSITION_INT":
-                    x, y = geodetic_to_local_km(m.lat / 1e7, m.lon / 1e7, self.origin)
-                    self.position_km = (float(x[0]), float(y[0]))
+    def judge(self, message: mavlink.MAVLink_message, direction: str) -> bool:
+        kind = message.get_type()
+        if kind == "GLOBAL_POSITION_INT":
+            x, y = geodetic_to_local_km(message.lat / 1e7, message.lon / 1e7, self.origin)
+            self.position_km = (float(x[0]), float(y[0]))
             return False
-        grant = any(m.get_type() == "SYSTEM_TIME" and m.time_unix_usec == 0 for m in messages)
-        if not grant or self.released:
+        if kind != "SYSTEM_TIME" or message.time_unix_usec != 0 or self.released:
             return False
         at = self.position_km
         if not self.holding.is_set() and at is not None and self.hold_at(*at):
