@@ -48,9 +48,8 @@ def planner_factory(variant: str):
 
             def __init__(self, scenario, starts, seed):
                 super().__init__(scenario, starts, seed)
-                self.tpm = StaticTargetProbabilityMaps(scenario.targets, self.cfg, self.n)
-
-            _existence_window = HapfAcoPlanner._existence_window
+                static = StaticTargetProbabilityMaps(scenario.targets, self.cfg, self.n)
+                self.beliefs.tpm = self.hapf_aco.field_maps = static
 
         return AllStatic
     settings = {
@@ -64,11 +63,13 @@ def planner_factory(variant: str):
 
 
 def one_run(job: tuple[str, str, int]) -> tuple[str, str, int, dict]:
+    from planner.registry import BUILT_IN, register
     from planner.scenario import load_scenario
     from sim_gateway import offline_runner
 
     name, variant, seed = job
-    offline_runner.PLANNERS[variant] = planner_factory(variant)
+    if variant not in BUILT_IN:
+        register(variant, planner_factory(variant))
     result = offline_runner.run_offline(load_scenario(name), seed, None, variant)
     totals = result["target_account"]["totals"]
     return (

@@ -55,12 +55,12 @@ _UNCOMPRESSED_VERSION = 2  # a plain pickle, still read
 #: planner attributes (``owner.attribute`` paths from the planner) determined by the scenario
 #: alone: not written; a resumed daemon takes them from the planner it builds for the mission
 DERIVED = (
-    "_safety",
-    "tpm.stencil",
-    "tpm.work",
-    "tpm.wiener_work",
-    "tpm.ratio_lookup",
-    "tpm.drift_layers",
+    "beliefs._safety",
+    "beliefs.tpm.stencil",
+    "beliefs.tpm.work",
+    "beliefs.tpm.wiener_work",
+    "beliefs.tpm.ratio_lookup",
+    "beliefs.tpm.drift_layers",
 )
 _HEADER = struct.Struct("<16sIQ32s4x")  # 64 bytes
 

@@ -169,7 +169,7 @@ class StepInputs:
 class StepPlan:
     """The planner's decision and the cells it proposes (a finished UAV holds)."""
 
-    decision: Any  # planner.hapf_aco.StepDecision
+    decision: Any  # planner.planner_interface.StepDecision
     done: np.ndarray
     proposed_cells: np.ndarray
     proposed_headings: np.ndarray

@@ -53,7 +53,8 @@ class StepRecord:
     late: bool  # paced time: this step's commands went out late
     planner: Any = None
     #: engagements acknowledged this step: (UAV, target id, value); and the planner's mode of
-    #: each UAV (index into planner.hapf_aco.MODES), for the mission view's timeline and table
+    #: each UAV (index into planner.planner_interface.MODES), for the mission view's timeline
+    #: and table
     engagements: tuple[tuple[int, int, float], ...] = ()
     modes: np.ndarray | None = None
 

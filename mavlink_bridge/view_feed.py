@@ -15,7 +15,7 @@ from mavlink_bridge.mission_result import StepRecord
 from mavlink_bridge.protocol import mode_name
 from mission_view.view_model import StepView, TimelineEvent, VehicleView
 from mission_view.view_session import ViewSession
-from planner.hapf_aco import MODES
+from planner.planner_interface import MODES
 
 #: progress lines that go to the timeline, by the kind of event they are
 LINE_KINDS = (("refused", "refusal"), ("warning", "warning"), ("lost", "link"), ("rejoin", "link"))

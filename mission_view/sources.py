@@ -11,7 +11,7 @@ import numpy as np
 
 from mission_view.view_model import StepView, TimelineEvent, VehicleView
 from planner.grid import Grid
-from planner.hapf_aco import MODES
+from planner.planner_interface import MODES
 from planner.scenario import Scenario
 
 

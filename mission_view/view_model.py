@@ -34,7 +34,7 @@ class VehicleView:
     active: bool = True  # heard (not lost) and flying
     target_km: tuple[float, float] | None = None  # the guided target (or next cell) sent
     mode: str = ""  # flight mode (MAVLink) or "grid" (offline)
-    planner_mode: str = ""  # why the planner chose the move (planner.hapf_aco.MODES)
+    planner_mode: str = ""  # why the planner chose the move (planner.planner_interface.MODES)
     ground_speed_mps: float | None = None
     airspeed_mps: float | None = None  # the airspeed commanded for the leg
     last_heard_s: float | None = None  # seconds since the vehicle was last heard

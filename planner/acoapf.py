@@ -4,9 +4,10 @@ section 4.2, Algorithm 2, after its ref. [27]).
 The paper defines it by difference from HAPF-ACO: "a distributed ACO algorithm with an improved
 transition rule *without considering the range constraint*, and the APF is introduced *without
 considering the dynamic updating of the TPM*". So this planner is HAPF-ACO
-(``planner.hapf_aco.HapfAcoPlanner``: topology eqs 1-3, probe update eqs 17-18, APF eqs 23-27,
-pheromone eqs 28-34, transition rules eqs 35-37 with the N_t escape) with exactly two things
-taken out, and nothing else changed, so a comparison isolates what the paper claims they add:
+(``planner.hapf_aco.HapfAcoPlanner`` on ``planner.swarm_beliefs.SwarmBeliefs``: topology
+eqs 1-3, probe update eqs 17-18, APF eqs 23-27, pheromone eqs 28-34, transition rules
+eqs 35-37 with the N_t escape) with exactly two things taken out, and nothing else changed,
+so a comparison isolates what the paper claims they add:
 
 1. **The APF without the TPM's forecast update (eqs 19-22).** The map the potential field
    (eqs 23-27, its far attraction included) and the heuristic information read is initialised
@@ -38,7 +39,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from planner.engagement import EngagementOutcome
-from planner.hapf_aco import HapfAcoPlanner, StepDecision
+from planner.hapf_aco import HapfAcoPlanner
+from planner.planner_interface import StepDecision
 from planner.scenario import Scenario, UavStart
 from planner.sensor_model import SensorReport
 from planner.target_probability_map import TargetProbabilityMaps
@@ -86,28 +88,29 @@ class ApfBeliefs:
         return getattr(self.full, name)
 
 
-class AcoApfPlanner(HapfAcoPlanner):
+class AcoApfPlanner:
     """ACOAPF (section 4.2, Algorithm 2): HAPF-ACO without the TPM forecast in its potential
-    field and without the range term."""
+    field and without the range term (``planner.planner_interface.SwarmPlanner``). It flies
+    a HAPF-ACO planner built on the range-free scenario whose potential field reads the
+    forecast-free twin of its TPM (``ApfBeliefs.static``)."""
 
     algorithm = "acoapf"
 
     def __init__(self, scenario: Scenario, starts: Sequence[UavStart], seed: int) -> None:
         #: The airframe's real range (fuel), which the planner itself does not consider.
         self.fuel_range_km = scenario.config.max_range_km
-        super().__init__(
+        self.hapf_aco = HapfAcoPlanner(
             scenario.with_config(max_range_km=math.inf, home_by_end=False), starts, seed
         )
-        self.tpm = ApfBeliefs(
-            self.tpm, StaticTargetProbabilityMaps(scenario.targets, self.cfg, self.n)
+        self.beliefs = beliefs = self.hapf_aco.beliefs
+        self.cfg, self.n, self.grid = beliefs.cfg, beliefs.n, beliefs.grid
+        beliefs.tpm = ApfBeliefs(
+            beliefs.tpm, StaticTargetProbabilityMaps(scenario.targets, self.cfg, self.n)
         )
+        self.hapf_aco.field_maps = beliefs.tpm.static
+        self.pheromone = self.hapf_aco.pheromone
         self.flown_km = np.zeros(self.n)
         self.out_of_fuel = np.zeros(self.n, dtype=bool)
-
-    def _field_beliefs(self) -> TargetProbabilityMaps:
-        """The potential field, its far attraction and the heuristic information read the
-        forecast-free map (``ApfBeliefs.static``)."""
-        return self.tpm.static
 
     def step(
         self,
@@ -121,13 +124,13 @@ class AcoApfPlanner(HapfAcoPlanner):
         """HAPF-ACO's step (section 3.5) with the two omissions above; UAVs out of fuel are
         passed to it as inactive, so they hold and the others keep clear of them (C_c)."""
         cells = np.asarray(cells, dtype=np.int64).reshape(self.n, 2)
-        # self.cells: where the UAVs were at the last step (the base step updates it)
-        self.flown_km += np.hypot(*((cells - self.cells) * self.cfg.cell_km).T)
+        # the beliefs' cells: where the UAVs were at the last step (the step updates them)
+        self.flown_km += np.hypot(*((cells - self.beliefs.cells) * self.cfg.cell_km).T)
         self.out_of_fuel |= fuel_exhausted(self.flown_km, self.fuel_range_km, self.cfg.cell_km)
         reachable = (
             np.ones(self.n, dtype=bool) if active is None else np.asarray(active, dtype=bool)
         )
-        decision = super().step(
+        decision = self.hapf_aco.step(
             cells, headings, reports, engagements, reachable & ~self.out_of_fuel, positions_km
         )
         return StepDecision(

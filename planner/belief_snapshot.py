@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from planner.swarm_beliefs import beliefs_of
 from planner.target_probability_map import existence_of_layers
 
 
@@ -56,13 +57,13 @@ class BeliefSnapshot:
 def belief_snapshot(
     planner: object, step: int, reuse: BeliefSnapshot | None = None
 ) -> BeliefSnapshot | None:
-    """Copy the beliefs of a HAPF-ACO-style planner (ACOAPF, PSO share its maps); None for a
-    planner that keeps no coverage map. ``reuse``: a snapshot no longer read by anyone, whose
+    """Copy the beliefs of a planner that keeps them in a ``SwarmBeliefs`` (HAPF-ACO, PSO,
+    ACOAPF); None for one that does not. ``reuse``: a snapshot no longer read by anyone, whose
     arrays are overwritten instead of allocating new ones (the caller hands it over)."""
-    coverage = getattr(planner, "coverage", None)
-    if not isinstance(coverage, np.ndarray):
+    beliefs = beliefs_of(planner)
+    if beliefs is None:
         return None
-    tpm = getattr(planner, "tpm", None)
+    coverage, tpm = beliefs.coverage, beliefs.tpm
     pheromone = getattr(planner, "pheromone", None)
     old = reuse or BeliefSnapshot(step, coverage, None, None, None)
     return BeliefSnapshot(

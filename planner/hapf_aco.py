@@ -1,15 +1,9 @@
 """HAPF-ACO (section 3.5, Fig. 2): one decision step for every UAV of the swarm.
 
-Each UAV keeps its own beliefs (TPM, pheromone map, coverage it knows of, the threats and the
-swarm members it has heard of); only the states and looks of the neighbours inside its
-cooperative radius reach it. ``HapfAcoPlanner.step`` takes what the UAVs report at step k
-(cells, headings, sensor looks, engagement outcomes) and returns the next cell of each UAV:
+The beliefs and the shared building blocks are ``planner.swarm_beliefs.SwarmBeliefs``
+(topology, looks, TPMs, the engagement choice, the constraints); this module is HAPF-ACO's own
+part of a step, after ``SwarmBeliefs.observe``:
 
-1. topology (eqs 1-3) and what each UAV hears;
-2. probe update of the TPMs with own and neighbours' looks (eqs 17-18), renormalised (eq 16);
-3. the engagement choice (section 3.2.1): the cell each UAV goes for, by the probability that
-   a target lies within the engage radius (circled for more looks from ``pursue_threshold``,
-   flown to and engaged from ``confirm_threshold``; higher value first; one UAV per target);
 4. pheromone: local decrement around predicted swarm positions, periodic global increment
    (eqs 28-34);
 5. potential field at the UAV and over its sensor footprint (eqs 23-27);
@@ -17,33 +11,30 @@ cooperative radius reach it. ``HapfAcoPlanner.step`` takes what the UAVs report 
    deterministic / heuristic rules (eqs 35-37, eta with a look-ahead corridor), all over the
    candidate cells allowed by C_m, C_t and C_r (``planner.feasibility``); then C_c by claiming
    cells in priority order, with one step of foresight;
-7. forecast of the TPMs to the next step (eqs 19-22).
+
+and ``SwarmBeliefs.finish_step`` forecasts the TPMs to the next step (eqs 19-22).
+
+| here | paper |
+|---|---|
+| ``pheromone`` | tau, the pheromone maps (eqs 28-34) |
+| ``force_here``, ``force_max`` | F at the UAV and its largest over the footprint (eqs 23-27, 35) |
+| ``eta`` | the heuristic information (eq 36) |
+| ``q``, ``q1``, ``u`` | the random draws of the transition rules (eqs 35-37) |
 
 Nothing here does I/O; randomness comes from one seeded generator.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 
 import numpy as np
 from scipy import ndimage
 
-from planner.config import PlannerConfig
-from planner.constraints import SafetyModel
 from planner.engagement import EngagementOutcome
-from planner.feasibility import MoveOptions, feasible_moves
-from planner.grid import (
-    HEADING_STEPS,
-    Grid,
-    corridor_offsets,
-    disc_overlap,
-    disc_overlap_at,
-    heading_of_angle,
-    steps_to_reach,
-)
+from planner.grid import HEADING_STEPS, corridor_offsets
 from planner.pheromone import PheromoneMaps
+from planner.planner_interface import MODES, StepDecision
 from planner.potential_field import (
     attraction,
     block_masses,
@@ -54,94 +45,39 @@ from planner.potential_field import (
 )
 from planner.scenario import Scenario, UavStart
 from planner.sensor_model import SensorReport
+from planner.swarm_beliefs import Hearing, SwarmBeliefs
 from planner.target_probability_map import TargetProbabilityMaps
-from planner.topology import adapt_radius, adjacency, pairwise_distances
 from planner.transition import (
-    claim_cells,
     deterministic_scores,
     heuristic_choice,
-    range_scores,
     transition_weights,
     use_deterministic,
 )
 
-#: Why a UAV chose its move (reported per step, for analysis and figures).
-MODES = ("hold", "return", "engage", "escape", "deterministic", "heuristic")
-
-
-@dataclass(frozen=True)
-class StepDecision:
-    next_cells: np.ndarray  # (N, 2) int
-    next_headings: np.ndarray  # (N,) int
-    engage: np.ndarray  # (N,) bool: request an engagement now, at the current position
-    done: np.ndarray  # (N,) bool: back home (or finished); hold
-    modes: np.ndarray  # (N,) int index into MODES
-
 
 class HapfAcoPlanner:
-    """The swarm's planners, batched. ``step`` once per decision period."""
+    """The swarm's HAPF-ACO planners, batched (``planner.planner_interface.SwarmPlanner``)."""
 
     algorithm = "hapf-aco"
 
     def __init__(self, scenario: Scenario, starts: Sequence[UavStart], seed: int) -> None:
-        cfg = scenario.config
-        self.cfg: PlannerConfig = cfg
-        self.scenario = scenario
-        self.grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
-        n = len(starts)
-        self.n = n
+        self.beliefs = beliefs = SwarmBeliefs(scenario, starts)
+        cfg = self.cfg = beliefs.cfg
+        self.grid = beliefs.grid
+        n = self.n = beliefs.n
         self.rng = np.random.default_rng([seed, 0xAC0])
-        xy = np.array([[s.x_km, s.y_km] for s in starts], dtype=float)
-        self.home = self.grid.cell_of(xy)
-        self.home_flat = self.grid.flat(self.home)
-        self.homes_key = tuple(int(h) for h in self.home_flat)
-        self.cells = self.home.copy()
-        self.headings = heading_of_angle(np.radians([s.heading_deg for s in starts]))
-        self.distance_km = np.zeros(n)
-        self.done = np.zeros(n, dtype=bool)
-        self.returning = np.zeros(n, dtype=bool)
-        self.radius_km = np.full(n, min(cfg.coop_radius_init_km, cfg.sensing_radius_km))
-        # What UAV i last heard of UAV j (eqs 30-31): cell, heading, step.
-        self.info_cells = np.repeat(self.home[None, :, :], n, axis=0)
-        self.info_headings = np.repeat(self.headings[None, :], n, axis=0)
-        self.info_step = np.full((n, n), -(10**9))
-        np.fill_diagonal(self.info_step, 0)
-        self.threat_xy = np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(
-            -1, 2
-        )
-        self.threat_r = np.array([t.radius_km for t in scenario.threats], float)
-        self.known_threats = np.full((n, len(self.threat_r)), scenario.threats_known)
-        self.tpm = TargetProbabilityMaps(scenario.targets, cfg, n)
         self.pheromone = PheromoneMaps(n, cfg)
-        self.coverage = np.zeros((n, cfg.grid_nx, cfg.grid_ny), dtype=bool)
-        self.coverage_count = np.zeros(n, dtype=np.int64)
-        self.stall_steps = np.zeros(n, dtype=np.int64)
-        self.escape_goal = np.full((n, 2), -1, dtype=np.int64)
-        self.track = np.full((n, 2), -1, dtype=np.int64)  # the cell each UAV goes for, or -1
-        self.track_confirmed = np.zeros(
-            n, dtype=bool
-        )  # ... and whether a target is confirmed there
-        self.track_age = np.zeros(n, dtype=np.int64)  # steps on the current track so far
-        self.target_ids = np.array([t.id for t in scenario.targets], dtype=np.int64)
-        self.known_engaged = np.zeros((n, len(self.target_ids)), dtype=bool)
-        self.engaged_applied = self.known_engaged.copy()  # removed from that UAV's TPM already
-        self.engaged_cells = np.full((len(self.target_ids), 2), -1, dtype=np.int64)
-        # where each UAV last asked for an engagement: its outcome comes with the next step,
-        # when the UAV has moved on, and belongs to this cell
-        self.request_cells = np.full((self.n, 2), -1, dtype=np.int64)
-        self.measured_km: np.ndarray | None = None  # (N, 2) this step's measured positions
-        self.footprint = self.grid.disc_offsets(cfg.detection_radius_km)
-        self.track_window = self.grid.disc_offsets(2.0 * cfg.cell_km)
+        #: the TPM the potential field (eqs 23-24, the far attraction) and the heuristic
+        #: information read: the beliefs' own, forecast included (ACOAPF gives another)
+        self.field_maps: TargetProbabilityMaps = beliefs.tpm
+        footprint = beliefs.footprint
         # a candidate is one cell away and the force needs one more cell around the footprint
-        self.window_reach = int(np.abs(self.footprint).max()) + 1
+        self.window_reach = int(np.abs(footprint).max()) + 1
         reach = np.arange(-self.window_reach, self.window_reach + 1)
         self.window_offsets = np.stack(np.meshgrid(reach, reach, indexing="ij"), axis=-1)
-        self.pursuit_reach = int(np.ceil(cfg.pursue_range_km / cfg.cell_km)) + 2
-        self.pursuit_steps = steps_to_reach(cfg.max_turn_deg, self.pursuit_reach)
-        self.engage_cells, self.engage_fractions = disc_overlap(cfg.engage_radius_km, cfg.cell_km)
-        self.centre_index = int(np.flatnonzero((self.footprint == 0).all(axis=1))[0])
+        self.centre_index = int(np.flatnonzero((footprint == 0).all(axis=1))[0])
         self.corridor, self.corridor_weights = corridor_offsets(
-            self.footprint, cfg.eta_lookahead_steps, cfg.eta_lookahead_discount
+            footprint, cfg.eta_lookahead_steps, cfg.eta_lookahead_discount
         )
         # the far attraction's block weights, only when it is on (``far_weight`` > 0)
         self.far_kernel = (
@@ -152,28 +88,6 @@ class HapfAcoPlanner:
             else np.zeros((0, 0))
         )
         self.far_masses = np.zeros((n, self.far_kernel.shape[1]))
-        self.k = 0
-        self.mission_steps = scenario.steps  # the last step, for ``home_by_end``
-        self._safety: dict[bytes, SafetyModel] = {}  # by the known-threat row's bytes
-        #: Read-only observers, called as ``observe(planner, decision)`` after each decision and
-        #: before the forecast (``planner.pursuit_log.PursuitLog``); they must not change state.
-        self.observers: list[Callable[[HapfAcoPlanner, StepDecision], None]] = []
-
-    # ------------------------------------------------------------------ helpers
-
-    def safety_model(self, known: np.ndarray) -> SafetyModel:
-        key = np.asarray(known, dtype=bool).tobytes()
-        if key not in self._safety:
-            self._safety[key] = SafetyModel(
-                self.grid, self.threat_xy[known], self.threat_r[known], self.cfg.threat_margin_km,
-                self.cfg.max_turn_deg, self.cfg.home_path_margin_km,
-            )  # fmt: skip
-        return self._safety[key]
-
-    def _positions_km(self) -> np.ndarray:
-        return self.grid.centre_km(self.cells)
-
-    # ------------------------------------------------------------------ the step
 
     def step(
         self,
@@ -184,293 +98,49 @@ class HapfAcoPlanner:
         active: np.ndarray | None = None,
         positions_km: np.ndarray | None = None,
     ) -> StepDecision:
-        """One decision step. ``cells``/``headings`` are where the UAVs are now (from telemetry
-        or the offline world), ``reports`` their looks, ``engagements`` the outcomes of the
-        engagements requested at the previous step, ``active`` which UAVs can be reached.
-        ``positions_km`` (N, 2), where the UAVs measure themselves within their cells (a
-        plane is rarely at its cell's centre), is what an engagement request is judged from;
-        without it, the cell centres (the paper's grid UAVs)."""
-        cfg, n = self.cfg, self.n
-        self.measured_km = None if positions_km is None else np.asarray(positions_km, float)
-        active = np.ones(n, dtype=bool) if active is None else np.asarray(active, dtype=bool)
-        cells = np.asarray(cells, dtype=np.int64).reshape(n, 2)
-        moved = np.hypot(*((cells - self.cells) * cfg.cell_km).T)
-        self.distance_km += np.where(active, moved, 0.0)
-        self.cells = cells
-        self.headings = np.asarray(headings, dtype=np.int64).reshape(n) % 8
-        flying = active & ~self.done
-
-        # 1. topology (eqs 1-3) and the swarm information of eqs 30-31
-        positions = self._positions_km()
-        distances = pairwise_distances(positions)
-        hears = adjacency(distances, self.radius_km, flying)
-        self.radius_km = np.where(
-            flying, adapt_radius(self.radius_km, hears.sum(axis=1), cfg), self.radius_km
-        )
-        listen = hears | np.eye(n, dtype=bool)
-        listen &= flying[:, None]
-        listen &= active[None, :]
-        self.info_cells = np.where(listen[:, :, None], cells[None, :, :], self.info_cells)
-        self.info_headings = np.where(listen, self.headings[None, :], self.info_headings)
-        self.info_step = np.where(listen, self.k, self.info_step)
-
-        # threats: detected within R + R_t, then shared with neighbours
-        if len(self.threat_r):
-            seen = (
-                distances_to_threats(positions, self.threat_xy)
-                <= self.threat_r + cfg.detection_radius_km
-            )
-            self.known_threats |= seen & flying[:, None]
-            self.known_threats |= (hears.astype(np.int64) @ self.known_threats.astype(np.int64)) > 0
-
-        # engagement outcomes and what the swarm knows of serviced targets
-        self._take_engagements(engagements, hears)
-
-        # 2. probe update (eqs 17-18) with own and heard looks, then eq 16
-        have = np.array([r is not None and len(r.cells) > 0 for r in reports], dtype=bool)
-        self._apply_looks(reports, have, listen, positions)
-
-        # 3. confirmation and the engagement choice
-        self._update_tracks(reports, have, listen, hears)
-
-        # 4. pheromone (eqs 30-34)
-        self._update_pheromone(flying)
-
-        # 5-6. potential field and transition
-        decision = self._decide(flying, hears, positions, distances)
-        for observe in self.observers:  # read-only (the target account's planner facts)
-            observe(self, decision)
-
-        # 7. forecast (eqs 19-22) to the next decision step
-        self.tpm.forecast()
-        self.k += 1
+        """One decision step (``planner.planner_interface``, the arguments)."""
+        seen = self.beliefs.observe(cells, headings, reports, engagements, active, positions_km)
+        self._update_pheromone(seen.flying)
+        decision = self._decide(seen)
+        self.beliefs.finish_step(decision)
         return decision
 
-    # ------------------------------------------------------------------ beliefs
-
-    def _take_engagements(
-        self, engagements: Sequence[EngagementOutcome | None] | None, hears: np.ndarray
-    ) -> None:
-        if engagements is not None:
-            for i, outcome in enumerate(engagements):
-                if outcome is None:
-                    continue
-                where = self.request_cells[i] if self.request_cells[i, 0] >= 0 else self.cells[i]
-                if outcome.success:
-                    index = np.flatnonzero(self.target_ids == outcome.target_id)
-                    if index.size:
-                        self.engaged_cells[index[0]] = where
-                        self.known_engaged[i, index[0]] = True
-                else:
-                    # nothing within the engage radius: a certain negative look at the cell of
-                    # the request
-                    self.tpm.apply_looks(
-                        np.array([i]), [where[None, :]], [np.array([False])], where[None, :]
-                    )
-                self.track[i] = -1
-        self.known_engaged |= (hears.astype(np.int64) @ self.known_engaged.astype(np.int64)) > 0
-        for i, t in zip(*np.nonzero(self.known_engaged & ~self.engaged_applied), strict=True):
-            self.tpm.remove_target(int(i), int(self.target_ids[t]), self.engaged_cells[t])
-        self.engaged_applied = self.known_engaged.copy()
-
-    def _apply_looks(
-        self,
-        reports: Sequence[SensorReport | None],
-        have: np.ndarray,
-        listen: np.ndarray,
-        positions: np.ndarray,
-    ) -> None:
-        """``have[j]``: UAV j reported a look with at least one cell."""
-        pairs = listen & have[None, :]  # receiver i gets look j
-        receivers, sources = np.nonzero(pairs)
-        if receivers.size == 0:
-            self.tpm.renormalise()
-            return
-        origins = self.grid.cell_of(positions)
-        look_cells = [reports[j].cells for j in sources]
-        self.tpm.apply_looks(
-            receivers, look_cells, [reports[j].detected for j in sources], origins[sources]
-        )
-        # coverage each UAV knows of, and the N_t counter of steps without a gain
-        seen_by = np.repeat(receivers, [len(c) for c in look_cells])
-        seen = np.concatenate(look_cells)
-        # only the cells new to their receiver change the counts: set and count those
-        covered = self.coverage.reshape(-1)
-        keys = seen_by * self.grid.size + self.grid.flat(seen)
-        fresh = distinct(keys[~covered[keys]])
-        covered[fresh] = True
-        new_cells = np.bincount(fresh // self.grid.size, minlength=self.n)
-        self.coverage_count = self.coverage_count + new_cells
-        gained = new_cells > 0
-        self.stall_steps = np.where(gained, 0, self.stall_steps + 1)
-        self.escape_goal[gained] = -1
-        if self.cfg.tpm_decay_tau < 1.0:
-            observed = np.zeros(self.coverage.shape, dtype=bool)
-            observed[seen_by, seen[:, 0], seen[:, 1]] = True
-            self.tpm.decay_unobserved(observed)
-        self.tpm.renormalise()
-
-    def _update_tracks(
-        self,
-        reports: Sequence[SensorReport | None],
-        have: np.ndarray,
-        listen: np.ndarray,
-        hears: np.ndarray,
-    ) -> None:
-        """Section 3.2.1: choose the cell each UAV goes for. Candidates are the cells it just heard
-        a detection in and the cells around its current track (the belief peak moves with the
-        target).
-        A cell whose existence probability reaches ``pursue_threshold`` is worth a closer look
-        (the attraction of eq 24 toward a rising p); one that reaches ``confirm_threshold`` is a
-        confirmed target, and confirmed targets come first, the higher value first. Batched over
-        UAVs: one TPM read for all (UAV, cell) pairs."""
-        cfg = self.cfg
-        rows: list[np.ndarray] = []
-        cells: list[np.ndarray] = []
-        tracking = np.flatnonzero((self.track[:, 0] >= 0) & ~self.done)
-        if tracking.size:
-            rows.append(np.repeat(tracking, len(self.track_window)))
-            cells.append(
-                (self.track[tracking][:, None, :] + self.track_window[None]).reshape(-1, 2)
-            )
-        receivers, sources = np.nonzero(listen & have[None, :] & ~self.done[:, None])
-        if receivers.size:
-            # only a detection (b = 1) raises a cell's probability: the cells worth checking
-            by_source = {
-                j: reports[j].cells[np.asarray(reports[j].detected, dtype=bool)]
-                for j in np.unique(sources).tolist()
-            }
-            positive = [by_source[j] for j in sources.tolist()]
-            rows.append(np.repeat(receivers, [len(c) for c in positive]))
-            cells.append(np.concatenate(positive))
-        previous = self.track.copy()
-        self.track[:] = -1
-        if not rows:
-            return
-        rows_all, cells_all = np.concatenate(rows), np.concatenate(cells)
-        reach = np.hypot(*((cells_all - self.cells[rows_all]) * cfg.cell_km).T)
-        keep = self.grid.inside(cells_all) & (reach <= cfg.pursue_range_km)
-        rows_all, cells_all = rows_all[keep], cells_all[keep]
-        # one look per distinct (UAV, cell): heard footprints overlap
-        keys = distinct(rows_all * self.grid.size + self.grid.flat(cells_all))
-        rows_all = keys // self.grid.size
-        cells_all = np.column_stack(np.unravel_index(keys % self.grid.size, self.grid.shape))
-        p = self.engage_probability(rows_all, cells_all)
-        # a suspect already pursued is kept (hysteresis) while its peak stays above
-        # ``pursue_keep_threshold``, for at most ``pursue_max_steps`` steps: one look that
-        # misses a moving target does not end its pursuit; looks that find nothing rule it out
-        on_track = (previous[rows_all, 0] >= 0) & (
-            np.abs(cells_all - previous[rows_all]).max(axis=1) <= 2
-        )
-        kept = on_track & (self.track_age[rows_all] < cfg.pursue_max_steps)
-        worth = (p >= cfg.pursue_threshold) | (kept & (p >= cfg.pursue_keep_threshold))
-        if not worth.any():
-            self.track_age[:] = 0
-            return
-        rows_all, cells_all, p = rows_all[worth], cells_all[worth], p[worth]
-        on_track = on_track[worth]
-        value = self.tpm.values_at(rows_all, cells_all)
-        confirmed = p >= cfg.confirm_threshold
-        # confirmed first (higher value first), then the likeliest value among the suspects;
-        # among equal scores (the cells around one confirmed target, whose layer gives them one
-        # value) the likeliest cell, not the first in index order
-        score = np.where(confirmed, 1.0 + value, 0.0) + np.where(
-            confirmed, 0.0, p * value / (1.0 + value)
-        )
-        order = np.lexsort((-p, -score, rows_all))
-        sorted_rows = rows_all[order]
-        first = np.concatenate(([True], sorted_rows[1:] != sorted_rows[:-1]))
-        chosen = order[first]
-        who = rows_all[chosen]
-        self.track[who] = cells_all[chosen]
-        self.track_confirmed[who] = confirmed[chosen]
-        age = np.zeros(self.n, dtype=np.int64)
-        age[who] = np.where(on_track[chosen], self.track_age[who] + 1, 0)
-        self.track_age = age
-        self._leave_to_nearer(hears)
-
-    def _leave_to_nearer(self, hears: np.ndarray) -> None:
-        """One UAV per target, the best placed: a UAV drops its track when a UAV it hears goes
-        for the same or an adjacent cell in fewer turn-limited moves (``steps_to_reach`` from
-        its heading: a UAV next to a target but flying away from it is worse placed than one a
-        few cells off pointing at it; ties to the lower index), instead of the swarm
-        converging."""
-        tracking = self.track[:, 0] >= 0
-        same = np.abs(self.track[:, None, :] - self.track[None, :, :]).max(axis=2) <= 1
-        same &= tracking[:, None] & tracking[None, :] & hears
-        if not same.any():
-            return
-        r = self.pursuit_reach
-        offset = self.track - self.cells
-        inside = (np.abs(offset) <= r).all(axis=1)
-        ox, oy = np.clip(offset + r, 0, 2 * r).T
-        steps = self.pursuit_steps[self.headings, ox, oy].astype(float)
-        gap = np.where(inside, steps, 1e6 + np.hypot(*offset.T))
-        nearer = (gap[None, :] < gap[:, None]) | (
-            (gap[None, :] == gap[:, None])
-            & (np.arange(self.n)[None, :] < np.arange(self.n)[:, None])
-        )
-        self.track[(same & nearer).any(axis=1)] = -1
-
-    def engage_probability(
-        self, uavs: np.ndarray, cells: np.ndarray, within_km: np.ndarray | None = None
-    ) -> np.ndarray:
-        """Probability, as UAV ``uavs[m]`` believes, that a target lies within the engage radius
-        of the centre of ``cells[m]``: ``1 - prod_cells (1 - p_cell * share of the cell inside
-        the radius)``. A moving target's belief spreads over neighbouring cells, so this, not a
-        single cell's p, is what confirms it and what an engagement needs. ``within_km`` (M, 2):
-        around these points of the cells instead (km from their centres; a measured position)."""
-        offsets, fractions = self.engage_cells, self.engage_fractions[None]
-        if within_km is not None:
-            half = self.cfg.cell_km / 2
-            offsets, fractions = disc_overlap_at(
-                np.clip(within_km, -half, half), self.cfg.engage_radius_km, self.cfg.cell_km
-            )
-        around = cells[:, None, :] + offsets[None]
-        p = self.tpm.existence_at(np.asarray(uavs)[:, None], around) * fractions
-        return 1.0 - np.prod(1.0 - p, axis=1)
-
     def _update_pheromone(self, flying: np.ndarray) -> None:
-        cfg = self.cfg
-        age = self.k - self.info_step
+        cfg, b = self.cfg, self.beliefs
+        age = b.k - b.info_step
         known = (age >= 0) & (age <= cfg.info_max_age_steps) & flying[:, None]
         owners, members = np.nonzero(known)
-        steps = HEADING_STEPS[self.info_headings[owners, members]] * age[owners, members][:, None]
-        predicted = self.info_cells[owners, members] + steps  # eq 31, dead reckoning
+        steps = HEADING_STEPS[b.info_headings[owners, members]] * age[owners, members][:, None]
+        predicted = b.info_cells[owners, members] + steps  # eq 31, dead reckoning
         np.maximum(predicted, 0, out=predicted)  # clipped into the area
-        np.minimum(predicted, (self.grid.nx - 1, self.grid.ny - 1), out=predicted)
+        np.minimum(predicted, (b.grid.nx - 1, b.grid.ny - 1), out=predicted)
         self.pheromone.local_update(owners, predicted)
-        if self.k > 0 and self.k % cfg.global_update_period_steps == 0:
+        if b.k > 0 and b.k % cfg.global_update_period_steps == 0:
             self.pheromone.global_update()
 
     # ------------------------------------------------------------------ decision
-
-    def _field_beliefs(self) -> TargetProbabilityMaps:
-        """The TPM the potential field (eqs 23-24, the far attraction) and the heuristic
-        information read: HAPF-ACO's own, forecast included (ACOAPF reads another)."""
-        return self.tpm
 
     def _existence_window(self) -> np.ndarray:
         """Each UAV's existence probabilities on the square of half-side ``window_reach`` around
         its cell, (N, 2r+1, 2r+1) (0 outside the area): one TPM read serves the footprint's
         forces and every candidate's footprint mass."""
-        around = self.cells[:, None, None, :] + self.window_offsets[None]
-        return self._field_beliefs().existence_at(np.arange(self.n)[:, None, None], around)
+        around = self.beliefs.cells[:, None, None, :] + self.window_offsets[None]
+        return self.field_maps.existence_at(np.arange(self.n)[:, None, None], around)
 
     def _forces(
         self, window: np.ndarray, positions: np.ndarray, neighbours: np.ndarray
     ) -> np.ndarray:
         """Total APF force (N, K, 2) at the footprint cells of each UAV (eqs 24, 25, 27), from its
         existence ``window`` (``_existence_window``)."""
-        cfg, r = self.cfg, self.window_reach
+        cfg, r, b = self.cfg, self.window_reach, self.beliefs
         patch = np.arange(-1, 2)
-        ix = self.footprint[:, 0][:, None, None] + patch[None, :, None] + r  # (K, 3, 1)
-        iy = self.footprint[:, 1][:, None, None] + patch[None, None, :] + r  # (K, 1, 3)
+        ix = b.footprint[:, 0][:, None, None] + patch[None, :, None] + r  # (K, 3, 1)
+        iy = b.footprint[:, 1][:, None, None] + patch[None, None, :] + r  # (K, 1, 3)
         existence = window[:, ix, iy]  # (N, K, 3, 3)
-        centres = self.grid.centre_km(self.cells[:, None, :] + self.footprint[None, :, :])
+        centres = b.grid.centre_km(b.cells[:, None, :] + b.footprint[None, :, :])
         force = attraction(existence, cfg)
         force = force + threat_repulsion(
-            centres, self.threat_xy, self.threat_r, self.known_threats, cfg
+            centres, b.threat_xy, b.threat_r, b.known_threats, cfg
         )
         force = force + morse_repulsion(centres, positions, neighbours, cfg)
         return force
@@ -481,17 +151,18 @@ class HapfAcoPlanner:
         """Scores of the candidates for reaching each UAV's track cell: fewest turn-limited moves
         from the candidate (``steps_to_reach``), ties to the smaller angle; beyond the table's
         window, the angle to the cell (eq 35's deterministic rule)."""
-        r = self.pursuit_reach
-        offset = self.track[:, None, :] - cand  # (N, C, 2)
+        b = self.beliefs
+        r = b.pursuit_reach
+        offset = b.track[:, None, :] - cand  # (N, C, 2)
         near = (np.abs(offset) <= r).all(axis=2)
         ox = np.minimum(np.maximum(offset[..., 0] + r, 0), 2 * r)  # clipped into the table
         oy = np.minimum(np.maximum(offset[..., 1] + r, 0), 2 * r)
-        steps = np.where(near, self.pursuit_steps[cand_head, ox, oy], 10**6).astype(float)
+        steps = np.where(near, b.pursuit_steps[cand_head, ox, oy], 10**6).astype(float)
         angle = -deterministic_scores(
-            moves, (self.track - self.cells).astype(float), np.ones_like(feasible)
+            moves, (b.track - b.cells).astype(float), np.ones_like(feasible)
         )
         # a suspect is circled (looked at from all sides, eq 35); a confirmed target is flown to
-        steps = np.where(self.track_confirmed[:, None], steps, 0.0)
+        steps = np.where(b.track_confirmed[:, None], steps, 0.0)
         return np.where(feasible, -steps - angle / (2 * np.pi), -np.inf)
 
     def _far_share(
@@ -501,128 +172,32 @@ class HapfAcoPlanner:
         candidate's heading reaches ``far_lookahead_steps`` ahead, relative to the best allowed
         candidate: the pull toward distant probability mass (a prior's blob beyond the
         footprint)."""
-        cfg = self.cfg
-        if self.k % cfg.far_refresh_steps == 0:
-            beliefs = self._field_beliefs()
+        cfg, b = self.cfg, self.beliefs
+        if b.k % cfg.far_refresh_steps == 0:
+            maps = self.field_maps
             self.far_masses = block_masses(
-                beliefs.maps, beliefs.scale, cfg.far_block_cells, ~self.coverage
+                maps.maps, maps.scale, cfg.far_block_cells, ~b.coverage
             )
         ahead = cand + HEADING_STEPS[cand_head] * cfg.far_lookahead_steps
-        v = far_potential(self.far_kernel, self.far_masses, self.grid.clipped_flat(ahead))
+        v = far_potential(self.far_kernel, self.far_masses, b.grid.clipped_flat(ahead))
         high = np.where(feasible, v, -np.inf).max(axis=1, keepdims=True)
         return np.where(feasible & (high > 0), v / np.where(high > 0, high, 1.0), 0.0)
 
-    def _move_options(self) -> MoveOptions:
-        """The candidate moves and the hard constraints on them (C_m, C_t, C_r)."""
-        steps_left = self.mission_steps - self.k - 1 if self.cfg.home_by_end else None
-        return feasible_moves(
-            self.cells, self.headings, self.distance_km, self.homes_key, self.known_threats,
-            self.safety_model, self.cfg, self.grid, steps_left,
-        )  # fmt: skip
-
-    def _update_return(self, opts: MoveOptions, flying: np.ndarray) -> None:
-        """C_r: the return term takes over once the range slack is nearly spent (eqs 35/37,
-        omega_2 = 1), or, when the scenario asks for the UAVs home by its last step
-        (``home_by_end``), once the steps to spare are; a returning UAV back next to its start
-        is done. Both are judged over the moves a UAV may take: one left with none (boxed in by
-        a threat it found too close to turn away from) is not sent home for good, since the
-        slack of no move says nothing of the way home."""
-        cfg = self.cfg
-        can_move = opts.feasible.any(axis=1) & flying
-        bounded = np.isfinite(cfg.max_range_km)
-        past_half = self.distance_km + opts.step_km.min(axis=1) > cfg.max_range_km / 2
-        best_slack = np.where(opts.feasible, opts.slack_km, -np.inf).max(axis=1)
-        self.returning |= bounded & past_half & (best_slack < cfg.return_margin_km) & can_move
-        if cfg.home_by_end:
-            best_time = np.where(opts.feasible, opts.time_slack, -np.inf).max(axis=1)
-            self.returning |= (best_time < cfg.home_margin_steps) & can_move
-        near_home = np.abs(self.cells - self.home).max(axis=1) <= 1
-        self.done |= self.returning & near_home & flying
-
-    @staticmethod
-    def _return_scores(
-        scores: np.ndarray, modes: np.ndarray, opts: MoveOptions, returning: np.ndarray
-    ) -> None:
-        """C_r decides for the ``returning`` UAVs (``range_scores``), in place."""
-        if returning.any():
-            scores[returning] = range_scores(
-                opts.home_km[returning], opts.feasible[returning], opts.time_slack[returning]
-            )
-            modes[returning] = MODES.index("return")
-
-    def _claim(
-        self,
-        ranked: np.ndarray,
-        opts: MoveOptions,
-        positions: np.ndarray,
-        distances: np.ndarray,
-        flying: np.ndarray,
-    ) -> np.ndarray:
-        """C_c: the chosen candidate of every UAV (``claim_cells``), with one step of foresight:
-        when another UAV is within two closing steps, a move into a state with a single way on
-        (``MoveOptions.freedom`` 1, e.g. between a threat and the area's edge) comes after every
-        other allowed move, so two UAVs are not left one cell with no separated pair of moves.
-        Separation comes before ``home_by_end``: when no move that keeps the time slack is
-        separated, a safe move that spends it is taken (paper-10uav seed 4 met two UAVs in one
-        cell at step 239 without this)."""
-        cfg, n = self.cfg, self.n
-        gaps = distances + np.diag(np.full(n, np.inf))
-        crowded = (gaps <= cfg.separation_sense_km + 2 * np.sqrt(2) * cfg.cell_km).any(axis=1)
-        rows = np.arange(n)[:, None]
-        cornered = (opts.freedom[rows, ranked] <= 1) & crowded[:, None]
-        # forbidden moves last; before them, safe moves that spend the time slack (home_by_end)
-        late = ~opts.feasible[rows, ranked]
-        last = cornered.astype(np.int64) + 2 * late + 2 * ~opts.safe[rows, ranked]
-        ranked = np.take_along_axis(ranked, np.argsort(last, axis=1, kind="stable"), axis=1)
-        return claim_cells(
-            ranked, opts.cells, opts.safe, positions, flying, cfg.cell_km,
-            cfg.min_separation_km, cfg.separation_sense_km,
-        )  # fmt: skip
-
-    def _unsearched(self, cells: np.ndarray) -> np.ndarray:
-        """(N, ...) bool: ``cells[i, ...]`` is inside the area and not yet covered as UAV i
-        knows it."""
-        covered = self.coverage.reshape(-1)  # (N * cells): UAV i's cell c at i * size + c
-        own = (np.arange(self.n) * self.grid.size).reshape((-1,) + (1,) * (cells.ndim - 2))
-        return ~covered[own + self.grid.clipped_flat(cells)] & self.grid.inside(cells)
-
-    def _engage_requests(self, engaging: np.ndarray) -> np.ndarray:
-        """Engage once a target lies within the engage radius with probability at least
-        ``confirm_threshold`` (``engage_probability`` at the UAV's own cell), whether or not the
-        UAV was going for it: a UAV that finds itself on top of a confirmed target while
-        searching or returning engages it on the way. A UAV whose measured position is known
-        (``step``'s ``positions_km``) also needs that probability within the engage radius of
-        where it is: a plane 0.4 km off its cell's centre does not reach the far side of the
-        cell, and a request from there missed targets the cell's centre would have reached."""
-        engage = engaging.copy()
-        if engage.any():
-            who = np.flatnonzero(engage)
-            engage[who] = (
-                self.engage_probability(who, self.cells[who]) >= self.cfg.confirm_threshold
-            )
-        if engage.any() and self.measured_km is not None:
-            who = np.flatnonzero(engage)
-            cells = self.cells[who]
-            within = self.measured_km[who] - self.grid.centre_km(cells)
-            engage[who] = self.engage_probability(who, cells, within) >= self.cfg.confirm_threshold
-        self.request_cells[engage] = self.cells[engage]
-        return engage
-
-    def _decide(
-        self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray, distances: np.ndarray
-    ) -> StepDecision:
-        """Steps 5-6 for every UAV; ``distances`` are ``pairwise_distances(positions)``."""
-        cfg, n = self.cfg, self.n
-        opts = self._move_options()
+    def _decide(self, seen: Hearing) -> StepDecision:
+        """Steps 5-6 for every UAV."""
+        cfg, n, b = self.cfg, self.n, self.beliefs
+        flying, hears, positions = seen.flying, seen.hears, seen.positions
+        distances = seen.distances
+        opts = b.move_options()
         cand, cand_head, moves, feasible = opts.cells, opts.headings, opts.moves, opts.feasible
-        self._update_return(opts, flying)
+        b.update_return(opts, flying)
 
         # potential field at the UAV and over its footprint (eqs 23-27)
-        points = self.cells[:, None, :] + self.footprint[None, :, :]
+        points = b.cells[:, None, :] + b.footprint[None, :, :]
         window = self._existence_window()
         force = self._forces(window, positions, hears | (distances <= cfg.separation_sense_km))
         norms = np.hypot(force[..., 0], force[..., 1])
-        inside_fp = self.grid.inside(points)
+        inside_fp = b.grid.inside(points)
         force_max = np.where(inside_fp, norms, 0.0).max(axis=1)
         force_here = force[:, self.centre_index]
         q = self.rng.random(n)
@@ -631,18 +206,18 @@ class HapfAcoPlanner:
 
         # heuristic information: unsearched share and target probability in the candidate's
         # footprint
-        fp = cand[:, :, None, :] + self.footprint[None, None, :, :]  # (N, C, K, 2)
-        new_share = self._unsearched(fp).sum(axis=2) / len(self.footprint)
+        fp = cand[:, :, None, :] + b.footprint[None, None, :, :]  # (N, C, K, 2)
+        new_share = b.unsearched(fp).sum(axis=2) / len(b.footprint)
         r = self.window_reach
         offset = (
-            (cand - self.cells[:, None, :])[:, :, None, :] + self.footprint[None, None, :, :] + r
+            (cand - b.cells[:, None, :])[:, :, None, :] + b.footprint[None, None, :, :] + r
         )
         mass = window[np.arange(n)[:, None, None], offset[..., 0], offset[..., 1]].sum(
             axis=2
         )  # 0 outside
         mass_share = mass / np.maximum(mass.max(axis=1, keepdims=True), 1e-12)
         ahead = cand[:, :, None, :] + self.corridor[cand_head]  # (N, C, K', 2)
-        ahead_unsearched = self._unsearched(ahead)
+        ahead_unsearched = b.unsearched(ahead)
         corridor_w = self.corridor_weights[cand_head]
         ahead_share = (ahead_unsearched * corridor_w).sum(axis=2) / np.maximum(
             corridor_w.sum(axis=2), 1e-12
@@ -659,10 +234,10 @@ class HapfAcoPlanner:
         weights = transition_weights(tau, eta, feasible, cfg)
 
         # escape after N_t steps without coverage gain: head for the nearest unsearched cell
-        stalled = (self.stall_steps >= cfg.escape_steps) & flying
-        for i in np.flatnonzero(stalled & (self.escape_goal[:, 0] < 0)):
-            _, (ix, iy) = ndimage.distance_transform_edt(self.coverage[i], return_indices=True)
-            self.escape_goal[i] = (ix[tuple(self.cells[i])], iy[tuple(self.cells[i])])
+        stalled = (b.stall_steps >= cfg.escape_steps) & flying
+        for i in np.flatnonzero(stalled & (b.escape_goal[:, 0] < 0)):
+            _, (ix, iy) = ndimage.distance_transform_edt(b.coverage[i], return_indices=True)
+            b.escape_goal[i] = (ix[tuple(b.cells[i])], iy[tuple(b.cells[i])])
 
         modes = np.full(n, MODES.index("heuristic"))
         scores = np.where(feasible, np.log(np.maximum(weights, 1e-300)), -np.inf)
@@ -671,20 +246,20 @@ class HapfAcoPlanner:
         det_scores = deterministic_scores(moves, force_here, feasible)
         scores = np.where(deterministic[:, None], det_scores, scores)
         modes[deterministic] = MODES.index("deterministic")
-        escaping = stalled & (self.escape_goal[:, 0] >= 0) & ~deterministic
+        escaping = stalled & (b.escape_goal[:, 0] >= 0) & ~deterministic
         if escaping.any():
             esc = deterministic_scores(
-                moves, (self.escape_goal - self.cells).astype(float), feasible
+                moves, (b.escape_goal - b.cells).astype(float), feasible
             )
             scores = np.where(escaping[:, None], esc, scores)
             modes[escaping] = MODES.index("escape")
-        engaging = (self.track[:, 0] >= 0) & flying
+        engaging = (b.track[:, 0] >= 0) & flying
         if engaging.any():
             scores = np.where(
                 engaging[:, None], self._pursuit_scores(cand, cand_head, moves, feasible), scores
             )
             modes[engaging] = MODES.index("engage")
-        self._return_scores(scores, modes, opts, self.returning & flying)
+        b.return_scores(scores, modes, opts, b.returning & flying)
 
         chosen_first = np.where(
             modes == MODES.index("heuristic"), choice, np.argmax(scores, axis=1)
@@ -693,25 +268,12 @@ class HapfAcoPlanner:
         order = np.argsort(-np.where(np.isfinite(scores), scores, -1e300), axis=1, kind="stable")
         others = order[order != chosen_first[:, None]].reshape(n, -1)  # order is a permutation
         ranked = np.concatenate([chosen_first[:, None], others], axis=1)
-        pick = self._claim(ranked, opts, positions, distances, flying)
+        pick = b.claim(ranked, opts, positions, distances, flying)
         rows = np.arange(n)
-        next_cells = np.where(flying[:, None], cand[rows, pick], self.cells)
-        next_headings = np.where(flying, cand_head[rows, pick], self.headings)
+        next_cells = np.where(flying[:, None], cand[rows, pick], b.cells)
+        next_headings = np.where(flying, cand_head[rows, pick], b.headings)
         modes[~flying] = MODES.index("hold")
 
-        engage = self._engage_requests(flying)
-        return StepDecision(next_cells, next_headings, engage, self.done.copy(), modes)
+        engage = b.engage_requests(flying)
+        return StepDecision(next_cells, next_headings, engage, b.done.copy(), modes)
 
-
-def distinct(values: np.ndarray) -> np.ndarray:
-    """``np.unique`` of a 1-D array (sorted distinct values), without its overhead on the small
-    arrays of one step."""
-    ordered = np.sort(values)
-    if ordered.size == 0:
-        return ordered
-    return ordered[np.concatenate(([True], ordered[1:] != ordered[:-1]))]
-
-
-def distances_to_threats(positions_km: np.ndarray, threat_xy: np.ndarray) -> np.ndarray:
-    diff = positions_km[:, None, :] - threat_xy[None, :, :]
-    return np.hypot(diff[..., 0], diff[..., 1])

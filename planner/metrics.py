@@ -26,7 +26,7 @@ from scipy import stats
 
 from planner.constraints import segment_clearance
 from planner.grid import Grid
-from planner.hapf_aco import MODES
+from planner.planner_interface import MODES
 from planner.scenario import Scenario, UavStart
 from planner.topology import pairwise_distances
 

@@ -5,7 +5,7 @@ The paper gives no details of its PSO beyond "PSO is used to solve this search-a
 We use the common receding-horizon form: every decision step, each UAV optimises a path of
 ``horizon_steps`` moves with a particle swarm and flies its first move.
 
-- **Beliefs are HAPF-ACO's** (``planner.hapf_aco.HapfAcoPlanner``): dynamic topology (eqs 1-3),
+- **Beliefs are HAPF-ACO's** (``planner.swarm_beliefs.SwarmBeliefs``): dynamic topology (eqs 1-3),
   TPM with probe and forecast updates (eqs 8-22), shared looks and coverage, target confirmation
   (section 3.2.1). Only the decision differs; PSO keeps no pheromone map (eqs 28-34) and uses no
   potential field (eqs 23-27).
@@ -29,7 +29,7 @@ We use the common receding-horizon form: every decision step, each UAV optimises
   feasible prefix and penalised per infeasible move. The first move is chosen among the
   candidates ``planner.feasibility.feasible_moves`` allows, the return home follows the same
   rule as HAPF-ACO (``planner.transition.range_scores``) once the slack is spent, and C_c is
-  resolved by ``HapfAcoPlanner._claim`` (``planner.transition.claim_cells`` with foresight).
+  resolved by ``SwarmBeliefs.claim`` (``planner.transition.claim_cells`` with foresight).
 """
 
 from __future__ import annotations
@@ -39,10 +39,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from planner.engagement import EngagementOutcome
 from planner.feasibility import MoveOptions, threat_groups
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, turn_options
-from planner.hapf_aco import MODES, HapfAcoPlanner, StepDecision
+from planner.planner_interface import MODES, StepDecision
 from planner.scenario import Scenario, UavStart
+from planner.sensor_model import SensorReport
+from planner.swarm_beliefs import Hearing, SwarmBeliefs
 
 
 def _clamp(a: np.ndarray, low: float, high: float) -> np.ndarray:
@@ -69,8 +72,9 @@ class PsoSettings:
     infeasible_penalty: float = 1000.0  # per move of a path that breaks a constraint
 
 
-class PsoPlanner(HapfAcoPlanner):
-    """Receding-horizon PSO over short paths, one particle swarm per UAV, batched over UAVs."""
+class PsoPlanner:
+    """Receding-horizon PSO over short paths, one particle swarm per UAV, batched over UAVs
+    (``planner.planner_interface.SwarmPlanner``)."""
 
     algorithm = "pso"
 
@@ -81,7 +85,10 @@ class PsoPlanner(HapfAcoPlanner):
         seed: int,
         settings: PsoSettings | None = None,
     ) -> None:
-        super().__init__(scenario, starts, seed)
+        self.beliefs = SwarmBeliefs(scenario, starts)
+        self.cfg, self.n, self.grid = self.beliefs.cfg, self.beliefs.n, self.beliefs.grid
+        self.footprint = self.beliefs.footprint
+        self.rng = np.random.default_rng([seed, 0xAC0])
         s = self.settings = settings or PsoSettings()
         if s.particles < 2 or s.iterations < 1 or s.horizon_steps < 1:
             raise ValueError("PSO needs at least 2 particles, 1 iteration and a 1-step horizon")
@@ -116,20 +123,32 @@ class PsoPlanner(HapfAcoPlanner):
         self.block_weights = np.exp(-distance_km / s.terminal_length_km)
         self.block_step = np.full(self.n, -(10**9))
 
-    def _update_pheromone(self, flying: np.ndarray) -> None:
-        """PSO keeps no pheromone map (eqs 28-34 are HAPF-ACO's)."""
+    def step(
+        self,
+        cells: np.ndarray,
+        headings: np.ndarray,
+        reports: Sequence[SensorReport | None],
+        engagements: Sequence[EngagementOutcome | None] | None = None,
+        active: np.ndarray | None = None,
+        positions_km: np.ndarray | None = None,
+    ) -> StepDecision:
+        """One decision step (``planner.planner_interface``, the arguments). PSO keeps no
+        pheromone map (eqs 28-34 are HAPF-ACO's)."""
+        seen = self.beliefs.observe(cells, headings, reports, engagements, active, positions_km)
+        decision = self._decide(seen)
+        self.beliefs.finish_step(decision)
+        return decision
 
     # ------------------------------------------------------------------ decision
 
-    def _decide(
-        self, flying: np.ndarray, hears: np.ndarray, positions: np.ndarray, distances: np.ndarray
-    ) -> StepDecision:
-        n = self.n
-        opts = self._move_options()
-        self._update_return(opts, flying)  # C_r: the return rule of HAPF-ACO, unchanged
+    def _decide(self, seen: Hearing) -> StepDecision:
+        n, b = self.n, self.beliefs
+        flying, hears = seen.flying, seen.hears
+        opts = b.move_options()
+        b.update_return(opts, flying)  # C_r: the return rule of HAPF-ACO, unchanged
 
-        returning = self.returning & flying
-        engaging = (self.track[:, 0] >= 0) & flying & ~returning
+        returning = self.beliefs.returning & flying
+        engaging = (self.beliefs.track[:, 0] >= 0) & flying & ~returning
         search = flying & ~returning
         scores = np.full(opts.feasible.shape, -np.inf)
         modes = np.full(n, MODES.index("heuristic"))
@@ -139,19 +158,19 @@ class PsoPlanner(HapfAcoPlanner):
             idx = np.flatnonzero(search)
             scores[idx], paths, turns = self._optimise(idx, engaging[idx], opts, hears)
             best_paths = {int(i): (paths[a], turns[a]) for a, i in enumerate(idx)}
-        self._return_scores(scores, modes, opts, returning)
+        self.beliefs.return_scores(scores, modes, opts, returning)
 
         ranked = np.argsort(-np.where(np.isfinite(scores), scores, -1e300), axis=1, kind="stable")
-        pick = self._claim(ranked, opts, positions, distances, flying)
+        pick = b.claim(ranked, opts, seen.positions, seen.distances, flying)
         rows = np.arange(n)
-        next_cells = np.where(flying[:, None], opts.cells[rows, pick], self.cells)
-        next_headings = np.where(flying, opts.headings[rows, pick], self.headings)
+        next_cells = np.where(flying[:, None], opts.cells[rows, pick], self.beliefs.cells)
+        next_headings = np.where(flying, opts.headings[rows, pick], self.beliefs.headings)
         modes[~flying] = MODES.index("hold")
         self._remember_plans(best_paths, next_cells, flying)
 
         # HAPF-ACO's engagement rule, over the same UAVs (a returning one included)
-        engage = self._engage_requests((self.track[:, 0] >= 0) & flying)
-        return StepDecision(next_cells, next_headings, engage, self.done.copy(), modes)
+        engage = b.engage_requests((self.beliefs.track[:, 0] >= 0) & flying)
+        return StepDecision(next_cells, next_headings, engage, self.beliefs.done.copy(), modes)
 
     def _remember_plans(
         self,
@@ -185,7 +204,7 @@ class PsoPlanner(HapfAcoPlanner):
 
         x = rng.uniform(-bound, bound, size=(m, P, H))
         x[:, 1] = 0.0
-        warm = self.plan_valid[idx] & (self.plans[idx, 0] == self.cells[idx]).all(axis=1)
+        warm = self.plan_valid[idx] & (self.plans[idx, 0] == self.beliefs.cells[idx]).all(axis=1)
         shifted = np.concatenate([self.plan_turns[idx, 1:], np.zeros((m, 1))], axis=1)
         x[warm, 0] = shifted[warm]
         v = rng.uniform(-s.velocity_max, s.velocity_max, size=(m, P, H))
@@ -226,9 +245,9 @@ class PsoPlanner(HapfAcoPlanner):
         """Turn commands (m, P, H) -> path cells (m, P, H, 2) and headings (m, P, H) (C_m by
         construction)."""
         heads = np.mod(
-            self.headings[idx][:, None, None] + np.cumsum(turns.astype(np.int64), axis=2), 8
+            self.beliefs.headings[idx][:, None, None] + np.cumsum(turns.astype(np.int64), axis=2), 8
         )
-        cells = self.cells[idx][:, None, None, :] + np.cumsum(HEADING_STEPS[heads], axis=2)
+        cells = self.beliefs.cells[idx][:, None, None, :] + np.cumsum(HEADING_STEPS[heads], axis=2)
         return cells, heads
 
     def _constraint_tables(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -239,19 +258,19 @@ class PsoPlanner(HapfAcoPlanner):
         (2H + 1)^2 cells within H moves of the UAV."""
         grid = self.grid
         m, e = len(idx), len(self.end_offsets)
-        cells = self.cells[idx][:, None, :] + self.end_offsets[None]  # (m, E, 2)
+        cells = self.beliefs.cells[idx][:, None, :] + self.end_offsets[None]  # (m, E, 2)
         heads = np.broadcast_to(np.arange(8)[:, None], (8, e))
         allowed = np.zeros((m, 8, e), dtype=bool)
         home = np.full((m, e), np.inf)
         inside = grid.inside(cells)
         flat = grid.clipped_flat(cells)
-        for known, rows in threat_groups(self.known_threats[idx]):
-            model = self.safety_model(known)
+        for known, rows in threat_groups(self.beliefs.known_threats[idx]):
+            model = self.beliefs.safety_model(known)
             at = np.broadcast_to(cells[rows][:, None], (len(rows), 8, e, 2))
             allowed[rows] = model.move_allowed(at, np.broadcast_to(heads, (len(rows), 8, e)))
             if np.isfinite(self.cfg.max_range_km):
                 for a in rows:
-                    field = model.distance_home_km(int(self.home_flat[idx[a]])).ravel()
+                    field = model.distance_home_km(int(self.beliefs.home_flat[idx[a]])).ravel()
                     home[a] = np.where(inside[a], field[flat[a]], np.inf)
         return allowed, home
 
@@ -261,7 +280,7 @@ class PsoPlanner(HapfAcoPlanner):
         cfg, h = self.cfg, self.settings.horizon_steps
         allowed_tab, home_tab = tables
         m = len(idx)
-        offset = cells - self.cells[idx][:, None, None, :]
+        offset = cells - self.beliefs.cells[idx][:, None, None, :]
         flat = (offset[..., 0] + h) * (2 * h + 1) + (offset[..., 1] + h)  # window index of cells
         prev = np.concatenate(
             [np.full(flat[:, :, :1].shape, len(self.end_offsets) // 2), flat[:, :, :-1]], axis=2
@@ -270,7 +289,7 @@ class PsoPlanner(HapfAcoPlanner):
         allowed = allowed_tab[rows, heads, prev]
         if np.isfinite(cfg.max_range_km):
             flown = (
-                self.distance_km[idx][:, None, None]
+                self.beliefs.distance_km[idx][:, None, None]
                 + np.cumsum(HEADING_LENGTHS[heads], axis=2) * cfg.cell_km
             )
             allowed &= flown + home_tab[rows, flat] + cfg.return_reserve_km <= cfg.max_range_km
@@ -288,7 +307,7 @@ class PsoPlanner(HapfAcoPlanner):
         # search (omega = 0): unique cells of the footprints along the feasible prefix
         w, h = self.window, s.horizon_steps
         side = 2 * w + 1
-        offset = cells - self.cells[idx][:, None, None, :]  # within +-H of the UAV
+        offset = cells - self.beliefs.cells[idx][:, None, None, :]  # within +-H of the UAV
         flat = (offset[..., 0] + w) * side + (offset[..., 1] + w)
         flat = flat[..., None] + self.footprint_flat  # (m, P, H, K) window indices
         flat = np.where(ok[..., None], flat, side * side)
@@ -305,10 +324,10 @@ class PsoPlanner(HapfAcoPlanner):
         # attack (omega = 1): closest approach to the confirmed target, earlier is better
         fit = search
         if engaging.any():
-            track = self.track[idx]
+            track = self.beliefs.track[idx]
             gap = np.hypot(*((cells - track[:, None, None, :]) * cfg.cell_km).transpose(3, 0, 1, 2))
             gap = np.where(ok, gap + 0.1 * np.arange(H), np.inf)
-            here = np.hypot(*((self.cells[idx] - track) * cfg.cell_km).T)
+            here = np.hypot(*((self.beliefs.cells[idx] - track) * cfg.cell_km).T)
             attack = -np.minimum(gap.min(axis=2), here[:, None] + 0.1 * H)
             fit = np.where(engaging[:, None], attack, search)
         fit = fit - s.infeasible_penalty * (H - n_ok)
@@ -321,18 +340,18 @@ class PsoPlanner(HapfAcoPlanner):
         m = len(idx)
         w = self.window
         side = 2 * w + 1
-        cells = self.cells[idx][:, None, :] + self.window_offsets[None]
+        cells = self.beliefs.cells[idx][:, None, :] + self.window_offsets[None]
         inside = grid.inside(cells)
-        p = self.tpm.existence_at(idx[:, None], cells)
+        p = self.beliefs.tpm.existence_at(idx[:, None], cells)
         share = p / np.maximum(p.max(axis=1, keepdims=True), 1e-12)
-        covered = self.coverage.reshape(self.n, -1)[idx[:, None], grid.clipped_flat(cells)]
+        covered = self.beliefs.coverage.reshape(self.n, -1)[idx[:, None], grid.clipped_flat(cells)]
         unsearched = ~covered & inside
         # cooperation: cells inside the footprints of the paths neighbours announced last step
         pairs_a, pairs_j = np.nonzero(hears[idx] & self.plan_valid[None, :])
         if pairs_a.size and s.horizon_steps > 1:
             ahead = self.plans[pairs_j, 1:]  # (Q, H-1, 2): the part not flown yet
             fp = ahead[:, :, None, :] + self.footprint[None, None]
-            local = fp - (self.cells[idx[pairs_a]] - w)[:, None, None, :]
+            local = fp - (self.beliefs.cells[idx[pairs_a]] - w)[:, None, None, :]
             keep = ((local >= 0) & (local < side)).all(axis=-1)
             rows = np.broadcast_to(pairs_a[:, None, None], keep.shape)[keep]
             flat = local[keep][:, 0] * side + local[keep][:, 1]
@@ -347,17 +366,19 @@ class PsoPlanner(HapfAcoPlanner):
         values (refreshed every ``block_refresh_steps``) weighted by exp(-distance /
         ``terminal_length_km``)."""
         s, grid = self.settings, self.grid
-        stale = idx[self.k - self.block_step[idx] >= s.block_refresh_steps]
+        stale = idx[self.beliefs.k - self.block_step[idx] >= s.block_refresh_steps]
         if stale.size:
             b = s.block_cells
             bx, by = self.block_shape
             pad = ((0, bx * b - grid.nx), (0, by * b - grid.ny))
+            beliefs = self.beliefs
             for i in stale:
-                unsearched = np.pad(~self.coverage[i], pad).reshape(bx, b, by, b).mean(axis=(1, 3))
-                existence = np.pad(self.tpm.existence_map(int(i)), pad)
+                unsearched = np.pad(~beliefs.coverage[i], pad)
+                unsearched = unsearched.reshape(bx, b, by, b).mean(axis=(1, 3))
+                existence = np.pad(beliefs.tpm.existence_map(int(i)), pad)
                 mass = existence.reshape(bx, b, by, b).sum(axis=(1, 3))
                 self.block_value[i] = (unsearched + mass).ravel()
-            self.block_step[stale] = self.k
-        ends = self.cells[idx][:, None, :] + self.end_offsets[None]  # (m, E, 2)
+            self.block_step[stale] = self.beliefs.k
+        ends = self.beliefs.cells[idx][:, None, :] + self.end_offsets[None]  # (m, E, 2)
         weights = self.block_weights[grid.clipped_flat(ends)]  # (m, E, B)
         return np.einsum("meb,mb->me", weights, self.block_value[idx])

@@ -5,16 +5,17 @@ The log reads the planner's state, never writes it, and never sees ground truth:
 each decision step after the planner decided and before it forecast its beliefs (eqs 19-22):
 
 - **belief peaks**: the probability that a target lies within the engage radius of a cell
-  (``HapfAcoPlanner.engage_probability``, section 3.2.1, from the TPM of eqs 16-18), at the
+  (``SwarmBeliefs.engage_probability``, section 3.2.1, from the TPM of eqs 16-18), at the
   cells of each flying UAV's own sensor footprint and at the cell it pursues, as that UAV
   believes it; a cell's entry is the highest over the UAVs and is kept when it reaches
   ``floor`` (a target never looked at keeps its prior, far below it);
-- **pursuits**: the cell each UAV goes for (``HapfAcoPlanner.track``) and whether its target
+- **pursuits**: the cell each UAV goes for (``SwarmBeliefs.track``) and whether its target
   counts as confirmed there (``track_confirmed``);
 - **engagement requests**: which UAVs asked for an engagement at that step.
 
 Cells are grid indices; the join places them with the grid's cell size. Attach with
-``PursuitLog.attach(planner)``: the planner calls ``record`` from its step (its ``observers``).
+``PursuitLog.attach(planner)``: the planner's beliefs (``planner.swarm_beliefs.SwarmBeliefs``)
+call ``record`` at every step (their ``observers``); a planner without them logs nothing.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from planner.swarm_beliefs import SwarmBeliefs, beliefs_of
 
 #: Belief below this is not logged (the account's peak reads 0 for a target never above it).
 BELIEF_FLOOR = 0.05
@@ -38,23 +41,28 @@ class PursuitLog:
     cell_km: float = 1.0
 
     def attach(self, planner) -> PursuitLog:
-        """Record every step of ``planner`` (a ``HapfAcoPlanner`` or subclass) from now on."""
-        self.cell_km = float(planner.cfg.cell_km)
-        planner.observers.append(self.record)
+        """Record every step of ``planner`` from now on (nothing for a planner that keeps no
+        ``SwarmBeliefs``)."""
+        beliefs = beliefs_of(planner)
+        if beliefs is not None:
+            self.cell_km = float(beliefs.cfg.cell_km)
+            beliefs.observers.append(self.record)
         return self
 
     @staticmethod
     def of(planner) -> PursuitLog | None:
         """The log attached to ``planner`` (also after a checkpoint restored it), or None."""
-        for observe in getattr(planner, "observers", ()):
+        beliefs = beliefs_of(planner)
+        for observe in () if beliefs is None else beliefs.observers:
             owner = getattr(observe, "__self__", None)
             if isinstance(owner, PursuitLog):
                 return owner
         return None
 
-    def record(self, planner, decision) -> None:
-        """The facts of the step ``planner`` just decided (``decision``: its ``StepDecision``);
-        called by the planner before its forecast, so beliefs are those the step acted on."""
+    def record(self, planner: SwarmBeliefs, decision) -> None:
+        """The facts of the step just decided (``decision``: its ``StepDecision``) from the
+        swarm's beliefs ``planner``; called before the forecast, so beliefs are those the step
+        acted on."""
         step = int(planner.k)
         flying = np.flatnonzero(~np.asarray(planner.done, dtype=bool))
         if flying.size:

@@ -11,23 +11,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planner.acoapf import AcoApfPlanner
 from planner.engagement import EngagementOutcome
 from planner.grid import Grid, heading_of_angle
-from planner.hapf_aco import HapfAcoPlanner
 from planner.metrics import MissionRecorder
-from planner.pso import PsoPlanner
 from planner.pursuit_log import PursuitLog
+from planner.registry import planner_factory
 from planner.scenario import Scenario
 from sim_gateway.target_account import TargetAccount, account_of
 from sim_gateway.world import World
-
-#: Planners by the name users give on the command line.
-PLANNERS: dict[str, Callable] = {
-    "hapf-aco": HapfAcoPlanner,
-    "acoapf": AcoApfPlanner,  # baseline, section 4.2 Algorithm 2
-    "pso": PsoPlanner,  # baseline, section 4.2 Algorithm 1
-}
 
 
 @dataclass(frozen=True)
@@ -55,7 +46,8 @@ def run_offline(
     observer: Callable[[OfflineStep], None] | None = None,
     planning: Scenario | None = None,
 ) -> dict:
-    """Fly ``scenario`` for ``steps`` decision steps with one seed; returns the result dict,
+    """Fly ``scenario`` for ``steps`` decision steps with one seed and the planner named
+    ``algorithm`` (``planner.registry``); returns the result dict,
     with the per-target account (``sim_gateway.target_account``) unless ``account`` is False
     (the flight is the same either way: the account only reads). ``observer`` gets an
     ``OfflineStep`` after every decision step and one for the end (the mission view's replay).
@@ -70,7 +62,7 @@ def run_offline(
     starts = scenario.starts_for_seed(seed)
     world = World(scenario, seed)
     planned = scenario if planning is None else dataclasses.replace(planning, steps=steps)
-    planner = PLANNERS[algorithm](planned, starts, seed)
+    planner = planner_factory(algorithm)(planned, starts, seed)
     recorder = MissionRecorder(scenario, starts)
     truth = TargetAccount(world) if account else None  # beside the planner, never passed to it
     log = PursuitLog().attach(planner) if account else None  # the planner's facts, read-only

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from planner.errors import UserError
-from sim_gateway.offline_runner import PLANNERS
+from planner.registry import planner_factory
 from swarmplan.arguments import writable_folder
 from swarmplan.experiment_runner import ALGORITHMS, EXPERIMENTS, RunTask, execute, plan_tasks
 
@@ -78,11 +78,10 @@ def parse_options(args: argparse.Namespace) -> dict:
             f"unknown experiment {args.experiment!r}; choose {' or '.join(EXPERIMENTS)}"
         )
     algorithms = [a.strip() for a in str(args.algorithms).split(",") if a.strip()]
-    unknown = [a for a in algorithms if a not in PLANNERS]
-    if not algorithms or unknown:
-        raise UserError(
-            f"unknown algorithm {(unknown or [''])[0]!r}; choose from {', '.join(sorted(PLANNERS))}"
-        )
+    if not algorithms:
+        raise UserError("--algorithms names no algorithm; give a comma-separated list")
+    for algorithm in algorithms:
+        planner_factory(algorithm)  # one line naming an unknown or broken one
     if len(set(algorithms)) != len(algorithms):
         raise UserError(f"--algorithms lists an algorithm twice: {args.algorithms}")
     if args.dask is not None and args.jobs is not None:

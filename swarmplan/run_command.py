@@ -12,8 +12,9 @@ from tqdm import tqdm
 from mission_view.replay_file import replay_path
 from planner.errors import UserError
 from planner.metrics import format_summary
+from planner.registry import planner_factory, planner_names
 from planner.scenario import BUILTIN_SCENARIOS, load_scenario
-from sim_gateway.offline_runner import PLANNERS, run_offline
+from sim_gateway.offline_runner import run_offline
 from sim_gateway.target_account import format_account
 from swarmplan.arguments import add_seed_argument, positive_int, writable_folder
 
@@ -29,7 +30,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--steps", type=positive_int, default=None, help="decision steps (default: the scenario's)"
     )
     parser.add_argument(
-        "--algorithm", default="hapf-aco", choices=sorted(PLANNERS), help="planner to fly"
+        "--algorithm",
+        default="hapf-aco",
+        help=f"planner to fly: {', '.join(planner_names())} (default hapf-aco; "
+        "docs/architecture.md says how to register one of your own)",
     )
     parser.add_argument(
         "--out", type=Path, default=None, help="output folder (default runs/<scenario>-seed<S>)"
@@ -122,6 +126,7 @@ def written_line(out: Path, files: list[Path]) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
+    planner_factory(args.algorithm)  # an unknown or broken planner: one line, before any work
     scenario = load_scenario(args.scenario)
     steps = args.steps or scenario.steps
     planning = None

@@ -10,8 +10,9 @@ from planner.acoapf import AcoApfPlanner, StaticTargetProbabilityMaps, fuel_exha
 from planner.hapf_aco import HapfAcoPlanner
 from planner.potential_field import block_masses
 from planner.pso import PsoPlanner, PsoSettings
+from planner.registry import planner_factory
 from planner.scenario import load_scenario
-from sim_gateway.offline_runner import PLANNERS, run_offline
+from sim_gateway.offline_runner import run_offline
 from swarmplan.cli import main as swarmplan
 
 NO_VIOLATIONS = {"threat": 0, "separation": 0, "turn": 0, "range": 0}
@@ -31,7 +32,7 @@ def closest_threat_gap_km(result):
 
 
 def test_baselines_are_registered_for_swarmplan_run():
-    assert PLANNERS["pso"] is PsoPlanner and PLANNERS["acoapf"] is AcoApfPlanner
+    assert planner_factory("pso") is PsoPlanner and planner_factory("acoapf") is AcoApfPlanner
 
 
 @pytest.mark.parametrize("algorithm", ["pso", "acoapf"])
@@ -74,41 +75,43 @@ def test_acoapf_field_has_no_forecast_but_its_confirmation_beliefs_have():
     scenario = load_scenario("paper-2uav")
     starts = scenario.starts_for_seed(1)
     aco, hapf = AcoApfPlanner(scenario, starts, 1), HapfAcoPlanner(scenario, starts, 1)
-    assert isinstance(aco.tpm.static, StaticTargetProbabilityMaps)
-    field_before = aco.tpm.static.existence_map(1)
-    cells, headings = aco.cells.copy(), aco.headings.copy()
+    assert isinstance(aco.beliefs.tpm.static, StaticTargetProbabilityMaps)
+    field_before = aco.beliefs.tpm.static.existence_map(1)
+    cells, headings = aco.beliefs.cells.copy(), aco.beliefs.headings.copy()
     for _ in range(6):  # no looks reach the maps: only the forecast could change them
         for planner in (aco, hapf):
             d = planner.step(cells, headings, [None, None], None)
         cells, headings = d.next_cells, d.next_headings
-    assert np.abs(aco.tpm.static.existence_map(1) - field_before).max() == 0.0
+    assert np.abs(aco.beliefs.tpm.static.existence_map(1) - field_before).max() == 0.0
     # the beliefs that confirm and engage moved with the targets, exactly as HAPF-ACO's did
-    assert np.abs(aco.tpm.existence_map(1) - field_before).max() > 1e-6
-    np.testing.assert_array_equal(aco.tpm.existence_map(1), hapf.tpm.existence_map(1))
+    assert np.abs(aco.beliefs.tpm.existence_map(1) - field_before).max() > 1e-6
+    np.testing.assert_array_equal(
+        aco.beliefs.tpm.existence_map(1), hapf.beliefs.tpm.existence_map(1)
+    )
     probe = np.array([[8, 15], [45, 50], [80, 70]])
     rows = np.zeros(len(probe), dtype=np.int64)
     np.testing.assert_array_equal(
-        aco.engage_probability(rows, probe), hapf.engage_probability(rows, probe)
+        aco.beliefs.engage_probability(rows, probe), hapf.beliefs.engage_probability(rows, probe)
     )
     # the potential field reads the forecast-free map
-    window = aco._existence_window()
-    around = aco.cells[:, None, None, :] + aco.window_offsets[None]
+    window = aco.hapf_aco._existence_window()
+    around = aco.beliefs.cells[:, None, None, :] + aco.hapf_aco.window_offsets[None]
     np.testing.assert_array_equal(
-        window, aco.tpm.static.existence_at(np.arange(aco.n)[:, None, None], around)
+        window, aco.beliefs.tpm.static.existence_at(np.arange(aco.n)[:, None, None], around)
     )
     # and so does its far attraction (on in paper-2uav): the block masses at a refresh step
     assert aco.cfg.far_weight > 0
-    aco.k = 2 * aco.cfg.far_refresh_steps
-    options = aco._move_options()
-    aco._far_share(options.cells, options.headings, options.feasible)
-    unsearched = ~aco.coverage
-    static, full = aco.tpm.static, aco.tpm.full
+    aco.beliefs.k = 2 * aco.cfg.far_refresh_steps
+    options = aco.beliefs.move_options()
+    aco.hapf_aco._far_share(options.cells, options.headings, options.feasible)
+    unsearched = ~aco.beliefs.coverage
+    static, full = aco.beliefs.tpm.static, aco.beliefs.tpm.full
     blocks = aco.cfg.far_block_cells
     np.testing.assert_array_equal(
-        aco.far_masses, block_masses(static.maps, static.scale, blocks, unsearched)
+        aco.hapf_aco.far_masses, block_masses(static.maps, static.scale, blocks, unsearched)
     )
     assert not np.array_equal(
-        aco.far_masses, block_masses(full.maps, full.scale, blocks, unsearched)
+        aco.hapf_aco.far_masses, block_masses(full.maps, full.scale, blocks, unsearched)
     )
 
 
@@ -120,17 +123,19 @@ def test_pso_asks_for_an_engagement_by_hapf_acos_rule_also_on_its_way_home():
     decisions = {}
     for cls in (PsoPlanner, HapfAcoPlanner):
         planner = cls(scenario, starts, 1)
-        cell = planner.cells[0].copy()
+        cell = planner.beliefs.cells[0].copy()
         for _ in range(8):  # eight detections at UAV 0's own cell: a confirmed target
-            planner.tpm.apply_looks(np.array([0]), [cell[None]], [np.array([True])], cell[None])
-        planner.tpm.renormalise()
-        assert planner.engage_probability(np.array([0]), cell[None])[0] >= 0.5
-        planner.track[0] = cell
-        planner.track_confirmed[0] = True
-        planner.returning[0] = True  # flying home (C_r)
-        planner._update_tracks = lambda *args: None  # keep the track as set
+            planner.beliefs.tpm.apply_looks(
+                np.array([0]), [cell[None]], [np.array([True])], cell[None]
+            )
+        planner.beliefs.tpm.renormalise()
+        assert planner.beliefs.engage_probability(np.array([0]), cell[None])[0] >= 0.5
+        planner.beliefs.track[0] = cell
+        planner.beliefs.track_confirmed[0] = True
+        planner.beliefs.returning[0] = True  # flying home (C_r)
+        planner.beliefs._update_tracks = lambda *args: None  # keep the track as set
         decisions[cls.algorithm] = planner.step(
-            planner.cells.copy(), planner.headings.copy(), [None, None], None
+            planner.beliefs.cells.copy(), planner.beliefs.headings.copy(), [None, None], None
         )
     assert decisions["hapf-aco"].engage[0]
     assert decisions["pso"].engage[0]
@@ -146,9 +151,13 @@ def test_pso_fitness_counts_each_footprint_cell_of_a_path_once():
     turns = np.array([[[0, 0, 0, 0, 0], [1, 1, 1, 1, 1], [-1, 0, 1, 1, -1]]], dtype=float)
     tables = planner._constraint_tables(idx)
     fit, first = planner._fitness(idx, np.array([False]), turns, value, terminal, tables)
-    fp = planner.footprint
+    fp = planner.beliefs.footprint
     for p, path_turns in enumerate(turns[0]):
-        heading, cell, seen = int(planner.headings[0]), planner.cells[0].copy(), set()
+        heading, cell, seen = (
+            int(planner.beliefs.headings[0]),
+            planner.beliefs.cells[0].copy(),
+            set(),
+        )
         for t in path_turns:
             heading = (heading + int(t)) % 8
             cell = (

@@ -77,7 +77,7 @@ def test_one_step_through_every_stage(paper10):
     plan = stages.plan(state, inputs)
     assert plan.proposed_cells.shape == (3, 2)
     # the planner judges an engagement from where a plane measures itself, not its cell centre
-    np.testing.assert_allclose(planner.measured_km[:2], here[:2], atol=1e-3)
+    np.testing.assert_allclose(planner.beliefs.measured_km[:2], here[:2], atol=1e-3)
     flight = stages.envelope(state, inputs, plan)
     assert flight.aims_km.shape == (3, 2) and np.isfinite(flight.speeds_mps).all()
 
@@ -183,7 +183,7 @@ def test_a_uav_counted_home_is_sent_to_circle_its_start_not_where_it_drifted(pap
     recorder = MissionRecorder(paper10, starts)
     state = LoopState.start(grid, planner, recorder, starts, [-1, -1])
     inputs = stages.gather(state, 1, looks={})
-    planner.done[0] = True  # UAV 1 is back; UAV 2 still searching
+    planner.beliefs.done[0] = True  # UAV 1 is back; UAV 2 still searching
     plan = stages.plan(state, inputs)
     home = grid.cell_of(np.array([[starts[0].x_km, starts[0].y_km]]))[0]
     np.testing.assert_array_equal(plan.proposed_cells[0], home)

@@ -61,7 +61,7 @@ def test_snapshot_is_a_read_only_copy_of_the_planner_beliefs(scenario):
     assert not snap.tpm_maps.flags.writeable and not snap.pheromone.flags.writeable
     with pytest.raises(ValueError):
         snap.coverage[0, 0, 0] = True
-    np.testing.assert_allclose(snap.existence(1), planner.tpm.existence_map(1))
+    np.testing.assert_allclose(snap.existence(1), planner.beliefs.tpm.existence_map(1))
     planner.pheromone.tau[0, 0, 0] = -1.0  # the planner goes on: the snapshot does not change
     assert snap.pheromone[0, 0, 0] != -1.0
     again = belief_snapshot(planner, 1, reuse=snap)  # into the old buffers, no new arrays

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from planner.engagement import EngagementOutcome
-from planner.hapf_aco import MODES, HapfAcoPlanner
+from planner.hapf_aco import HapfAcoPlanner
+from planner.planner_interface import MODES
 from planner.pso import PsoPlanner
 from planner.scenario import load_scenario, parse_scenario
 from planner.sensor_model import SensorReport
@@ -42,7 +43,7 @@ value = 1
 
 def look(planner: HapfAcoPlanner, cell: np.ndarray, hits: list[np.ndarray]) -> SensorReport:
     """One look from ``cell``: b = 1 exactly at the cells in ``hits``, b = 0 elsewhere."""
-    footprint = cell + planner.footprint
+    footprint = cell + planner.beliefs.footprint
     footprint = footprint[planner.grid.inside(footprint)]
     detected = np.zeros(len(footprint), dtype=bool)
     for hit in hits:
@@ -61,15 +62,15 @@ def pursue_then_miss(**parameters) -> tuple[HapfAcoPlanner, list[bool]]:
     cells, headings = np.array([[49, 50]]), np.array([0])
     for _ in range(6):  # detections until it is worth a closer look
         planner.step(cells, headings, [look(planner, cells[0], [suspect])])
-        if planner.track[0, 0] >= 0:
+        if planner.beliefs.track[0, 0] >= 0:
             break
-    assert planner.track[0, 0] >= 0, "a repeated detection was never pursued"
-    assert not planner.track_confirmed[0]
+    assert planner.beliefs.track[0, 0] >= 0, "a repeated detection was never pursued"
+    assert not planner.beliefs.track_confirmed[0]
     kept = []
     for _ in range(8):  # the target is missed (or was a false alarm)
         planner.step(cells, headings, [look(planner, cells[0], [])])
-        near = np.abs(planner.track[0] - suspect).max() <= 2
-        kept.append(bool(planner.track[0, 0] >= 0 and near))
+        near = np.abs(planner.beliefs.track[0] - suspect).max() <= 2
+        kept.append(bool(planner.beliefs.track[0, 0] >= 0 and near))
     return planner, kept
 
 
@@ -100,7 +101,7 @@ def test_a_missed_engagement_lowers_the_belief_where_it_was_asked_not_where_the_
     assert (moved[0] != suspect).any()
 
     def belief(cell: np.ndarray) -> float:
-        return float(planner.tpm.existence_at(np.array([0]), cell[None])[0])
+        return float(planner.beliefs.tpm.existence_at(np.array([0]), cell[None])[0])
 
     def odds(p: float) -> float:
         return p / (1.0 - p)
@@ -126,7 +127,7 @@ def engage_from(offset_km: tuple[float, float]) -> bool:
         decision = planner.step(
             cells, headings, [look(planner, cells[0], [suspect])], positions_km=at_km
         )
-        if planner.engage_probability(np.array([0]), cells)[0] >= 0.9:
+        if planner.beliefs.engage_probability(np.array([0]), cells)[0] >= 0.9:
             return bool(decision.engage[0])
     pytest.fail("twelve detections from overhead did not confirm the suspect")
 
@@ -186,9 +187,11 @@ def test_the_uav_fewer_turn_limited_moves_away_takes_the_target():
     cells, headings = np.array([[49, 50], [46, 50]]), np.array([4, 0])
     for _ in range(6):
         planner.step(cells, headings, [look(planner, c, [target]) for c in cells])
-        if (planner.track[:, 0] >= 0).any():
+        if (planner.beliefs.track[:, 0] >= 0).any():
             break
-    assert planner.track[1, 0] >= 0 and planner.track[0, 0] < 0, planner.track
+    assert planner.beliefs.track[1, 0] >= 0 and planner.beliefs.track[0, 0] < 0, (
+        planner.beliefs.track
+    )
 
 
 KNOWN_POSITION = """
@@ -220,8 +223,8 @@ def pursued_after_one_detection(**parameters) -> tuple[float, bool]:
     centre = np.array([50, 50])
     cells, headings = np.array([[49, 50]]), np.array([0])
     planner.step(cells, headings, [look(planner, cells[0], [centre])])
-    belief = float(planner.engage_probability(np.array([0]), centre[None])[0])
-    return belief, bool(planner.track[0, 0] >= 0)
+    belief = float(planner.beliefs.engage_probability(np.array([0]), centre[None])[0])
+    return belief, bool(planner.beliefs.track[0, 0] >= 0)
 
 
 def test_one_detection_at_a_prior_centre_is_worth_a_second_look():
@@ -249,10 +252,10 @@ def test_the_likeliest_cell_of_a_confirmed_target_is_the_one_flown_to():
         planner.step(near, heading, [look(planner, near[0], [west, east])])
     off = np.array([[52, 52]])  # east within d_in (hit), west at 2.8 km (a weak miss)
     planner.step(off, heading, [look(planner, off[0], [east])])
-    p = planner.engage_probability(np.array([0, 0]), np.stack([west, east]))
+    p = planner.beliefs.engage_probability(np.array([0, 0]), np.stack([west, east]))
     assert p.min() >= planner.cfg.confirm_threshold and p[1] > p[0], p
-    assert planner.track_confirmed[0]
-    assert (planner.track[0] == east).all(), planner.track[0]
+    assert planner.beliefs.track_confirmed[0]
+    assert (planner.beliefs.track[0] == east).all(), planner.beliefs.track[0]
 
 
 def test_paper_10uav_confirms_at_0_7_and_misses_less_for_it():
@@ -307,8 +310,8 @@ def test_a_late_uav_flying_away_from_home_beside_a_threat_turns_about(planner_cl
         threats_known=True,
     )
     planner = planner_cls(scenario, scenario.uav_starts, 27)
-    planner.k = 185  # 64 steps left: fewer than the way home takes
-    planner.returning[0] = True
+    planner.beliefs.k = 185  # 64 steps left: fewer than the way home takes
+    planner.beliefs.returning[0] = True
     decision = planner.step(np.array([[66, 38]]), np.array([0]), [None])
     assert decision.modes[0] == MODES.index("return")
     assert decision.next_cells[0].tolist() == [67, 39]  # north-east: the turn about begins

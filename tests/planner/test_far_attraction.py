@@ -28,7 +28,7 @@ def test_the_candidate_heading_for_a_distant_prior_is_pulled_the_most():
     # the blob (sigma 5 km), the north-east candidate reads the most of the smoothed field
     scenario = parse_scenario(ABEAM).with_config(far_weight=0.5)
     planner = HapfAcoPlanner(scenario, scenario.starts_for_seed(0), seed=0)
-    options = planner._move_options()
+    options = planner.beliefs.move_options()
     share = planner._far_share(options.cells, options.headings, options.feasible)[0]
     heads = list(options.headings[0])
     north_east, east, south_east = heads.index(1), heads.index(0), heads.index(7)

@@ -3,7 +3,8 @@ per target, and the engagement only once a target is likely within the engage ra
 
 import numpy as np
 
-from planner.hapf_aco import MODES, HapfAcoPlanner
+from planner.hapf_aco import HapfAcoPlanner
+from planner.planner_interface import MODES
 from planner.scenario import parse_scenario
 from planner.sensor_model import SensorReport
 
@@ -47,7 +48,7 @@ def looks(planner: HapfAcoPlanner, cells: np.ndarray, target: np.ndarray) -> lis
     """A perfect sensor: each UAV's footprint reports b = 1 exactly at the target's cell."""
     reports = []
     for cell in cells:
-        footprint = cell + planner.footprint
+        footprint = cell + planner.beliefs.footprint
         footprint = footprint[planner.grid.inside(footprint)]
         reports.append(SensorReport(footprint, (footprint == target).all(axis=1)))
     return reports
@@ -62,9 +63,9 @@ def test_the_nearer_uav_pursues_a_detection_and_engages_only_within_the_radius()
     engaged_at = None
     for _ in range(30):
         decision = planner.step(cells, headings, looks(planner, cells, target))
-        if planner.track[0, 0] >= 0 or planner.track[1, 0] >= 0:
+        if planner.beliefs.track[0, 0] >= 0 or planner.beliefs.track[1, 0] >= 0:
             # both hear the detections; only the nearer one goes for them
-            assert not (planner.track[0, 0] >= 0 and planner.track[1, 0] >= 0)
+            assert not (planner.beliefs.track[0, 0] >= 0 and planner.beliefs.track[1, 0] >= 0)
         if decision.engage.any():
             who = int(np.flatnonzero(decision.engage)[0])
             engaged_at = cells[who]
@@ -84,7 +85,7 @@ def test_false_alarms_scattered_over_the_footprint_start_no_engagement():
     for _ in range(30):
         reports = []
         for cell in cells:
-            footprint = cell + planner.footprint
+            footprint = cell + planner.beliefs.footprint
             footprint = footprint[planner.grid.inside(footprint)]
             reports.append(
                 SensorReport(footprint, rng.random(len(footprint)) < scenario.config.p_false)

@@ -270,7 +270,7 @@ def test_a_checkpoint_holds_only_the_planners_own_state_and_resumes_the_same_dec
     CheckpointWriter(path, "fp").save(6, _Daemon(), state, 1.0)
     size = path.stat().st_size
     assert size < 2_500_000, size  # 5 MB uncompressed
-    assert planner._safety  # the live planner keeps its caches
+    assert planner.beliefs._safety  # the live planner keeps its caches
 
     fresh = HapfAcoPlanner(scenario, starts, 3)
     resumed = read_checkpoint(path).loop["planner"]

@@ -120,8 +120,8 @@ def test_pursuit_log_records_the_planners_own_belief_and_tracks():
     planner = HapfAcoPlanner(scenario, scenario.starts_for_seed(1), 1)
     log = PursuitLog(floor=0.0).attach(planner)
     world = World(scenario, 1)
-    cells = planner.cells.copy()
-    headings = planner.headings.copy()
+    cells = planner.beliefs.cells.copy()
+    headings = planner.beliefs.headings.copy()
     for _ in range(3):
         decision = planner.step(cells, headings, world.sense(planner.grid.centre_km(cells)))
         cells, headings = decision.next_cells, decision.next_headings
@@ -131,7 +131,7 @@ def test_pursuit_log_records_the_planners_own_belief_and_tracks():
     assert steps == {0, 1, 2}
     # floor 0: every footprint cell of each UAV is logged at each step, one entry per cell
     per_step = [sum(b[0] == s for b in facts["beliefs"]) for s in range(3)]
-    assert min(per_step) >= len(planner.footprint)
+    assert min(per_step) >= len(planner.beliefs.footprint)
     assert all(0.0 <= b[3] <= 1.0 for b in facts["beliefs"])
 
 
@@ -143,24 +143,24 @@ def test_pursuit_log_skips_only_cells_whose_belief_is_under_its_floor():
     log = PursuitLog().attach(planner)
     every: list[list[float]] = []
 
-    def exhaustive(planner, decision):
-        flying = np.flatnonzero(~np.asarray(planner.done, dtype=bool))
-        cells = planner.cells[flying][:, None, :] + planner.footprint[None]
-        cells = np.concatenate([cells, planner.track[flying][:, None, :]], axis=1)
+    def exhaustive(beliefs, decision):
+        flying = np.flatnonzero(~np.asarray(beliefs.done, dtype=bool))
+        cells = beliefs.cells[flying][:, None, :] + beliefs.footprint[None]
+        cells = np.concatenate([cells, beliefs.track[flying][:, None, :]], axis=1)
         rows = np.repeat(flying, cells.shape[1])
         cells = cells.reshape(-1, 2)
-        inside = planner.grid.inside(cells)
+        inside = beliefs.grid.inside(cells)
         rows, cells = rows[inside], cells[inside]
-        p = planner.engage_probability(rows, cells)
+        p = beliefs.engage_probability(rows, cells)
         best: dict[tuple[int, int], float] = {}
         for (x, y), v in zip(cells.tolist(), p.tolist(), strict=True):
             if v >= log.floor:
                 best[(x, y)] = max(v, best.get((x, y), 0.0))
-        every.extend([int(planner.k), x, y, round(v, 4)] for (x, y), v in sorted(best.items()))
+        every.extend([int(beliefs.k), x, y, round(v, 4)] for (x, y), v in sorted(best.items()))
 
-    planner.observers.append(exhaustive)
+    planner.beliefs.observers.append(exhaustive)
     world = World(scenario, 3)
-    cells, headings = planner.cells.copy(), planner.headings.copy()
+    cells, headings = planner.beliefs.cells.copy(), planner.beliefs.headings.copy()
     for _ in range(25):
         decision = planner.step(cells, headings, world.sense(planner.grid.centre_km(cells)))
         cells, headings = decision.next_cells, decision.next_headings
