@@ -183,29 +183,13 @@ class HapfAcoPlanner:
         high = np.where(feasible, v, -np.inf).max(axis=1, keepdims=True)
         return np.where(feasible & (high > 0), v / np.where(high > 0, high, 1.0), 0.0)
 
-    def _decide(self, seen: Hearing) -> StepDecision:
-        """Steps 5-6 for every UAV."""
+    def _eta(
+        self, cand: np.ndarray, cand_head: np.ndarray, feasible: np.ndarray, window: np.ndarray
+    ) -> np.ndarray:
+        """The heuristic information eta (eq 36) of every candidate (N, C): the unsearched share
+        of its footprint, of the corridor ahead of it, and its target probability mass
+        (``window``: ``_existence_window``), plus the far attraction when it is on."""
         cfg, n, b = self.cfg, self.n, self.beliefs
-        flying, hears, positions = seen.flying, seen.hears, seen.positions
-        distances = seen.distances
-        opts = b.move_options()
-        cand, cand_head, moves, feasible = opts.cells, opts.headings, opts.moves, opts.feasible
-        b.update_return(opts, flying)
-
-        # potential field at the UAV and over its footprint (eqs 23-27)
-        points = b.cells[:, None, :] + b.footprint[None, :, :]
-        window = self._existence_window()
-        force = self._forces(window, positions, hears | (distances <= cfg.separation_sense_km))
-        norms = np.hypot(force[..., 0], force[..., 1])
-        inside_fp = b.grid.inside(points)
-        force_max = np.where(inside_fp, norms, 0.0).max(axis=1)
-        force_here = force[:, self.centre_index]
-        q = self.rng.random(n)
-        q1 = self.rng.random(n)
-        u = self.rng.random(n)
-
-        # heuristic information: unsearched share and target probability in the candidate's
-        # footprint
         fp = cand[:, :, None, :] + b.footprint[None, None, :, :]  # (N, C, K, 2)
         new_share = b.unsearched(fp).sum(axis=2) / len(b.footprint)
         r = self.window_reach
@@ -230,15 +214,44 @@ class HapfAcoPlanner:
         )
         if cfg.far_weight > 0:
             eta = eta + cfg.far_weight * self._far_share(cand, cand_head, feasible)
-        tau = self.pheromone.at(np.arange(n)[:, None], cand)
-        weights = transition_weights(tau, eta, feasible, cfg)
+        return eta
 
-        # escape after N_t steps without coverage gain: head for the nearest unsearched cell
-        stalled = (b.stall_steps >= cfg.escape_steps) & flying
+    def _escape_goals(self, flying: np.ndarray) -> np.ndarray:
+        """The UAVs stalled N_t steps without a coverage gain (escape); each newly stalled one
+        heads for the nearest cell it has not searched (``escape_goal``)."""
+        b = self.beliefs
+        stalled = (b.stall_steps >= self.cfg.escape_steps) & flying
         for i in np.flatnonzero(stalled & (b.escape_goal[:, 0] < 0)):
             _, (ix, iy) = ndimage.distance_transform_edt(b.coverage[i], return_indices=True)
             b.escape_goal[i] = (ix[tuple(b.cells[i])], iy[tuple(b.cells[i])])
+        return stalled
 
+    def _decide(self, seen: Hearing) -> StepDecision:
+        """Steps 5-6 for every UAV."""
+        cfg, n, b = self.cfg, self.n, self.beliefs
+        flying, hears, positions = seen.flying, seen.hears, seen.positions
+        distances = seen.distances
+        opts = b.move_options()
+        cand, cand_head, moves, feasible = opts.cells, opts.headings, opts.moves, opts.feasible
+        b.update_return(opts, flying)
+
+        # potential field at the UAV and over its footprint (eqs 23-27)
+        points = b.cells[:, None, :] + b.footprint[None, :, :]
+        window = self._existence_window()
+        force = self._forces(window, positions, hears | (distances <= cfg.separation_sense_km))
+        norms = np.hypot(force[..., 0], force[..., 1])
+        inside_fp = b.grid.inside(points)
+        force_max = np.where(inside_fp, norms, 0.0).max(axis=1)
+        force_here = force[:, self.centre_index]
+        q = self.rng.random(n)
+        q1 = self.rng.random(n)
+        u = self.rng.random(n)
+
+        eta = self._eta(cand, cand_head, feasible, window)
+        tau = self.pheromone.at(np.arange(n)[:, None], cand)
+        weights = transition_weights(tau, eta, feasible, cfg)
+
+        stalled = self._escape_goals(flying)
         modes = np.full(n, MODES.index("heuristic"))
         scores = np.where(feasible, np.log(np.maximum(weights, 1e-300)), -np.inf)
         choice = heuristic_choice(weights, q1, u, cfg)

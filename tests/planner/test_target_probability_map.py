@@ -4,20 +4,22 @@ from scipy import ndimage
 
 from planner.config import PlannerConfig
 from planner.grid import Grid
+from planner.motion_forecast import (
+    convolve_reflect,
+    ring_kernel,
+    shift_with_reflection,
+    wiener_kernel_1d,
+)
 from planner.scenario import TargetSpec
 from planner.sensor_model import bayes_update, detection_probability
-from planner.target_probability_map import (
-    TargetProbabilityMaps,
-    convolve_reflect,
+from planner.target_priors import (
     normalised,
-    ring_kernel,
     ring_prior,
-    shift_with_reflection,
     shifted_prior,
     uniform_prior,
-    wiener_kernel_1d,
     wiener_prior,
 )
+from planner.target_probability_map import TargetProbabilityMaps
 
 CFG = PlannerConfig()
 GRID = Grid()
