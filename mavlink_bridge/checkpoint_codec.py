@@ -118,6 +118,8 @@ def encode(value: Any, arrays: list[np.ndarray], path: str, none_at: frozenset[s
     if isinstance(value, (int, float)):
         return _encode_float(value)
     if isinstance(value, list):
+        if _plain(value):  # (tracks, curves, logs: JSON as they are, at once)
+            return value
         return [encode(v, arrays, f"{path}[{i}]", none_at) for i, v in enumerate(value)]
     if isinstance(value, tuple):
         return {"$tuple": [encode(v, arrays, f"{path}[{i}]", none_at) for i, v in enumerate(value)]}
@@ -138,6 +140,24 @@ def encode(value: Any, arrays: list[np.ndarray], path: str, none_at: frozenset[s
     if owner is not None and (type(owner).__name__, getattr(value, "__name__", "")) in METHODS:
         return {"$method": [value.__name__, encode(owner, arrays, f"{path}.__self__", none_at)]}
     raise TypeError(f"{path}: a {type(value).__qualname__} cannot go into a checkpoint")
+
+
+def _plain(items: list[Any]) -> bool:
+    """Whether a list is JSON as it is: finite floats, ints, names, flags, None, such lists."""
+    for v in items:
+        kind = type(v)
+        if kind is list:
+            if not _plain(v):
+                return False
+        elif kind is float:
+            if not math.isfinite(v):
+                return False
+        elif kind not in _PLAIN:
+            return False
+    return True
+
+
+_PLAIN = (int, str, bool, type(None))
 
 
 def _encode_float(value: Any) -> Any:
