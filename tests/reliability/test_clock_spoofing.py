@@ -40,7 +40,8 @@ GRANTS = ((77, 190, RELEASE), (255, 190, 3_600_000), (1, 1, RELEASE))
 class GrantSpoofer(threading.Thread):
     """A stranger on its own UDP socket sending the grants of :data:`GRANTS` in turn to every
     vehicle port ``base .. base + count - 1``, one datagram each ``period_s``, until stopped;
-    with ``key``, every frame is signed with it."""
+    with ``key``, every other frame is signed with it (a second ground station that holds the
+    key), the others go unsigned."""
 
     def __init__(self, base: int, count: int, key: bytes | None, period_s: float = 0.005):
         super().__init__(daemon=True, name="grant-spoofer")
@@ -48,12 +49,13 @@ class GrantSpoofer(threading.Thread):
         self.period_s = period_s
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
-        self.senders = {}
+        self.senders = {}  # (system, component, signed) -> its encoder
         for sysid, compid, _ in GRANTS:
-            mav = ml.MAVLink(None, sysid, compid)
+            self.senders[sysid, compid, False] = ml.MAVLink(None, sysid, compid)
             if key is not None:
+                self.senders[sysid, compid, True] = mav = ml.MAVLink(None, sysid, compid)
                 sign_outgoing(mav, key, link_id=7)
-            self.senders[sysid, compid] = mav
+        self.signing = key is not None
         self.sent = 0
         self._halt = threading.Event()
 
@@ -61,7 +63,7 @@ class GrantSpoofer(threading.Thread):
         k = 0
         while not self._halt.wait(self.period_s):
             sysid, compid, boot_ms = GRANTS[k % len(GRANTS)]
-            mav = self.senders[sysid, compid]
+            mav = self.senders[sysid, compid, self.signing and k // len(GRANTS) % 2 == 0]
             frame = ml.MAVLink_system_time_message(0, boot_ms).pack(mav)
             mav.seq = (mav.seq + 1) % 256  # each frame its own, as a sender's are
             try:
@@ -127,7 +129,10 @@ def test_grants_from_a_stranger_neither_release_nor_advance_the_clock(tmp_path: 
     assert result["steps"] == STEPS and result["lost_uavs"] == []
     assert summary is not None
     # every grant that reached the simulator, counted, until the daemon released it at the end
-    assert summary["foreign_grants"] > 500, summary
+    if signed:  # the unsigned half never gets past the signature
+        assert summary["unsigned_refused"] > 300 and summary["foreign_grants"] > 200, summary
+    else:
+        assert summary["foreign_grants"] > 500, summary
     assert summary["safety"]["threat_entries"] == 0
 
 
