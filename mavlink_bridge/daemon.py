@@ -38,6 +38,7 @@ from mavlink_bridge.airframe import (
     threat_margin_km,
 )
 from mavlink_bridge.checkpoint import (
+    DAEMON_STATE,
     Checkpoint,
     CheckpointError,
     CheckpointWriter,
@@ -251,7 +252,9 @@ class MissionDaemon:
         self.checkpoints = (
             None
             if options.checkpoint_path is None
-            else CheckpointWriter(options.checkpoint_path, self.fingerprint, background=True)
+            else CheckpointWriter(
+                options.checkpoint_path, self.fingerprint, background=True, key=options.signing_key
+            )
         )
         self.resume_from: Checkpoint | None = None
         self.clock: LockstepClock | None = None
@@ -479,9 +482,18 @@ class MissionDaemon:
         if self.options.resume and self.resume_from is None:
             if self.options.checkpoint_path is None:
                 raise UserError("--resume needs --checkpoint PATH (the file to resume from)")
-            HapfAcoPlanner, _ = _import_planner()
             self.resume_from = load_for_mission(
-                self.options.checkpoint_path, self.fingerprint, HapfAcoPlanner
+                self.options.checkpoint_path,
+                self.fingerprint,
+                self.checkpoint_template(),
+                self.options.signing_key,
+            )
+        writer = self.checkpoints
+        if writer is not None and writer.key is None and not writer.announced:
+            writer.announced = True  # (once: a caller may call prepare first)
+            self.say(
+                f"note: checkpoint {self.options.checkpoint_path} is not authenticated (no "
+                f"signing key): anyone who can write it can change what --resume does"
             )
         self.refuse_unkeepable_time_scale()
         return self.link if self.link is not None else self.connect()
@@ -690,13 +702,20 @@ class MissionDaemon:
         )
         return PacingChoice(ctx, self.clock)
 
-    def start_state(self, planner_cls: Any, recorder_cls: Any) -> LoopState:
-        """The loop's state at step 0: the planner and recorder from the UAVs' launch points.
-        Real planes stray from cell centres (turn circle ~1 km, 14 s diagonal legs), so the
-        planner plans with the margins a flown plane needs (``flown_planning.planning_scenario``);
-        the recorder keeps judging against the scenario's own limits."""
+    def start_state(
+        self,
+        planner_cls: Any,
+        recorder_cls: Any,
+        starts: tuple[UavStart, ...] | None = None,
+        consumed: list[int] | None = None,
+    ) -> LoopState:
+        """The loop's state at step 0: the planner and recorder from the UAVs' launch points
+        (``starts``, else from telemetry). Real planes stray from cell centres (turn circle
+        ~1 km, 14 s diagonal legs), so the planner plans with the margins a flown plane needs
+        (``flown_planning.planning_scenario``); the recorder keeps judging against the
+        scenario's own limits."""
         scenario = self.scenario
-        starts = self.starts_from_telemetry()
+        starts = self.starts_from_telemetry() if starts is None else starts
         planner = planner_cls(self.planning_scenario(), starts, self.options.seed)
         PursuitLog().attach(planner)  # the planner's half of the per-target account (read-only)
         recorder = recorder_cls(
@@ -705,8 +724,22 @@ class MissionDaemon:
             turn_tolerance_deg=self.options.turn_tolerance_deg,
             home_reach_km=float(self.plane.loiter_reach_km(self.plane.speed_mps)),
         )
-        consumed = [v.latest_look for v in self.vehicles()]
+        if consumed is None:
+            consumed = [v.latest_look for v in self.vehicles()]
         return LoopState.start(self.grid, planner, recorder, starts, consumed)
+
+    def checkpoint_template(self) -> dict[str, Any]:
+        """What a checkpoint of this mission must look like (``checkpoint.load_for_mission``):
+        the loop state this daemon starts from (at the scenario's starts: the layout is the
+        same) and, under ``daemon``, its counters."""
+        planner_cls, recorder_cls = _import_planner()
+        fallback = self.scenario.starts_for_seed(self.options.seed)
+        starts = tuple(
+            fallback[i] if i < len(fallback) else UavStart(0.5, 0.5, 0.0) for i in range(self.n)
+        )
+        state = self.start_state(planner_cls, recorder_cls, starts, [-1] * self.n)
+        counters = {name: getattr(self, name) for name in DAEMON_STATE}
+        return {**state.checkpoint_view(), "daemon": counters}
 
     def first_instant(self) -> DecisionInstant:
         """Step 0 is the start (no wait): its commands are due within the paced deadline."""
