@@ -49,7 +49,7 @@ def planner_factory(variant: str):
             def __init__(self, scenario, starts, seed):
                 super().__init__(scenario, starts, seed)
                 static = StaticTargetProbabilityMaps(scenario.targets, self.cfg, self.n)
-                self.beliefs.tpm = self.hapf_aco.field_maps = static
+                self.beliefs.tpm = static  # no twin: the field reads it too
 
         return AllStatic
     settings = {

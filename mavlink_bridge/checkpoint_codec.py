@@ -34,13 +34,14 @@ import numpy as np
 #: The project's classes a checkpoint may hold (module, class).
 CLASSES = (
     ("planner.hapf_aco", "HapfAcoPlanner"),
+    ("planner.swarm_beliefs", "SwarmBeliefs"),
     ("planner.pso", "PsoPlanner"),
     ("planner.pso", "PsoSettings"),
     ("planner.acoapf", "AcoApfPlanner"),
     ("planner.acoapf", "ApfBeliefs"),
     ("planner.acoapf", "StaticTargetProbabilityMaps"),
     ("planner.target_probability_map", "TargetProbabilityMaps"),
-    ("planner.target_probability_map", "LayerSpec"),
+    ("planner.target_priors", "LayerSpec"),
     ("planner.pheromone", "PheromoneMaps"),
     ("planner.config", "PlannerConfig"),
     ("planner.scenario", "Scenario"),

@@ -148,12 +148,14 @@ GROWING: dict[str, Check] = {
     "recorder.min_separation_curve": list_of(number(0.0, infinite=True)),
     "recorder.mean_min_separation_curve": list_of(number(0.0, infinite=True)),
     "recorder.engagements": list_of(lambda v, path, m: _engagement(v, path, m)),
-    "planner.observers[].__self__.beliefs": list_of(
+    "planner.beliefs.observers[].__self__.beliefs": list_of(
         row(list, integer(0), integer(0), integer(0), number(0.0, 1.0))
     ),
-    "planner.observers[].__self__.tracks": list_of(row(list, *[integer(-1)] * 5)),
-    "planner.observers[].__self__.engage_requests": list_of(row(list, integer(0), integer(0))),
-    "planner.measured_km": optional_positions,
+    "planner.beliefs.observers[].__self__.tracks": list_of(row(list, *[integer(-1)] * 5)),
+    "planner.beliefs.observers[].__self__.engage_requests": list_of(
+        row(list, integer(0), integer(0))
+    ),
+    "planner.beliefs.measured_km": optional_positions,
     "last_target[]": optional(row(tuple, number(), number())),
     "engagements[]": optional(record("EngagementOutcome")),
     "engaged_ids": list_of(integer(), kind=set),
@@ -301,19 +303,19 @@ _NOT_NEGATIVE = _within(_ZERO, _INF)
 _PROBABILITY = _within(_ZERO, lambda m: 1.0)
 #: Range checks, by the path of the part they check (after the layout check).
 RANGES: dict[str, Check] = {
-    "planner.cells": _cells,
-    "planner.home": _cells,
-    "planner.info_cells": _cells,
-    "planner.track": lambda v, p, m: _cells(v, p, m, none_allowed=True),
-    "planner.escape_goal": lambda v, p, m: _cells(v, p, m, none_allowed=True),
-    "planner.engaged_cells": lambda v, p, m: _cells(v, p, m, none_allowed=True),
-    "planner.request_cells": lambda v, p, m: _cells(v, p, m, none_allowed=True),
-    "planner.home_flat": _within(_ZERO, lambda m: m.nx * m.ny - 1),
-    "planner.headings": _HEADINGS,
-    "planner.distance_km": _NOT_NEGATIVE,
-    "planner.radius_km": _NOT_NEGATIVE,
-    "planner.k": _NOT_NEGATIVE,
-    "planner.tpm": _tpm,
+    "planner.beliefs.cells": _cells,
+    "planner.beliefs.home": _cells,
+    "planner.beliefs.info_cells": _cells,
+    "planner.beliefs.track": lambda v, p, m: _cells(v, p, m, none_allowed=True),
+    "planner.beliefs.escape_goal": lambda v, p, m: _cells(v, p, m, none_allowed=True),
+    "planner.beliefs.engaged_cells": lambda v, p, m: _cells(v, p, m, none_allowed=True),
+    "planner.beliefs.request_cells": lambda v, p, m: _cells(v, p, m, none_allowed=True),
+    "planner.beliefs.home_flat": _within(_ZERO, lambda m: m.nx * m.ny - 1),
+    "planner.beliefs.headings": _HEADINGS,
+    "planner.beliefs.distance_km": _NOT_NEGATIVE,
+    "planner.beliefs.radius_km": _NOT_NEGATIVE,
+    "planner.beliefs.k": _NOT_NEGATIVE,
+    "planner.beliefs.tpm": _tpm,
     "planner.pheromone.tau": _within(lambda m: m.tau_min, lambda m: m.tau_max),
     "planner.cfg.p_detect": _PROBABILITY,
     "planner.cfg.p_false": _PROBABILITY,

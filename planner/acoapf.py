@@ -102,15 +102,20 @@ class AcoApfPlanner:
         self.hapf_aco = HapfAcoPlanner(
             scenario.with_config(max_range_km=math.inf, home_by_end=False), starts, seed
         )
-        self.beliefs = beliefs = self.hapf_aco.beliefs
-        self.cfg, self.n, self.grid = beliefs.cfg, beliefs.n, beliefs.grid
+        beliefs = self.hapf_aco.beliefs
         beliefs.tpm = ApfBeliefs(
-            beliefs.tpm, StaticTargetProbabilityMaps(scenario.targets, self.cfg, self.n)
-        )
-        self.hapf_aco.field_maps = beliefs.tpm.static
-        self.pheromone = self.hapf_aco.pheromone
-        self.flown_km = np.zeros(self.n)
-        self.out_of_fuel = np.zeros(self.n, dtype=bool)
+            beliefs.tpm, StaticTargetProbabilityMaps(scenario.targets, beliefs.cfg, beliefs.n)
+        )  # the potential field reads the twin (``HapfAcoPlanner.field_maps``)
+        self.flown_km = np.zeros(beliefs.n)
+        self.out_of_fuel = np.zeros(beliefs.n, dtype=bool)
+
+    # the parts of the HAPF-ACO planner it flies, by their usual names (not copies: a
+    # checkpoint holds each part once)
+    beliefs = property(lambda self: self.hapf_aco.beliefs)
+    pheromone = property(lambda self: self.hapf_aco.pheromone)
+    cfg = property(lambda self: self.hapf_aco.cfg)
+    n = property(lambda self: self.hapf_aco.n)
+    grid = property(lambda self: self.hapf_aco.grid)
 
     def step(
         self,

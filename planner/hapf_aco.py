@@ -67,9 +67,6 @@ class HapfAcoPlanner:
         n = self.n = beliefs.n
         self.rng = np.random.default_rng([seed, 0xAC0])
         self.pheromone = PheromoneMaps(n, cfg)
-        #: the TPM the potential field (eqs 23-24, the far attraction) and the heuristic
-        #: information read: the beliefs' own, forecast included (ACOAPF gives another)
-        self.field_maps: TargetProbabilityMaps = beliefs.tpm
         footprint = beliefs.footprint
         # a candidate is one cell away and the force needs one more cell around the footprint
         self.window_reach = int(np.abs(footprint).max()) + 1
@@ -88,6 +85,14 @@ class HapfAcoPlanner:
             else np.zeros((0, 0))
         )
         self.far_masses = np.zeros((n, self.far_kernel.shape[1]))
+
+    @property
+    def field_maps(self) -> TargetProbabilityMaps:
+        """The TPM the potential field (eqs 23-24, the far attraction) and the heuristic
+        information read: the beliefs' own, forecast included; where the beliefs keep a
+        forecast-free twin (``static``: ACOAPF's ``ApfBeliefs``), that twin."""
+        maps = self.beliefs.tpm
+        return getattr(maps, "static", maps)
 
     def step(
         self,

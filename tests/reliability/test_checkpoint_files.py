@@ -33,6 +33,7 @@ from mavlink_bridge.checkpoint import (
     seal,
     with_derived,
 )
+from mavlink_bridge.checkpoint_layout import RANGES
 from mavlink_bridge.decision_step import LoopState
 from mavlink_bridge.mission_result import LinkEvent, MissionAccount
 from planner.engagement import EngagementOutcome
@@ -127,7 +128,8 @@ def _write(path: Path, doc: dict, arrays: dict[str, np.ndarray], key: bytes | No
 
 
 def _node(doc: dict, path: str) -> dict:
-    """The JSON node of ``planner.tpm.maps`` (attributes of objects, from a loop variable)."""
+    """The JSON node of ``planner.beliefs.tpm.maps`` (attributes of objects, from a loop
+    variable)."""
     root, *names = path.split(".")
     node = doc["loop"][root]
     for name in names:
@@ -210,7 +212,7 @@ def test_an_object_array_in_the_npz_is_refused_and_never_runs(tmp_path, good, te
     def change(doc, arrays):
         evil = np.empty(1, dtype=object)
         evil[0] = _Call(eval, f"__import__('pathlib').Path({str(marker)!r}).write_text('r')")
-        arrays[_array(doc, arrays, "planner.tpm.maps")] = evil
+        arrays[_array(doc, arrays, "planner.beliefs.tpm.maps")] = evil
 
     _refused(_crafted(good, tmp_path, change), "not an array of numbers", template)
     assert not marker.exists()
@@ -230,9 +232,10 @@ def test_an_object_array_in_the_npz_is_refused_and_never_runs(tmp_path, good, te
 )
 def test_forms_a_checkpoint_does_not_hold_are_refused(tmp_path, good, template, node, match):
     def change(doc, arrays):
-        doc["loop"]["planner"]["$object"][1]["tpm"] = node
+        beliefs = doc["loop"]["planner"]["$object"][1]["beliefs"]
+        beliefs["$object"][1]["tpm"] = node
 
-    _refused(_crafted(good, tmp_path, change), f"planner.tpm.*{match}", template)
+    _refused(_crafted(good, tmp_path, change), f"planner.beliefs.tpm.*{match}", template)
 
 
 # ---------------------------------------------------------------------- layout and ranges
@@ -270,24 +273,39 @@ def _put(a: np.ndarray, index: Any, value: Any) -> np.ndarray:
 @pytest.mark.parametrize(
     ("change", "match"),
     [
-        (_set_attr("planner.k", "6"), "planner.k is a str, this daemon's is a int"),
-        (_drop_attr("planner.k"), "planner has attributes k .*lacks"),
+        (_set_attr("planner.beliefs.k", "6"), "planner.beliefs.k is a str, this daemon's is a int"),
+        (_drop_attr("planner.beliefs.k"), "planner.beliefs has attributes k .*lacks"),
         (_set_attr("planner.backdoor", 1), "planner has attributes backdoor"),
-        (_set_attr("planner.tpm.steps", {"$float": "nan"}), "planner.tpm.steps is a float"),
+        (
+            _set_attr("planner.beliefs.tpm.steps", {"$float": "nan"}),
+            "planner.beliefs.tpm.steps is a float",
+        ),
         (_set_attr("planner.cfg.p_detect", 1.5), "planner.cfg.p_detect holds 1.5, outside"),
         (_set_attr("planner.cfg.q0", {"$float": "inf"}), "planner.cfg.q0 is inf"),
-        (_edit_array("planner.tpm.maps", lambda a: a[:, :, :50]), "planner.tpm.maps has shape"),
-        (_edit_array("planner.tpm.maps", lambda a: a.astype(np.float64)), "is a float64 array"),
-        (_edit_array("planner.tpm.maps", lambda a: np.asfortranarray(a)), "C order"),
-        (_edit_array("planner.tpm.maps", lambda a: _put(a, (0, 0, 5, 5), np.nan)), "NaN"),
-        (_edit_array("planner.tpm.maps", lambda a: a * 1e4), "probability of .* above 1"),
-        (_edit_array("planner.tpm.maps", lambda a: -a), "planner.tpm.maps holds -"),
+        (
+            _edit_array("planner.beliefs.tpm.maps", lambda a: a[:, :, :50]),
+            "planner.beliefs.tpm.maps has shape",
+        ),
+        (
+            _edit_array("planner.beliefs.tpm.maps", lambda a: a.astype(np.float64)),
+            "is a float64 array",
+        ),
+        (_edit_array("planner.beliefs.tpm.maps", lambda a: np.asfortranarray(a)), "C order"),
+        (_edit_array("planner.beliefs.tpm.maps", lambda a: _put(a, (0, 0, 5, 5), np.nan)), "NaN"),
+        (_edit_array("planner.beliefs.tpm.maps", lambda a: a * 1e4), "probability of .* above 1"),
+        (_edit_array("planner.beliefs.tpm.maps", lambda a: -a), "planner.beliefs.tpm.maps holds -"),
         (_edit_array("planner.pheromone.tau", lambda a: _put(a, 0, np.inf)), "infinite"),
         (_edit_array("planner.pheromone.tau", lambda a: a * 5), "tau .*outside \\[0.1, 1\\]"),
-        (_edit_array("planner.cells", lambda a: _put(a, 0, (150, 3))), "cell \\(150, 3\\)"),
-        (_edit_array("planner.track", lambda a: _put(a, 1, (4, -3))), "planner.track holds cell"),
-        (_edit_array("planner.headings", lambda a: _put(a, 2, 9)), "planner.headings holds 9"),
-        (_edit_array("planner.home_flat", lambda a: _put(a, 0, -5)), "home_flat holds -5"),
+        (_edit_array("planner.beliefs.cells", lambda a: _put(a, 0, (150, 3))), "cell \\(150, 3\\)"),
+        (
+            _edit_array("planner.beliefs.track", lambda a: _put(a, 1, (4, -3))),
+            "planner.beliefs.track holds cell",
+        ),
+        (
+            _edit_array("planner.beliefs.headings", lambda a: _put(a, 2, 9)),
+            "planner.beliefs.headings holds 9",
+        ),
+        (_edit_array("planner.beliefs.home_flat", lambda a: _put(a, 0, -5)), "home_flat holds -5"),
     ],
 )
 def test_a_part_unlike_this_missions_is_named_in_one_line(tmp_path, good, template, change, match):
@@ -316,8 +334,11 @@ def test_a_loop_variable_out_of_range_is_named(tmp_path, good, template, root, e
     [
         (("loop", "last_target"), [[1.0, 2.0]] * 10, "last_target\\[0\\] is not a tuple"),
         (("loop", "engaged_ids"), {"$set": [1.5]}, "engaged_ids: holds items"),
-        (("loop", "engagements"), [{"$object": ["LinkEvent", {}]}] + [None] * 9,
-         "engagements\\[0\\] is a LinkEvent, not a EngagementOutcome"),
+        (
+            ("loop", "engagements"),
+            [{"$object": ["LinkEvent", {}]}] + [None] * 9,
+            "engagements\\[0\\] is a LinkEvent, not a EngagementOutcome",
+        ),
         (("loop", "consumed"), [0] * 9, "consumed has 9 items, this daemon's has 10"),
         (("daemon", "overrides"), {"$dict": [["area", 0]]}, "daemon.overrides has keys"),
         (("daemon", "events"), [{"$object": ["LinkEvent", {"step": 1}]}], "fields of a LinkEvent"),
@@ -433,11 +454,11 @@ def test_swarmplan_daemon_resume_refuses_crafted_files_in_one_line(tmp_path, goo
     renamed.write_bytes(seal(_eval_pickle(marker), None))
     (tmp_path / "shape").mkdir()
     shape = _crafted(good, tmp_path / "shape",
-                     _edit_array("planner.tpm.maps", lambda a: a[:, :5]))  # fmt: skip
+                     _edit_array("planner.beliefs.tpm.maps", lambda a: a[:, :5]))  # fmt: skip
     for ckpt, match in [
         (old, "written by an older version"),
         (renamed, "not an .npz"),
-        (shape, "planner.tpm.maps has shape"),
+        (shape, "planner.beliefs.tpm.maps has shape"),
     ]:
         _one_line_exit_2(_resume(tmp_path, ckpt, "--resume"), match)
         assert not marker.exists()
@@ -459,3 +480,17 @@ def test_swarmplan_daemon_says_when_its_checkpoint_is_not_authenticated(tmp_path
     key_file.write_text(KEY_HEX)
     keyed = _resume(tmp_path, ckpt, "--signing-key-file", str(key_file))
     assert keyed.returncode == 2 and "not authenticated" not in keyed.stderr, keyed.stderr
+
+
+def test_every_range_check_names_a_part_of_the_daemons_state():
+    """A range check whose path names nothing would be skipped in silence (a part renamed or
+    moved): every path of RANGES reaches a value in a flown mission's state."""
+    state, _, _ = _flown_state()
+    view = state.checkpoint_view()
+    for path in RANGES:
+        root, *names = path.split(".")
+        value = view[root]
+        for name in names:
+            assert hasattr(value, name), f"RANGES names {path}, which the state lacks"
+            value = getattr(value, name)
+        assert value is not None, path
