@@ -25,7 +25,7 @@ accepts a target only if
   later nothing was left that kept them apart: 0.63 km along the tracks in the lockstep demo
   (paper-10uav seed 2), where judging the whole 3-step prediction had kept 1.56 km. In paced
   time the same holds for the paths a lossy link may fly (a lost airspeed, a target resent
-  until late: ``_lossy_link_paths``), every variant of a plane against every variant of the
+  until late: ``lossy_link_paths.py``), every variant of a plane against every variant of the
   others, wherever some candidate can keep it; where none can, the prediction decides.
 
 Paths are predicted from each plane's measured speed, at the airspeed it will be sent for the
@@ -41,7 +41,7 @@ reachable within phi_max that pass the cell-level rules, those with a safe way o
 target the plane already flies to (keep going); the centre of its current cell (circle here).
 The first safe one is sent; when none is, the one that breaks the rules least. UAVs settle in
 index order; one left without a safe candidate re-opens the choice of the settled UAV it comes
-closest to (``_repair``). Replacements of the planner's cell are counted as
+closest to (``flight_settling.py``). Replacements of the planner's cell are counted as
 ``predicted_threat`` / ``predicted_separation`` overrides.
 """
 
@@ -51,10 +51,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mavlink_bridge.flight_prediction import PlaneModel, leg_speed_mps, predict_paths
+from mavlink_bridge.flight_candidates import CandidateRows, candidate_rows, plane_candidates
+from mavlink_bridge.flight_prediction import PlaneModel, predict_paths
+from mavlink_bridge.flight_settling import Settling
+from mavlink_bridge.lossy_link_paths import LossyLinkPaths, lossy_link_paths
 from mavlink_bridge.safety_envelope import SafetyEnvelope
 from planner.constraints import segment_clearance
-from planner.grid import HEADING_STEPS, heading_of_angle, turn_options
+from planner.grid import heading_of_angle
 
 
 @dataclass
@@ -69,26 +72,6 @@ class FlightChoice:
     min_separation_km: float = np.inf  # predicted, between the accepted paths
     #: the same over every lossy-link variant of each (paced time; as predicted in lockstep)
     min_separation_lossy_km: float = np.inf
-
-
-@dataclass
-class LossyLinkPaths:
-    """Candidates' paths as a lossy link may deliver their commands (V variants, M candidates,
-    one sample a second; ``FlightEnvelope._lossy_link_paths``)."""
-
-    from_command: np.ndarray  # (V, M, S + 1, 2) from where the command takes hold
-    #: (V, M, S + 1, 2) from now, the same instants as the prediction; None without a command
-    #: delay (lockstep: separation is judged on the prediction alone)
-    from_now: np.ndarray | None
-
-
-@dataclass
-class _Candidate:
-    cell: np.ndarray
-    heading: int
-    aim: np.ndarray
-    derived: bool = False  # cell/heading come from the predicted path (keep / circle)
-    cruise: bool = False  # flown at cruise speed even with leg timing (a slower, tighter try)
 
 
 @dataclass(frozen=True)
@@ -155,287 +138,208 @@ class FlightEnvelope:
         (inactive ones keep the proposal; nothing is sent). In paced time a plane is
         ``elapsed_s`` past the decision instant, when it was at ``decision_positions_km`` (where
         the measured chord to the next decision instant starts); by default it is there now."""
-        grid = self.cells.grid
         n = len(cells)
         if decision_positions_km is None:
             decision_positions_km = positions_km
         elapsed = np.zeros(n) if elapsed_s is None else np.asarray(elapsed_s, dtype=float)
-        candidates: list[list[_Candidate]] = []
-        for i in range(n):
-            candidates.append(
-                self._candidates(
-                    cells[i],
-                    int(headings[i]),
-                    proposed_cells[i],
-                    int(proposed_headings[i]),
-                    previous_aims_km[i],
-                    float(flown_km[i]),
-                    home_km[i],
-                    lead,
-                )
-                if active[i]
-                else []
-            )
-        rows = [(i, k) for i in range(n) for k in range(len(candidates[i]))]
-        aims = np.array([candidates[i][k].aim for i, k in rows]).reshape(-1, 2)
-        starts = np.array([positions_km[i] for i, _ in rows]).reshape(-1, 2)
-        speeds_now = np.array([speeds_mps[i] for i, _ in rows], dtype=float)
-        commanded = np.full(len(rows), self.model.speed_mps)
-        if self.leg_timing and rows:  # a cell's leg in one step; keep going / circle: cruise
-            leg_from = grid.centre_km(np.array([cells[i] for i, _ in rows]))
-            leg_to = grid.centre_km(np.array([candidates[i][k].cell for i, k in rows]))
-            untimed = np.array(
-                [candidates[i][k].derived or candidates[i][k].cruise for i, k in rows]
-            )
-            timed = leg_speed_mps(self.model, starts, leg_from, leg_to, speeds_now, self.step_s)
-            commanded = np.where(untimed, commanded, timed)
+        table = self._candidate_rows(
+            positions_km, speeds_mps, cells, headings, proposed_cells, proposed_headings,
+            previous_aims_km, flown_km, home_km, active, lead,
+        )  # fmt: skip
         paths = predict_paths(
             self.model,
-            starts,
-            np.array([courses_rad[i] for i, _ in rows]),
-            aims,
+            table.starts_km,
+            np.array([courses_rad[i] for i, _ in table.rows]),
+            table.aims_km,
             self.horizon_s,
-            speed_mps=speeds_now,
-            commanded_mps=commanded,
+            speed_mps=table.speeds_now_mps,
+            commanded_mps=table.commanded_mps,
         )
-        row_uav = np.array([i for i, _ in rows], dtype=np.int64)
-        # judged for threats (when there are any) and, paced, for separation: not predicted
-        # when neither needs it (lockstep among no threats)
-        paced = round(self.command_delay_s) >= 1  # as ``_lossy_link_paths`` counts it
-        threats = len(self.cells.threat_radius_km) > 0
-        lossy = (
-            self._lossy_link_paths(
-                positions_km, courses_rad, speeds_mps, previous_aims_km, row_uav, aims, commanded
+        lossy = self._lossy_paths(table, positions_km, courses_rad, speeds_mps, previous_aims_km)
+        kept_apart = self._kept_apart(paths, lossy)
+        clearance = self._clearance(table, paths, lossy, decision_positions_km, elapsed)
+        settling = Settling(
+            [len(c) for c in table.candidates],
+            table.row_of,
+            clearance,
+            self.threat_margin_km,
+            self.cells.min_separation_km + self.separation_margin_km,
+        )
+        # kept apart as a lossy link may fly them where some candidate can be; where none can
+        # (two planes whose last legs already close within the delay), as predicted
+        nominal = kept_apart[:, :1]
+        tiers = [kept_apart, nominal] if kept_apart.shape[1] > 1 else [nominal]
+        chosen = settling.settle(tiers)
+        choice = self._choice(
+            table, paths, chosen, settling, headings, proposed_cells, proposed_headings
+        )
+        choice.min_separation_km = settling.closest_km(nominal, chosen)
+        choice.min_separation_lossy_km = (
+            settling.closest_km(kept_apart, chosen) if len(tiers) > 1 else choice.min_separation_km
+        )
+        return choice
+
+    # ------------------------------------------------------------------ pieces
+
+    def _candidate_rows(
+        self,
+        positions_km: np.ndarray,
+        speeds_mps: np.ndarray,
+        cells: np.ndarray,
+        headings: np.ndarray,
+        proposed_cells: np.ndarray,
+        proposed_headings: np.ndarray,
+        previous_aims_km: np.ndarray,
+        flown_km: np.ndarray,
+        home_km: np.ndarray,
+        active: np.ndarray,
+        lead: float,
+    ) -> CandidateRows:
+        """Every active UAV's candidates (``flight_candidates.py``; none for an inactive one),
+        as the rows of one batch."""
+        candidates = [
+            plane_candidates(
+                self.cells,
+                self.leg_timing,
+                cells[i],
+                int(headings[i]),
+                proposed_cells[i],
+                int(proposed_headings[i]),
+                previous_aims_km[i],
+                float(flown_km[i]),
+                home_km[i],
+                lead,
             )
-            if rows and (threats or paced)
-            else None
+            if active[i]
+            else []
+            for i in range(len(cells))
+        ]
+        return candidate_rows(
+            candidates, self.cells.grid, self.model, self.step_s, self.leg_timing, cells,
+            positions_km, speeds_mps,
+        )  # fmt: skip
+
+    def _lossy_paths(
+        self,
+        table: CandidateRows,
+        positions_km: np.ndarray,
+        courses_rad: np.ndarray,
+        speeds_mps: np.ndarray,
+        previous_aims_km: np.ndarray,
+    ) -> LossyLinkPaths | None:
+        """The candidates' lossy-link variants (``lossy_link_paths``), judged for threats (when
+        there are any) and, paced, for separation: not predicted when neither needs it
+        (lockstep among no threats)."""
+        paced = round(self.command_delay_s) >= 1  # as ``lossy_link_paths`` counts it
+        threats = len(self.cells.threat_radius_km) > 0
+        if not (table.rows and (threats or paced)):
+            return None
+        return lossy_link_paths(
+            self.model,
+            self.horizon_s,
+            self.command_delay_s,
+            positions_km,
+            courses_rad,
+            speeds_mps,
+            previous_aims_km,
+            table.uav,
+            table.aims_km,
+            table.commanded_mps,
         )
-        # (M, V, T, 2): the instants each candidate is kept apart at, as predicted and, in paced
-        # time, as each lossy-link variant flies it (a late or lost command)
+
+    def _kept_apart(self, paths: np.ndarray, lossy: LossyLinkPaths | None) -> np.ndarray:
+        """(M, V, T, 2): the instants each candidate is kept apart at, as predicted and, in
+        paced time, as each lossy-link variant flies it (a late or lost command)."""
         kept_apart = self._separation_paths(paths)[:, None]
         if lossy is not None and lossy.from_now is not None:
             variants = [self._separation_paths(v) for v in lossy.from_now]
             kept_apart = np.stack([kept_apart[:, 0], *variants], axis=1)
+        return kept_apart
+
+    def _clearance(
+        self,
+        table: CandidateRows,
+        paths: np.ndarray,
+        lossy: LossyLinkPaths | None,
+        decision_positions_km: np.ndarray,
+        elapsed: np.ndarray,
+    ) -> np.ndarray:
+        """(M,) each candidate's smallest distance (km) to a threat edge: along its predicted
+        path and the chords between decision instants, around its loiter circle, along every
+        lossy-link variant (when there are threats), and around the circle a failsafe would
+        fly anywhere on its way (``failsafe_circle``)."""
+        row_uav = table.uav
+        fastest = np.maximum(table.speeds_now_mps, table.commanded_mps)
         clearance = np.minimum(
             self._threat_clearance(
                 paths,
                 np.asarray(decision_positions_km, dtype=float)[row_uav].reshape(-1, 2),
                 elapsed[row_uav],
             ),
-            self._loiter_clearance(aims, np.maximum(speeds_now, commanded)),
+            self._loiter_clearance(table.aims_km, fastest),
         )
-        if lossy is not None and threats:
+        if lossy is not None and len(self.cells.threat_radius_km) > 0:
             flown = lossy.from_command.reshape(-1, *lossy.from_command.shape[2:])
             clearance = np.minimum(
                 clearance,
                 self._polyline_clearance(flown).reshape(len(lossy.from_command), -1).min(axis=0),
             )
         if self.failsafe_circle:
-            clearance = np.minimum(
-                clearance, self._failsafe_circle_clearance(paths, np.maximum(speeds_now, commanded))
-            )
-        row_of = {key: r for r, key in enumerate(rows)}
-        out_aims = grid.centre_km(proposed_cells)
-        out_speeds = np.full(n, self.model.speed_mps)
-        out_cells = np.array(proposed_cells, dtype=np.int64, copy=True)
-        out_headings = np.array(proposed_headings, dtype=np.int64, copy=True)
-        overrides = {"predicted_threat": 0, "predicted_separation": 0}
-        need_sep = self.cells.min_separation_km + self.separation_margin_km
-        threat_ok = clearance >= self.threat_margin_km
-        # kept apart as a lossy link may fly them where some candidate can be; where none can
-        # (two planes whose last legs already close within the delay), as predicted
-        nominal = kept_apart[:, :1]
-        tiers = [kept_apart, nominal] if kept_apart.shape[1] > 1 else [nominal]
-        chosen: dict[int, int] = {}  # UAV -> candidate index, settled in index order
-        for i in range(n):
-            if not candidates[i]:
-                continue
-            for apart in tiers:
-                others = [apart[row_of[(j, k)]] for j, k in chosen.items()]
-                best: tuple[float, int] | None = None
-                for k in range(len(candidates[i])):
-                    r = row_of[(i, k)]
-                    sep = self._separation(apart[r], others)
-                    if threat_ok[r] and sep >= need_sep:
-                        best = (np.inf, k)
-                        break
-                    score = min(clearance[r] - self.threat_margin_km, sep - need_sep)
-                    if best is None or score > best[0]:
-                        best = (score, k)
-                assert best is not None
-                chosen[i] = best[1]
-                if not np.isfinite(best[0]) or self._repair(
-                    i, chosen, candidates, apart, row_of, threat_ok, need_sep
-                ):
-                    break
+            clearance = np.minimum(clearance, self._failsafe_circle_clearance(paths, fastest))
+        return clearance
+
+    def _choice(
+        self,
+        table: CandidateRows,
+        paths: np.ndarray,
+        chosen: dict[int, int],
+        settling: Settling,
+        headings: np.ndarray,
+        proposed_cells: np.ndarray,
+        proposed_headings: np.ndarray,
+    ) -> FlightChoice:
+        """The chosen candidates as guided targets (inactive UAVs: the planner's cell at
+        cruise), counting each replacement of the planner's cell as a ``predicted_threat``
+        override (its cell broke the threat rule) or a ``predicted_separation`` one. Flying the
+        planner's cell slower is not a replacement."""
+        grid = self.cells.grid
+        n = len(proposed_cells)
+        row_of, threat_ok = settling.row_of, settling.threat_ok
+        out = FlightChoice(
+            grid.centre_km(proposed_cells),
+            np.array(proposed_cells, dtype=np.int64, copy=True),
+            np.array(proposed_headings, dtype=np.int64, copy=True),
+            np.full(n, self.model.speed_mps),
+            {"predicted_threat": 0, "predicted_separation": 0},
+        )
         for i, k in chosen.items():
             r = row_of[(i, k)]
-            kept = k == 1 and candidates[i][1].cruise  # the planner's cell, only flown slower
+            cand = table.candidates[i][k]
+            kept = k == 1 and cand.cruise  # the planner's cell, only flown slower
             if k != 0 and not kept:
                 first = row_of[(i, 0)]
-                overrides["predicted_separation" if threat_ok[first] else "predicted_threat"] += 1
-            cand = candidates[i][k]
-            path = paths[r]
-            out_aims[i] = cand.aim
-            out_speeds[i] = commanded[r]
+                broken = "predicted_separation" if threat_ok[first] else "predicted_threat"
+                out.overrides[broken] += 1
+            out.aims_km[i] = cand.aim
+            out.speeds_mps[i] = table.commanded_mps[r]
             if cand.derived:
-                last = len(path) - 1  # samples are one second apart
-                per_step = min(max(1, round(self.step_s)), last)
-                end, before = path[per_step], path[per_step - 1]
-                out_cells[i] = grid.cell_of(end)
-                move = end - before
-                out_headings[i] = (
-                    int(heading_of_angle(np.arctan2(move[1], move[0])))
-                    if np.any(move)
-                    else int(headings[i])
-                )
+                out.next_cells[i], out.next_headings[i] = self._flown_cell(paths[r], headings[i])
             else:
-                out_cells[i], out_headings[i] = cand.cell, cand.heading
-
-        def closest(apart: np.ndarray) -> float:
-            accepted = [apart[row_of[(i, k)]] for i, k in chosen.items()]
-            return min(
-                (self._separation(path, accepted[a + 1 :]) for a, path in enumerate(accepted)),
-                default=np.inf,
-            )
-
-        predicted = closest(nominal)
-        as_flown = closest(kept_apart) if len(tiers) > 1 else predicted
-        return FlightChoice(
-            out_aims, out_cells, out_headings, out_speeds, overrides, predicted, as_flown
-        )
-
-    # ------------------------------------------------------------------ pieces
-
-    def _repair(
-        self,
-        i: int,
-        chosen: dict[int, int],
-        candidates: list[list[_Candidate]],
-        paths: np.ndarray,
-        row_of: dict[tuple[int, int], int],
-        threat_ok: np.ndarray,
-        need_sep: float,
-    ) -> bool:
-        """UAV ``i`` found no safe candidate next to the UAVs settled before it. Re-open the
-        choice of the settled UAV it comes closest to, ``j``: the first pair of candidates (j's
-        in its order, then i's) that are both clear of threats, of every other settled UAV and
-        of each other replaces both choices (True). Without such a pair nothing changes."""
-        mine = paths[row_of[(i, chosen[i])]]
-        rivals = [j for j in chosen if j != i]
-        if not rivals:
-            return False
-        j = min(rivals, key=lambda o: self._separation(mine, [paths[row_of[(o, chosen[o])]]]))
-        rest = [paths[row_of[(o, ko)]] for o, ko in chosen.items() if o not in (i, j)]
-        safe_i = [
-            k
-            for k in range(len(candidates[i]))
-            if threat_ok[row_of[(i, k)]]
-            and self._separation(paths[row_of[(i, k)]], rest) >= need_sep
-        ]
-        for kj in range(len(candidates[j])):
-            rj = row_of[(j, kj)]
-            if not threat_ok[rj] or self._separation(paths[rj], rest) < need_sep:
-                continue
-            for ki in safe_i:
-                if self._separation(paths[row_of[(i, ki)]], [paths[rj]]) >= need_sep:
-                    chosen[i], chosen[j] = ki, kj
-                    return True
-        return False
-
-    def _candidates(
-        self,
-        cell: np.ndarray,
-        heading: int,
-        proposed: np.ndarray,
-        proposed_heading: int,
-        previous_aim: np.ndarray,
-        flown_km: float,
-        home_km: np.ndarray,
-        lead: float,
-    ) -> list[_Candidate]:
-        env = self.cells
-        first = _Candidate(proposed, proposed_heading, env.aim_point_km(cell, proposed, lead))
-        out = [first]
-        if self.leg_timing:  # the planner's cell at cruise speed: a tighter turn and loiter
-            out.append(_Candidate(first.cell, first.heading, first.aim, cruise=True))
-        others = []
-        for turn in turn_options(env.max_turn_deg):
-            h = int((heading + turn) % 8)
-            c = cell + HEADING_STEPS[h]
-            if np.array_equal(c, proposed) or env.static_reason(cell, c, flown_km, home_km):
-                continue
-            others.append((not env.viable(c, h), float(np.hypot(*(c - proposed))), h, c))
-        for *_, h, c in sorted(others, key=lambda t: t[:2]):
-            out.append(_Candidate(c, h, env.aim_point_km(cell, c, lead)))
-        if np.all(np.isfinite(previous_aim)):
-            out.append(_Candidate(cell, heading, np.asarray(previous_aim, float), derived=True))
-        out.append(_Candidate(cell, heading, env.grid.centre_km(cell), derived=True))
+                out.next_cells[i], out.next_headings[i] = cand.cell, cand.heading
         return out
 
-    def _lossy_link_paths(
-        self,
-        positions_km: np.ndarray,
-        courses_rad: np.ndarray,
-        speeds_mps: np.ndarray,
-        previous_aims_km: np.ndarray,
-        row_uav: np.ndarray,
-        aims_km: np.ndarray,
-        commanded_mps: np.ndarray,
-    ) -> LossyLinkPaths:
-        """Each candidate's path flown as a lossy link may deliver its commands: its
-        DO_CHANGE_SPEED lost (the plane keeps the airspeed it flies now: at 150 m/s it turns on a
-        2.29 km radius, not the 1.02 km of 100 m/s), and, in paced time, its DO_REPOSITION
-        arriving ``command_delay_s`` late, after the plane flew on to its previous target
-        meanwhile (each with and without the new airspeed). Predicted every second to the
-        horizon from where the command takes hold (``from_command``: what the threat clearance
-        judges; the stretch flown to the previous target before a late command is not counted,
-        no choice of this step changes it) and from now, that stretch first
-        (``from_now``: the instants separation is judged at)."""
-        held = np.asarray(speeds_mps, dtype=float)[row_uav]
-        starts = np.asarray(positions_km, dtype=float)[row_uav].reshape(-1, 2)
-        courses = np.asarray(courses_rad, dtype=float)[row_uav]
-        variants = [(starts, courses, held, held)]
-        delay_s = round(self.command_delay_s)
-        previous = np.asarray(previous_aims_km, dtype=float)
-        on_way = None
-        if delay_s >= 1:
-            known = np.all(np.isfinite(previous), axis=1)
-            on_way = predict_paths(
-                self.model, positions_km, courses_rad, np.where(known[:, None], previous,
-                np.asarray(positions_km, dtype=float)), delay_s, dt_s=0.5, speed_mps=speeds_mps,
-            )[row_uav]  # fmt: skip
-            late_xy = on_way[:, -1]
-            move = on_way[:, -1] - on_way[:, -2]
-            late_course = np.where(
-                np.hypot(move[:, 0], move[:, 1]) > 0, np.arctan2(move[:, 1], move[:, 0]), courses
-            )
-            late_known = known[row_uav]
-            late_starts = np.where(late_known[:, None], late_xy, starts)
-            late_courses = np.where(late_known, late_course, courses)
-            variants += [
-                (late_starts, late_courses, held, commanded_mps),
-                (late_starts, late_courses, held, held),
-            ]
-        m = len(aims_km)
-        flown = predict_paths(
-            self.model,
-            np.concatenate([v[0] for v in variants]),
-            np.concatenate([v[1] for v in variants]),
-            np.tile(aims_km, (len(variants), 1)),
-            self.horizon_s,
-            dt_s=0.5,  # a clearance check: 2.8 deg of turn a step at 100 m/s is fine enough
-            speed_mps=np.concatenate([v[2] for v in variants]),
-            commanded_mps=np.concatenate([v[3] for v in variants]),
-        ).reshape(len(variants), m, -1, 2)
-        from_now = None
-        if on_way is not None:  # the late ones: the stretch to the previous target first
-            from_now = flown.copy()
-            samples = flown.shape[2]
-            late = np.concatenate([np.broadcast_to(on_way, (2, *on_way.shape)), flown[1:, :, 1:]],
-                                  axis=2)[:, :, :samples]  # fmt: skip
-            from_now[1:, late_known] = late[:, late_known]  # no previous target: from now
-        return LossyLinkPaths(from_command=flown, from_now=from_now)
+    def _flown_cell(self, path: np.ndarray, heading: int) -> tuple[np.ndarray, int]:
+        """The cell and heading a kept-going or circling plane stands for: where its predicted
+        path is one decision step on, heading the way it moves there (``heading`` if it does
+        not move)."""
+        grid = self.cells.grid
+        last = len(path) - 1  # samples are one second apart
+        per_step = min(max(1, round(self.step_s)), last)
+        end, before = path[per_step], path[per_step - 1]
+        move = end - before
+        return grid.cell_of(end), (
+            int(heading_of_angle(np.arctan2(move[1], move[0]))) if np.any(move) else int(heading)
+        )
 
     def _loiter_clearance(self, aims_km: np.ndarray, speeds_mps: np.ndarray) -> np.ndarray:
         """Distance (km) from the loiter circle around each aim, flown at ``speeds_mps`` and
@@ -505,12 +409,3 @@ class FlightEnvelope:
         ahead = np.arange(1, int(np.ceil(self.escape_s)) + 1, dtype=float)
         straight = paths[:, at, None] + ahead[None, :, None] * velocity[:, None]
         return np.concatenate([apart, straight], axis=1)
-
-    def _separation(self, path: np.ndarray, settled: list[np.ndarray]) -> float:
-        """Smallest distance (km) between ``path`` and any settled path at the same instant,
-        over every pair of their variants (each (V, T, 2): ``_separation_paths`` of the
-        prediction and of its lossy-link variants)."""
-        if not settled:
-            return float(np.inf)
-        gap = np.stack(settled)[:, :, None] - path[None, None]  # (S, V, V, T, 2)
-        return float(np.hypot(gap[..., 0], gap[..., 1]).min())

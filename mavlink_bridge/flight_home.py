@@ -20,14 +20,10 @@ from mavlink_bridge.guided_commands import (
     reposition_command,
     set_mode_command,
 )
+from mavlink_bridge.home_circles import HomeCircles, home_circle_speeds
 from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
 from mavlink_bridge.return_home import HomeWatch, rtl_line, rtl_recipients
-from mavlink_bridge.return_separation import (
-    HomeCircles,
-    ReturnPlan,
-    ReturnSeparation,
-    home_circle_speeds,
-)
+from mavlink_bridge.return_separation import ReturnPlan, ReturnSeparation
 from mavlink_bridge.safe_return import HomeRoutes
 from mavlink_bridge.vehicle_loss import link_down
 from mavlink_bridge.vehicle_state import VehicleState

@@ -51,7 +51,7 @@ class PlaneModel:
     max_speed_mps: float = 150.0  # fastest (<= AIRSPEED_MAX): sqrt(2) v and room to catch up
     #: AIRSPEED_MIN: the slowest the autopilot flies in its automatic modes (ArduPilot sets it
     #: 20 % above the stall); a plane whose home is near another's circles it this slowly
-    #: (``return_separation.home_circle_speeds``)
+    #: (``home_circles.home_circle_speeds``)
     slowest_mps: float = 100.0
     accel_mps2: float = 5.0  # how fast the airspeed follows a DO_CHANGE_SPEED
 

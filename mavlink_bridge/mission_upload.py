@@ -84,67 +84,94 @@ def upload_fence(
     autopilot without MISSION_TYPE_FENCE), not after a fixed time: a link that loses 30 % each
     way gets its fence through (before, every stall restarted the whole exchange and the upload
     gave up after 20 s in 2 of 3 runs)."""
-    fence = mavlink.MAV_MISSION_TYPE_FENCE
-    n = len(circles)
-    done: dict[int, int | None] = {v.system_id: None for v in vehicles}  # sysid -> ack result
-    last_asked: dict[int, int | None] = {}  # the item each vehicle asked for last (this upload)
-    last_sent: dict[int, float] = {}
-    heard: dict[int, float] = {}  # the vehicle's last message of this upload
-    restarts = dict.fromkeys(done, 0)
-    resends = dict.fromkeys(done, 0)  # the last asked item sent again with no answer since
-
-    def send_count(vehicle: VehicleState) -> None:
-        vehicle.mission_requests.clear()
-        vehicle.mission_ack = None
-        vehicle.link.mav.mission_count_send(vehicle.system_id, AUTOPILOT_COMPONENT_ID, n, fence)
-        last_asked[vehicle.system_id] = None
-        last_sent[vehicle.system_id] = time.monotonic()
-
-    for vehicle in vehicles:
-        send_count(vehicle)
-        heard[vehicle.system_id] = time.monotonic()
-    while any(result is None for result in done.values()):
+    transfers = [_FenceTransfer(vehicle, circles) for vehicle in vehicles]
+    for transfer in transfers:
+        transfer.send_count()
+        transfer.heard = time.monotonic()
+    while any(transfer.result is None for transfer in transfers):
         link.pump(0.01)
         now = time.monotonic()
-        for vehicle in vehicles:
-            sysid = vehicle.system_id
-            if done[sysid] is not None:
-                continue
-            while vehicle.mission_requests:
-                seq, mission_type = vehicle.mission_requests.popleft()
-                if mission_type == fence and 0 <= seq < n:
-                    send_fence_item(vehicle, seq, circles[seq])
-                    last_asked[sysid], last_sent[sysid], heard[sysid] = seq, now, now
-                    resends[sysid] = 0
-            if vehicle.mission_ack is not None and vehicle.mission_ack[1] == fence:
-                done[sysid] = vehicle.mission_ack[0]
-                continue
-            if now - heard[sysid] > stall_timeout_s:
-                raise MissionUploadError(
-                    f"fence upload to vehicle {sysid} stalled: nothing of it heard for "
-                    f"{stall_timeout_s:g} s; check the link (and that the autopilot supports "
-                    f"MISSION_TYPE_FENCE)"
-                )
-            if now - last_sent[sysid] > retry_interval_s:
-                asked = last_asked[sysid]
-                if asked is None or asked == n - 1 or resends[sysid] >= ITEM_RESENDS:
-                    # not started, its MISSION_ACK lost, or its transfer over: from the start
-                    restarts[sysid] += asked is not None
-                    resends[sysid] = 0
-                    if restarts[sysid] > MAX_RESTARTS:
-                        raise MissionUploadError(
-                            f"fence upload to vehicle {sysid}: {MAX_RESTARTS} uploads without a "
-                            f"MISSION_ACK; check the link"
-                        )
-                    send_count(vehicle)
-                else:
-                    send_fence_item(vehicle, asked, circles[asked])  # it may not have come
-                    last_sent[sysid] = now
-                    resends[sysid] += 1
-    for sysid, result in done.items():
-        if result != mavlink.MAV_MISSION_ACCEPTED:
+        for transfer in transfers:
+            if transfer.result is None:
+                transfer.step(now, stall_timeout_s, retry_interval_s)
+    for transfer in transfers:
+        if transfer.result != mavlink.MAV_MISSION_ACCEPTED:
             raise MissionUploadError(
-                f"vehicle {sysid} refused the fence upload: "
-                f"{enum_name('MAV_MISSION_RESULT', result or 0)}"
+                f"vehicle {transfer.vehicle.system_id} refused the fence upload: "
+                f"{enum_name('MAV_MISSION_RESULT', transfer.result or 0)}"
                 f" (an autopilot still initialising answers NO_SPACE; wait for STANDBY)"
             )
+
+
+@dataclass
+class _FenceTransfer:
+    """One vehicle's side of a fence upload (``upload_fence``): what it asked for last, when
+    the daemon last sent and last heard of it, and how often it restarted and resent."""
+
+    vehicle: VehicleState
+    circles: list[FenceCircle]
+    result: int | None = None  # the MAV_MISSION_RESULT of its MISSION_ACK, once it came
+    last_asked: int | None = None  # the item the vehicle asked for last (this upload)
+    last_sent: float = 0.0
+    heard: float = 0.0  # the vehicle's last message of this upload
+    restarts: int = 0
+    resends: int = 0  # the last asked item sent again with no answer since
+
+    def send_count(self) -> None:
+        """Start (again) from MISSION_COUNT, forgetting what the vehicle asked before."""
+        vehicle = self.vehicle
+        vehicle.mission_requests.clear()
+        vehicle.mission_ack = None
+        vehicle.link.mav.mission_count_send(
+            vehicle.system_id, AUTOPILOT_COMPONENT_ID, len(self.circles),
+            mavlink.MAV_MISSION_TYPE_FENCE,
+        )  # fmt: skip
+        self.last_asked = None
+        self.last_sent = time.monotonic()
+
+    def step(self, now: float, stall_timeout_s: float, retry_interval_s: float) -> None:
+        """Answer what the vehicle asked for, take its MISSION_ACK, give up when it has said
+        nothing for ``stall_timeout_s``, and resend after ``retry_interval_s`` unanswered."""
+        self.answer_requests(now)
+        ack = self.vehicle.mission_ack
+        if ack is not None and ack[1] == mavlink.MAV_MISSION_TYPE_FENCE:
+            self.result = ack[0]
+            return
+        if now - self.heard > stall_timeout_s:
+            raise MissionUploadError(
+                f"fence upload to vehicle {self.vehicle.system_id} stalled: nothing of it heard "
+                f"for {stall_timeout_s:g} s; check the link (and that the autopilot supports "
+                f"MISSION_TYPE_FENCE)"
+            )
+        if now - self.last_sent > retry_interval_s:
+            self.resend(now)
+
+    def answer_requests(self, now: float) -> None:
+        """Send each fence item the vehicle asked for (of this upload, within range)."""
+        n = len(self.circles)
+        while self.vehicle.mission_requests:
+            seq, mission_type = self.vehicle.mission_requests.popleft()
+            if mission_type == mavlink.MAV_MISSION_TYPE_FENCE and 0 <= seq < n:
+                send_fence_item(self.vehicle, seq, self.circles[seq])
+                self.last_asked, self.last_sent, self.heard = seq, now, now
+                self.resends = 0
+
+    def resend(self, now: float) -> None:
+        """Send again what the vehicle went without: the item it asked for last, up to
+        ``ITEM_RESENDS`` times; the MISSION_COUNT when it has not started, its MISSION_ACK was
+        lost or its transfer is over (counted as a restart, ``MAX_RESTARTS`` at most)."""
+        asked = self.last_asked
+        if asked is None or asked == len(self.circles) - 1 or self.resends >= ITEM_RESENDS:
+            # not started, its MISSION_ACK lost, or its transfer over: from the start
+            self.restarts += asked is not None
+            self.resends = 0
+            if self.restarts > MAX_RESTARTS:
+                raise MissionUploadError(
+                    f"fence upload to vehicle {self.vehicle.system_id}: {MAX_RESTARTS} uploads "
+                    f"without a MISSION_ACK; check the link"
+                )
+            self.send_count()
+        else:
+            send_fence_item(self.vehicle, asked, self.circles[asked])  # it may not have come
+            self.last_sent = now
+            self.resends += 1

@@ -8,7 +8,8 @@ from dataclasses import replace
 import numpy as np
 
 from mavlink_bridge.flight_prediction import PlaneModel
-from mavlink_bridge.return_separation import ReturnSeparation, home_circle_speeds
+from mavlink_bridge.home_circles import home_circle_speeds
+from mavlink_bridge.return_separation import ReturnSeparation
 from mavlink_bridge.safe_return import HomeRoutes
 from planner.grid import Grid
 
