@@ -11,7 +11,7 @@ from typing import Any
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
 from mavlink_bridge.mission_result import lost_vehicle_lines
-from mavlink_bridge.signing import KEY_ENV, load_signing_key
+from mavlink_bridge.signing import KEY_ENV, load_signing_key, unsigned_warning
 from mission_view.view_session import add_view_arguments
 from planner.errors import UserError
 from planner.metrics import format_summary
@@ -96,7 +96,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         metavar="PATH",
         help="MAVLink 2 signing key (64 hex characters or 32 bytes): sign everything sent, "
-        f"refuse unsigned frames; default ${KEY_ENV} if set (never a command-line value)",
+        f"refuse unsigned frames; default ${KEY_ENV} if set (never a command-line value), "
+        "else unsigned (said at start); `swarmplan sim --signing-key-file PATH` makes one",
     )
     parser.add_argument(
         "--lockstep",
@@ -148,6 +149,13 @@ def validate(args: argparse.Namespace) -> None:
     """What the argument types cannot check alone (each value is checked by its type)."""
     if args.resume and args.checkpoint is None:
         raise UserError("--resume needs --checkpoint PATH (the file to resume from)")
+
+
+def warn_if_unsigned(daemon: MissionDaemon) -> None:
+    """One line on stderr (also with --json) when the mission flies without MAVLink signing."""
+    if daemon.options.signing_key is None:
+        fix = "give --signing-key-file PATH with the vehicles' key"
+        print(f"swarmplan daemon: warning: {unsigned_warning(fix)}", file=sys.stderr, flush=True)
 
 
 def print_step(status: StepStatus) -> None:
