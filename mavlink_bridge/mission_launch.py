@@ -142,6 +142,8 @@ def take_off(daemon: MissionDaemon) -> None:
     vehicles = [v for v in daemon.vehicles() if v.system_id not in daemon.flight_home.sent_home]
     climb = climb_m(daemon)
     attempts = options.launch_command_attempts
+    if not vehicles:
+        return
     # vehicles already flying (a restarted daemon, airborne SITL) go straight to GUIDED
     link.pump_until(lambda: all(v.has_position for v in vehicles), 2.0)
     on_ground = [v for v in vehicles if not flying(v, climb)]
