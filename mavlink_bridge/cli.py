@@ -66,6 +66,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "vehicle has no clock of its own; default 3)",
     )
     parser.add_argument(
+        "--rtl-watch",
+        type=non_negative_float,
+        metavar="S",
+        help="after the last step, watch the flight home for at most S of the vehicles' "
+        "seconds (0: not at all; default: the farthest plane's flight home plus two minutes)",
+    )
+    parser.add_argument(
         "--threat-margin-km",
         type=non_negative_float,
         default=None,
@@ -187,6 +194,7 @@ def daemon_options(args: argparse.Namespace, out: Path) -> DaemonOptions:
         lockstep=args.lockstep,
         leg_timing=args.leg_timing,
         airspeed_range_mps=args.airspeed_range,
+        rtl_watch_s=args.rtl_watch,
         checkpoint_path=args.checkpoint,
         resume=args.resume,
         signing_key=load_signing_key(args.signing_key_file),
