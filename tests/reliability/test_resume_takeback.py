@@ -93,7 +93,7 @@ def _scenario(tmp_path: Path, steps: int, starts: list[tuple], range_km: float |
 
 def _checkpoint_step(path: Path) -> int:
     try:
-        return read_checkpoint(path).step
+        return read_checkpoint(path, bytes.fromhex(KEY_HEX)).step  # signed with the mission key
     except CheckpointError:
         return -1
 
@@ -215,8 +215,7 @@ class _Mission:
         started = time.monotonic()
         second = start_swarmplan([*self.args, "--resume"], self.log)
         self.procs.append(second)
-        # (its progress line; not its checkpoint: one holding a lost plane's link event is
-        # not read back by this version of checkpoint.py)
+        # (its progress line: the first decision after the restart)
         _wait(lambda: "\rstep " in self.resumed_log(), 40, [second])
         return second, time.monotonic() - started
 
