@@ -50,6 +50,7 @@ from mavlink_bridge.decision_step import DecisionStep, LoopState, course_heading
 from mavlink_bridge.flight_envelope import FlightEnvelope
 from mavlink_bridge.flight_home import (
     FlightHome,
+    guide_sent_home,
     guide_stray_returns,
     reposition_to,
     return_separation,
@@ -82,6 +83,7 @@ from mavlink_bridge.mission_result import (
 )
 from mavlink_bridge.pacing import STEP_DEADLINE_SHARE, DecisionInstant, PacingChoice, PacingContext
 from mavlink_bridge.protocol import mavlink
+from mavlink_bridge.resume_takeback import CONTINUE, LAUNCH, TakeBack, account_outage
 from mavlink_bridge.safety_envelope import SafetyEnvelope
 from mavlink_bridge.swarm_link import SwarmLink
 from mavlink_bridge.telemetry_plausibility import PlausibilityFilter, PlausibilityLimits
@@ -257,6 +259,8 @@ class MissionDaemon:
             )
         )
         self.resume_from: Checkpoint | None = None
+        #: a resumed daemon's decision for each plane (resume_takeback.py)
+        self.take_back: list[TakeBack] = []
         self.clock: LockstepClock | None = None
         self.pacing: PacingChoice | None = None
         self.stages: DecisionStep | None = None
@@ -286,6 +290,7 @@ class MissionDaemon:
             project=lambda lat, lon: geodetic_to_local_km(lat, lon, scenario.origin),
         )
         self.state: LoopState | None = None  # the decision loop's, once it runs
+        self.ended_early: str | None = None  # why the mission ended before its last step
         self.report: MissionReport | None = None  # set on every way out of fly()
         self.started = time.monotonic()
         #: one vehicle's failure stays one vehicle's: lost and rejoined (vehicle_loss.py)
@@ -516,7 +521,7 @@ class MissionDaemon:
         except BaseException as exc:
             self.finish(ended_by(exc))
             raise
-        return self.finish("completed")
+        return self.finish(self.ended_early or "completed")
 
     def refuse_unkeepable_time_scale(self) -> None:
         """Paced time: calibrate a step's computation on this machine and refuse, in one line,
@@ -548,10 +553,11 @@ class MissionDaemon:
         skipped: dict[int, str] = {}
         # an interrupted daemon does not stay to watch the flight home, so holds no plane
         flight = self.flight_home
-        flight.separate = ended == "completed"
+        completed = ended.startswith("completed")
+        flight.separate = completed
         try:
             sent_to, skipped = return_to_launch(self)
-            if ended == "completed":  # (an interrupted daemon does not stay to watch)
+            if completed:  # (an interrupted daemon does not stay to watch)
                 watch_rtl(self)
         except Exception as exc:  # noqa: BLE001 - the cleanup goes on whatever happens
             self.say(f"warning: RTL could not be sent to every vehicle ({exc})")
@@ -589,6 +595,8 @@ class MissionDaemon:
         )
         extra["ended"] = ended
         extra["ended_in_phase"] = phase
+        if self.take_back:
+            extra["resume_decisions"] = [t.row() for t in self.take_back]
         if self.hold_policy is not None:
             extra["held_steps"] = self.hold_policy.held_steps
             extra["max_lateness_s"] = round(self.hold_policy.max_lateness_s, 2)
@@ -761,6 +769,11 @@ class MissionDaemon:
                 resume_loop_state(self, self.resume_from, state.planner)
             )
             first_step = self.resume_from.step + 1
+            account_outage(state, self.take_back)
+            if self.take_back and not any(t.decision in (CONTINUE, LAUNCH) for t in self.take_back):
+                self.ended_early = "completed at the resume: no plane can continue (all sent home)"
+                self.say(f"mission {self.ended_early}")
+                return
         for step in range(first_step, self.steps + 1):  # the start, then one record per step
             instant = pacing.wait(step, state.consumed) if step > 0 else self.first_instant()
             inputs = stages.gather(state, step, instant.looks)
@@ -778,8 +791,10 @@ class MissionDaemon:
                 self.audit.set_phase("mission")
                 sent = self.send(batch.commands, deadline=instant.deadline)
                 stages.account(state, step, batch, sent, flight)
-            # planes their fence (or a failsafe) switched to RTL through a zone: guided out
-            self.send(guide_stray_returns(self), deadline=instant.deadline)
+            # planes their fence (or a failsafe) switched to RTL through a zone: guided out;
+            # planes a resumed daemon sent home: on their safe way home
+            homeward = guide_stray_returns(self) + guide_sent_home(self)
+            self.send(homeward, deadline=instant.deadline)
             self.look_times.note(step, state.positions_ms, inputs.active)
             self.tell_listeners(state, inputs, plan, flight, late)
             if self.checkpoints is not None:  # atomically, after every step
