@@ -31,7 +31,6 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import ndimage
 
-from planner.engagement import EngagementOutcome
 from planner.grid import HEADING_STEPS, corridor_offsets
 from planner.pheromone import PheromoneMaps
 from planner.planner_interface import MODES, StepDecision
@@ -44,8 +43,7 @@ from planner.potential_field import (
     threat_repulsion,
 )
 from planner.scenario import Scenario, UavStart
-from planner.sensor_model import SensorReport
-from planner.swarm_beliefs import Hearing, SwarmBeliefs
+from planner.swarm_beliefs import BeliefPlanner, Hearing, SwarmBeliefs
 from planner.target_probability_map import TargetProbabilityMaps
 from planner.transition import (
     deterministic_scores,
@@ -55,7 +53,7 @@ from planner.transition import (
 )
 
 
-class HapfAcoPlanner:
+class HapfAcoPlanner(BeliefPlanner):
     """The swarm's HAPF-ACO planners, batched (``planner.planner_interface.SwarmPlanner``)."""
 
     algorithm = "hapf-aco"
@@ -94,21 +92,10 @@ class HapfAcoPlanner:
         maps = self.beliefs.tpm
         return getattr(maps, "static", maps)
 
-    def step(
-        self,
-        cells: np.ndarray,
-        headings: np.ndarray,
-        reports: Sequence[SensorReport | None],
-        engagements: Sequence[EngagementOutcome | None] | None = None,
-        active: np.ndarray | None = None,
-        positions_km: np.ndarray | None = None,
-    ) -> StepDecision:
-        """One decision step (``planner.planner_interface``, the arguments)."""
-        seen = self.beliefs.observe(cells, headings, reports, engagements, active, positions_km)
+    def decide(self, seen: Hearing) -> StepDecision:
+        """Steps 4-6: pheromone, then the potential field and the transition."""
         self._update_pheromone(seen.flying)
-        decision = self._decide(seen)
-        self.beliefs.finish_step(decision)
-        return decision
+        return self._decide(seen)
 
     def _update_pheromone(self, flying: np.ndarray) -> None:
         cfg, b = self.cfg, self.beliefs

@@ -39,13 +39,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planner.engagement import EngagementOutcome
 from planner.feasibility import MoveOptions, threat_groups
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, turn_options
 from planner.planner_interface import MODES, StepDecision
 from planner.scenario import Scenario, UavStart
-from planner.sensor_model import SensorReport
-from planner.swarm_beliefs import Hearing, SwarmBeliefs
+from planner.swarm_beliefs import BeliefPlanner, Hearing, SwarmBeliefs
 
 
 def _clamp(a: np.ndarray, low: float, high: float) -> np.ndarray:
@@ -72,7 +70,7 @@ class PsoSettings:
     infeasible_penalty: float = 1000.0  # per move of a path that breaks a constraint
 
 
-class PsoPlanner:
+class PsoPlanner(BeliefPlanner):
     """Receding-horizon PSO over short paths, one particle swarm per UAV, batched over UAVs
     (``planner.planner_interface.SwarmPlanner``)."""
 
@@ -123,25 +121,12 @@ class PsoPlanner:
         self.block_weights = np.exp(-distance_km / s.terminal_length_km)
         self.block_step = np.full(self.n, -(10**9))
 
-    def step(
-        self,
-        cells: np.ndarray,
-        headings: np.ndarray,
-        reports: Sequence[SensorReport | None],
-        engagements: Sequence[EngagementOutcome | None] | None = None,
-        active: np.ndarray | None = None,
-        positions_km: np.ndarray | None = None,
-    ) -> StepDecision:
-        """One decision step (``planner.planner_interface``, the arguments). PSO keeps no
-        pheromone map (eqs 28-34 are HAPF-ACO's)."""
-        seen = self.beliefs.observe(cells, headings, reports, engagements, active, positions_km)
-        decision = self._decide(seen)
-        self.beliefs.finish_step(decision)
-        return decision
 
     # ------------------------------------------------------------------ decision
 
-    def _decide(self, seen: Hearing) -> StepDecision:
+    def decide(self, seen: Hearing) -> StepDecision:
+        """The receding-horizon PSO of every searching UAV, then HAPF-ACO's return, claim and
+        engagement rules. PSO keeps no pheromone map (eqs 28-34 are HAPF-ACO's)."""
         n, b = self.n, self.beliefs
         flying, hears = seen.flying, seen.hears
         opts = b.move_options()

@@ -133,14 +133,10 @@ class SwarmBeliefs:
     # ------------------------------------------------------------------ the step's beliefs
 
     def observe(
-        self,
-        cells: np.ndarray,
-        headings: np.ndarray,
-        reports: Sequence[SensorReport | None],
-        engagements: Sequence[EngagementOutcome | None] | None = None,
-        active: np.ndarray | None = None,
-        positions_km: np.ndarray | None = None,
-    ) -> Hearing:
+        self, cells: np.ndarray, headings: np.ndarray, reports: Sequence[SensorReport | None],
+        engagements: Sequence[EngagementOutcome | None] | None,
+        active: np.ndarray | None, positions_km: np.ndarray | None,
+    ) -> Hearing:  # fmt: skip
         """Take in what the UAVs report at step k (the arguments of
         ``planner.planner_interface.SwarmPlanner.step``): topology, engagement outcomes, looks
         and the engagement choice."""
@@ -475,6 +471,34 @@ class SwarmBeliefs:
             engage[who] = self.engage_probability(who, cells, within) >= self.cfg.confirm_threshold
         self.request_cells[engage] = self.cells[engage]
         return engage
+
+
+class BeliefPlanner:
+    """A planner on ``SwarmBeliefs`` (``planner.planner_interface.SwarmPlanner``): each step
+    observes (``SwarmBeliefs.observe``), decides (``decide``, the planner's own rule) and
+    finishes (``SwarmBeliefs.finish_step``). HAPF-ACO and PSO are two."""
+
+    algorithm = ""
+    beliefs: SwarmBeliefs
+
+    def step(
+        self,
+        cells: np.ndarray,
+        headings: np.ndarray,
+        reports: Sequence[SensorReport | None],
+        engagements: Sequence[EngagementOutcome | None] | None = None,
+        active: np.ndarray | None = None,
+        positions_km: np.ndarray | None = None,
+    ) -> StepDecision:
+        """One decision step (``planner.planner_interface``, the arguments)."""
+        seen = self.beliefs.observe(cells, headings, reports, engagements, active, positions_km)
+        decision = self.decide(seen)
+        self.beliefs.finish_step(decision)
+        return decision
+
+    def decide(self, seen: Hearing) -> StepDecision:
+        """The planner's rule: every UAV's move, from the step's beliefs."""
+        raise NotImplementedError
 
 
 def beliefs_of(planner: object) -> SwarmBeliefs | None:
