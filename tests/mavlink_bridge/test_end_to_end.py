@@ -50,8 +50,13 @@ def test_lockstep_demo_gives_the_same_result_for_a_seed(tmp_path):
     assert [u["track_km"] for u in a["uavs"]] == [u["track_km"] for u in b["uavs"]]
     for key in ("coverage", "coverage_curve", "engaged_count", "engaged_value", "engagements"):
         assert a[key] == b[key], key
-    # the simulator's truth includes the flight after the lockstep is released at the end
+    # the simulator's truth includes the flight after the lockstep is released at the end;
+    # frames (signed ones among them: the demo signs by default) are counted, not planned
     volatile = {"wall_time_s", "endpoints", "frames_received", "tlog", "simulator_truth"}
+    volatile.add("signing")
+    for run in (a, b):
+        refused = {k: v for k, v in run["signing"].items() if k != "signed_accepted"}
+        assert run["signing"]["signed_accepted"] > 0 and not any(refused.values()), refused
     assert {k: v for k, v in a.items() if k not in volatile} == {
         k: v for k, v in b.items() if k not in volatile
     }
