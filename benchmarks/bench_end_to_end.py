@@ -2,7 +2,7 @@
 (`swarmplan demo`: simulator subprocess + daemon, lockstep by default) next to the offline runs
 of the same seeds: the paper's (`swarmplan run`: grid UAVs that fly cell centres) and the one
 planned as the daemon plans it (`swarmplan run --as-flown`: the margins a flown plane needs,
-mavlink_bridge/flown_planning.py).
+mavlink_bridge/mission/flown_planning.py).
 
     python benchmarks/bench_end_to_end.py [--seeds 1 .. 10] [--speedup X] [--steps 250]
                                           [--no-leg-timing]

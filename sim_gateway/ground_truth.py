@@ -14,7 +14,7 @@ Each is also counted per **flight mode group** of the vehicle(s) involved (``gui
 ``failsafe`` while a GCS failsafe is on, out of RTL; ``rtl``, in which a failsafe changes
 nothing, as after a mission whose ground station has gone; ``other``: take-off, loiter, circle,
 auto),
-so a ground station's continuous account (``mavlink_bridge.track_audit``) can be checked
+so a ground station's continuous account (``mavlink_bridge.safety.track_audit``) can be checked
 against the truth. Printed in the simulator's JSON summary under ``safety``.
 """
 

@@ -58,7 +58,8 @@ def default_specs(sysid: int, airspeed_mps: float, altitude_m: float) -> tuple[P
         p("RTL_ALTITUDE", REAL32, altitude_m, -1, 32000, True, "sim: RTL altitude, m (-1: keep)"),
         p("TKOFF_ALT", REAL32, altitude_m, 0, 32000, True, "sim: take-off altitude, m"),
         # GCS failsafe as ArduPlane (sim_gateway/failsafe.py), ArduPlane's defaults: off until a
-        # ground station turns it on (the planner daemon does, mavlink_bridge/gcs_failsafe.py)
+        # ground station turns it on (the planner daemon does,
+        # mavlink_bridge/vehicles/gcs_failsafe.py)
         p("FS_GCS_ENABL", INT8, 0, 0, 3, True, "0 off, 1 heartbeat, 2 hb+RSSI, 3 hb in AUTO"),
         p("FS_SHORT_TIMEOUT", REAL32, 1.5, 1, 100, True, "s; RC failsafe only (no RC here)"),
         p("FS_LONG_TIMEOUT", REAL32, 5.0, 1, 300, True, "s (wall clock) without GCS to act"),

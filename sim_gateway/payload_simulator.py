@@ -48,14 +48,15 @@ from dataclasses import dataclass, field  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from mavlink_bridge.protocol import CAMERA_COMPONENT_ID, mavlink  # noqa: E402
-from mavlink_bridge.vehicle_link import (  # noqa: E402
+from mavlink_wire.links import (  # noqa: E402
     Address,
     Endpoint,
     EndpointError,
     TcpEndpoint,
     parse_endpoint,
 )
+from mavlink_wire.looks import look_messages  # noqa: E402
+from mavlink_wire.protocol import CAMERA_COMPONENT_ID, mavlink  # noqa: E402
 from planner.geodesy import geodetic_to_local_km  # noqa: E402
 from planner.scenario import Scenario  # noqa: E402
 from planner.sensor_model import SensorReport  # noqa: E402
@@ -63,7 +64,6 @@ from sim_gateway.camera import (  # noqa: E402
     EngagementLog,
     engagement_sequence,
     engagement_text,
-    look_messages,
 )
 from sim_gateway.target_account import TargetAccount  # noqa: E402
 from sim_gateway.world import World  # noqa: E402

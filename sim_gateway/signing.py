@@ -17,7 +17,7 @@ new key for the mission, mode 0600, for the daemon to read), every vehicle:
 
 The signature is checked before the stream timestamp is recorded (pymavlink's own check records
 it first, so one forged frame with a far-future timestamp would lock out the real sender).
-The key handling and the checker are the ones of ``mavlink_bridge/signing.py`` (the MAVLink
+The key handling and the checker are the ones of ``mavlink_wire/signing.py`` (the MAVLink
 signing spec, one implementation for both sides); this module only wires them into the
 simulated vehicles. (``mavlink_bridge`` never imports ``sim_gateway``; the other way is fine.)
 """
@@ -26,7 +26,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from mavlink_bridge.signing import (
+from mavlink_wire.signing import (
     KEY_ENV,
     SignatureCheck,
     SigningKeyError,

@@ -33,13 +33,13 @@ from dataclasses import dataclass
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from mavlink_wire.looks import look_messages
 from planner.engagement import EngagementOutcome
 from planner.errors import UserError
 from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
 from planner.grid import Grid
 from planner.scenario import Origin, Scenario
 from sim_gateway import flight_modes as modes
-from sim_gateway.camera import look_messages
 from sim_gateway.fixed_wing import FleetKinematics
 from sim_gateway.geofence import FleetFence
 from sim_gateway.ground_truth import GROUPS, GroundTruthSafety

@@ -1,11 +1,11 @@
 """``swarmplan run --as-flown``: an offline run planned as the daemon plans the simulator's planes
-(mavlink_bridge/flown_planning.py)."""
+(mavlink_bridge/mission/flown_planning.py)."""
 
 from __future__ import annotations
 
-from mavlink_bridge.airframe import airframe_from_params
-from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
-from mavlink_bridge.vehicle_state import VehicleState
+from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon
+from mavlink_bridge.vehicles.airframe import airframe_from_params
+from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from planner.scenario import Scenario
 from sim_gateway.parameters import default_specs
 

@@ -22,13 +22,13 @@ from swarmplan.arguments import OneLineParser  # noqa: E402
 SUBCOMMANDS = (
     ("run", "swarmplan.run_command"),
     ("demo", "swarmplan.demo"),
-    ("sim", "sim_gateway.cli"),
-    ("payload", "sim_gateway.payload_command"),
+    ("sim", "swarmplan.sim_command"),
+    ("payload", "swarmplan.payload_command"),
     ("daemon", "swarmplan.daemon_command"),
-    ("export", "mavlink_bridge.export_command"),
+    ("export", "swarmplan.export_command"),
     ("account", "swarmplan.account_command"),
     ("experiment", "swarmplan.experiment_command"),
-    ("view", "mission_view.view_command"),
+    ("view", "swarmplan.view_command"),
 )
 
 

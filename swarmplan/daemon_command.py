@@ -14,7 +14,11 @@ import json
 import sys
 from pathlib import Path
 
-from mavlink_bridge.cli import (
+from mavlink_bridge.mission.daemon import MissionDaemon, MissionInterrupted
+from planner.errors import UserError
+from planner.scenario import load_scenario
+from swarmplan.arguments import writable_folder
+from swarmplan.daemon_arguments import (
     HELP,
     add_arguments,
     daemon_options,
@@ -23,10 +27,6 @@ from mavlink_bridge.cli import (
     validate,
     warn_if_unsigned,
 )
-from mavlink_bridge.daemon import MissionDaemon, MissionInterrupted
-from planner.errors import UserError
-from planner.scenario import load_scenario
-from swarmplan.arguments import writable_folder
 from swarmplan.interrupts import MissionSignals
 from swarmplan.run_command import write_outputs
 

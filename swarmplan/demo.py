@@ -22,19 +22,23 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from mavlink_bridge.cli import add_leg_timing_arguments
-from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, MissionInterrupted, StepStatus
-from mavlink_bridge.discovery import DiscoveryError
-from mavlink_bridge.mission_result import lost_vehicle_lines
-from mavlink_bridge.signing import (
+from mavlink_bridge.mission.daemon import (
+    DaemonOptions,
+    MissionDaemon,
+    MissionInterrupted,
+    StepStatus,
+)
+from mavlink_bridge.mission.view_feed import DaemonViewFeed
+from mavlink_bridge.results.mission_result import lost_vehicle_lines
+from mavlink_bridge.vehicles.discovery import DiscoveryError
+from mavlink_bridge.vehicles.vehicle_loss import paced_lost_after_s
+from mavlink_wire.signing import (
     KEY_ENV,
     key_environment,
     load_signing_key,
     mission_key,
     unsigned_warning,
 )
-from mavlink_bridge.vehicle_loss import paced_lost_after_s
-from mavlink_bridge.view_feed import DaemonViewFeed
 from mission_view.replay_file import replay_path
 from mission_view.truth_receiver import TruthReceiver
 from mission_view.view_session import ViewSession, add_view_arguments, view_options
@@ -48,6 +52,7 @@ from swarmplan.arguments import (
     positive_int,
     writable_folder,
 )
+from swarmplan.daemon_arguments import add_leg_timing_arguments
 from swarmplan.daemon_command import write_mission_outputs
 from swarmplan.interrupts import MissionSignals
 from swarmplan.run_command import progress_bar, written_line

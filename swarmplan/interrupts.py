@@ -12,7 +12,7 @@ from __future__ import annotations
 import signal
 from types import FrameType, TracebackType
 
-from mavlink_bridge.daemon import MissionInterrupted
+from mavlink_bridge.mission.daemon import MissionInterrupted
 
 #: exit status of a process ended by a signal, as a shell reports it (128 + its number)
 EXIT_STATUS = {"SIGINT": 130, "SIGTERM": 143, "SIGHUP": 129}

@@ -61,7 +61,7 @@ def write_outputs(result: dict, out_dir: Path) -> list[Path]:
         ) from None
     written = [path, *write_figures(result, out_dir)]
     try:
-        from mavlink_bridge.waypoint_export import export_all
+        from mavlink_bridge.export.waypoint_export import export_all
     except ImportError:
         return written
     return written + list(export_all(result, out_dir))

@@ -1,21 +1,21 @@
-"""The airframe read at launch (mavlink_bridge/airframe.py): parameters answered by the vehicle
-become its limits (ArduPlane's names, older names, PX4's), the fleet flies the most restrictive
-of them, and a scenario the airframe cannot fly is said with its fix. The read itself against
-real ArduPlane SITL is in tests/sitl/test_sitl_mission.py."""
+"""The airframe read at launch (mavlink_bridge/vehicles/airframe.py): parameters answered by the
+vehicle become its limits (ArduPlane's names, older names, PX4's), the fleet flies the most
+restrictive of them, and a scenario the airframe cannot fly is said with its fix. The read
+itself against real ArduPlane SITL is in tests/sitl/test_sitl_mission.py."""
 
 from __future__ import annotations
 
 import math
 
-from mavlink_bridge.airframe import (
+from mavlink_bridge.vehicles.airframe import (
     MAX_THREAT_MARGIN_KM,
     airframe_from_params,
     fleet_plane_model,
     scenario_warnings,
     threat_margin_km,
 )
-from mavlink_bridge.protocol import mavlink
-from mavlink_bridge.vehicle_state import VehicleState
+from mavlink_bridge.vehicles.vehicle_state import VehicleState
+from mavlink_wire.protocol import mavlink
 from planner.scenario import load_scenario
 
 ARDUPLANE = {  # ArduPlane SITL's defaults (../shared/sitl/README.md)

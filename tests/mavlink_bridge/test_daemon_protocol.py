@@ -7,12 +7,12 @@ import socket
 import pytest
 from loopback import run_swarmplan
 
-from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
-from mavlink_bridge.discovery import DiscoveryError
-from mavlink_bridge.guided_commands import CommandRefusedError
-from mavlink_bridge.protocol import mavlink
-from mavlink_bridge.readiness import NotReadyError
-from mavlink_bridge.vehicle_link import EndpointError
+from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon
+from mavlink_bridge.vehicles.discovery import DiscoveryError
+from mavlink_bridge.vehicles.guided_commands import CommandRefusedError
+from mavlink_bridge.vehicles.readiness import NotReadyError
+from mavlink_wire.links import EndpointError
+from mavlink_wire.protocol import mavlink
 from planner.errors import UserError
 
 
@@ -163,8 +163,8 @@ def test_a_fence_upload_a_vehicle_ended_unheard_starts_over(udp_port, fake_swarm
     with the next item 0, and its MISSION_ACK is lost; the vehicle, its transfer over, ignores
     items. Resending item 0 never got an answer and the upload stalled; after ``ITEM_RESENDS``
     unanswered resends it now starts over, and the fence gets through."""
-    from mavlink_bridge.mission_upload import FenceCircle, upload_fence
-    from mavlink_bridge.swarm_link import SwarmLink
+    from mavlink_bridge.vehicles.fence_upload import FenceCircle, upload_fence
+    from mavlink_bridge.vehicles.swarm_link import SwarmLink
 
     swarm = fake_swarm_factory(1, udp_port, fence_race=True)
     link = SwarmLink.open([f"udpin:127.0.0.1:{udp_port}"])

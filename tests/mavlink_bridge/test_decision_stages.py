@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from mavlink_bridge.decision_step import DecisionStep, LoopState
-from mavlink_bridge.flight_envelope import FlightEnvelope
-from mavlink_bridge.flight_prediction import PlaneModel
-from mavlink_bridge.mission_result import MissionAccount
-from mavlink_bridge.protocol import mavlink
-from mavlink_bridge.safety_envelope import SafetyEnvelope
-from mavlink_bridge.vehicle_state import VehicleState
+from mavlink_bridge.mission.decision_step import DecisionStep, LoopState
+from mavlink_bridge.results.mission_result import MissionAccount
+from mavlink_bridge.safety.flight_envelope import FlightEnvelope
+from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
+from mavlink_bridge.vehicles.flight_prediction import PlaneModel
+from mavlink_bridge.vehicles.vehicle_state import VehicleState
+from mavlink_wire.protocol import mavlink
 from planner.geodesy import local_km_to_geodetic
 from planner.grid import Grid
 from planner.hapf_aco import HapfAcoPlanner
@@ -108,7 +108,7 @@ def test_a_vehicle_without_a_camera_gets_one_warning_and_no_more_engagement_requ
     """ArduPlane without a camera on any port answers IMAGE_START_CAPTURE for component 100
     itself, FAILED: that vehicle is named once and its engagements are off (never a retry every
     step); a vehicle whose camera was heard (its HEARTBEAT) is only retried."""
-    from mavlink_bridge.guided_commands import engagement_command
+    from mavlink_bridge.vehicles.guided_commands import engagement_command
 
     starts = paper10.starts_for_seed(1)[:2]
     lat, lon = local_km_to_geodetic([s.x_km for s in starts], [s.y_km for s in starts],

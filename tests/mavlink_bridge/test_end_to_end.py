@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from loopback import free_port_block, run_swarmplan, start_swarmplan, stop
 
-from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
-from mavlink_bridge.protocol import PLANE_MODE_GUIDED
+from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon
+from mavlink_wire.protocol import PLANE_MODE_GUIDED
 
 SPEEDUP = 100
 

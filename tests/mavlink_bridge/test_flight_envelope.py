@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mavlink_bridge.flight_envelope import FlightEnvelope
-from mavlink_bridge.flight_prediction import PlaneModel
-from mavlink_bridge.safety_envelope import SafetyEnvelope
+from mavlink_bridge.safety.flight_envelope import FlightEnvelope
+from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
+from mavlink_bridge.vehicles.flight_prediction import PlaneModel
 from planner.grid import HEADING_STEPS, Grid
 
 
@@ -40,7 +40,7 @@ def test_a_step_longer_than_thirty_seconds_keeps_going_without_index_error(paper
     (three steps ahead), and a plane left with only "keep flying to your last target" gets the
     cell its predicted path reaches at the next decision instant. With a fixed 30 s horizon
     this raised IndexError (index 49 of 31 samples)."""
-    from mavlink_bridge.flight_prediction import predict_paths
+    from mavlink_bridge.vehicles.flight_prediction import predict_paths
 
     cells = SafetyEnvelope.for_scenario(paper10, 1.0, 1.0)
     grid = cells.grid
@@ -197,7 +197,7 @@ def test_a_command_a_lossy_link_delivers_late_is_kept_apart_as_flown(paper10):
     replaced, and the pair kept apart however the link delivers either plane's commands."""
     from dataclasses import replace
 
-    from mavlink_bridge.flight_prediction import predict_paths
+    from mavlink_bridge.vehicles.flight_prediction import predict_paths
 
     cells = SafetyEnvelope.for_scenario(paper10, 1.0, 1.0)
     grid = cells.grid

@@ -1,4 +1,4 @@
-"""The scenario as the daemon's planner plans it (mavlink_bridge/flown_planning.py), flown
+"""The scenario as the daemon's planner plans it (mavlink_bridge/mission/flown_planning.py), flown
 offline: `swarmplan run --as-flown`."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mavlink_bridge.daemon import DaemonOptions
+from mavlink_bridge.mission.daemon import DaemonOptions
 from planner.constraints import segment_clearance
 from planner.scenario import load_scenario
 from sim_gateway.offline_runner import run_offline

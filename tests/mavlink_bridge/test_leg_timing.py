@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from test_daemon_protocol import options
 
-from mavlink_bridge.daemon import MissionDaemon
-from mavlink_bridge.flight_prediction import PlaneModel, leg_speed_mps, predict_paths
-from mavlink_bridge.protocol import mavlink
+from mavlink_bridge.mission.daemon import MissionDaemon
+from mavlink_bridge.vehicles.flight_prediction import PlaneModel, leg_speed_mps, predict_paths
+from mavlink_wire.protocol import mavlink
 from planner.grid import HEADING_STEPS, Grid
 
 STEP_S = 10.0
@@ -128,8 +128,8 @@ def test_a_leg_too_fast_near_a_threat_is_flown_at_cruise_speed_not_replaced(pape
     """Near a threat the loiter circle at a leg-timed 150 m/s (2.4 km) can reach into the margin
     where the one at cruise speed (1.07 km) does not: the planner's cell is then kept and flown at
     cruise speed (late, but where the planner asked), and no override is counted."""
-    from mavlink_bridge.flight_envelope import FlightEnvelope
-    from mavlink_bridge.safety_envelope import SafetyEnvelope
+    from mavlink_bridge.safety.flight_envelope import FlightEnvelope
+    from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
 
     cells = SafetyEnvelope.for_scenario(paper10, 1.0, 1.0)
     envelope = FlightEnvelope(cells, PlaneModel())

@@ -1,4 +1,4 @@
-"""Loss and return (vehicle_loss.py) and the return home at exit (return_home.py) driven on their
+"""Loss and return (vehicle_loss.py) and the return home at exit (rtl_at_exit.py) driven on their
 own: vehicles known only from the MAVLink frames they sent (parsed by VehicleState's handlers),
 each bound to a real (unopened) TCP endpoint whose connection can go away. The whole daemon
 around them is tested over real links in test_vehicle_loss_and_exit.py and tests/sitl."""
@@ -7,12 +7,16 @@ from __future__ import annotations
 
 import math
 
-from mavlink_bridge.mission_result import MissionAccount, link_event_rows, lost_vehicle_lines
-from mavlink_bridge.protocol import PLANE_MODE_GUIDED, PLANE_MODE_RTL, mavlink
-from mavlink_bridge.return_home import HomeWatch, rtl_line, rtl_recipients
-from mavlink_bridge.vehicle_link import VehicleLink, parse_endpoint
-from mavlink_bridge.vehicle_loss import LossWatch
-from mavlink_bridge.vehicle_state import VehicleState
+from mavlink_bridge.results.mission_result import (
+    MissionAccount,
+    link_event_rows,
+    lost_vehicle_lines,
+)
+from mavlink_bridge.vehicles.vehicle_loss import LossWatch
+from mavlink_bridge.vehicles.vehicle_state import VehicleState
+from mavlink_bridge.way_home.rtl_at_exit import HomeWatch, rtl_line, rtl_recipients
+from mavlink_wire.links import VehicleLink, parse_endpoint
+from mavlink_wire.protocol import PLANE_MODE_GUIDED, PLANE_MODE_RTL, mavlink
 
 HOME = (-35.0, 149.0)
 ARMED = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED

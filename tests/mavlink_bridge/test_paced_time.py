@@ -9,10 +9,10 @@ import time
 import numpy as np
 from test_daemon_protocol import options
 
-from mavlink_bridge.daemon import MissionDaemon
-from mavlink_bridge.guided_commands import request_message_command, send_commands
-from mavlink_bridge.protocol import mavlink
-from mavlink_bridge.swarm_link import SwarmLink
+from mavlink_bridge.mission.daemon import MissionDaemon
+from mavlink_bridge.vehicles.guided_commands import request_message_command, send_commands
+from mavlink_bridge.vehicles.swarm_link import SwarmLink
+from mavlink_wire.protocol import mavlink
 
 
 def test_a_stalled_step_is_counted_late_and_said_once(paper10, udp_port, fake_swarm_factory):
@@ -68,7 +68,7 @@ def test_a_step_s_commands_are_sent_several_times_before_its_deadline(
     now sent ``STEP_SENDS`` times before the deadline. With no deadline (the launch) a command
     is resent as often in the vehicles' time, over the same wall-clock window: at 20x a lost
     switch to GUIDED was resent after 6 s of flight, while the plane flew straight on."""
-    from mavlink_bridge.daemon import MIN_RETRY_S, STEP_SENDS
+    from mavlink_bridge.mission.daemon import MIN_RETRY_S, STEP_SENDS
 
     swarm = fake_swarm_factory(1, udp_port)
     daemon = MissionDaemon(paper10, options(udp_port, expect=1, time_scale=20.0))
@@ -96,9 +96,9 @@ def test_measured_chord_from_the_decision_instant_is_judged(paper10):
     """In paced time a plane has flown on while its step was planned. The threat check still
     judges the chord the result will measure: from where the plane was at the decision instant
     to where it will be at the next one, not from where it is now."""
-    from mavlink_bridge.flight_envelope import FlightEnvelope
-    from mavlink_bridge.flight_prediction import PlaneModel
-    from mavlink_bridge.safety_envelope import SafetyEnvelope
+    from mavlink_bridge.safety.flight_envelope import FlightEnvelope
+    from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
+    from mavlink_bridge.vehicles.flight_prediction import PlaneModel
 
     cells = SafetyEnvelope.for_scenario(paper10, 1.0, 1.0)
     envelope = FlightEnvelope(cells, PlaneModel())
@@ -149,8 +149,8 @@ def test_without_any_vehicle_clock_steps_keep_a_wall_clock_schedule_and_a_stall_
     every period of the told time scale, never before it, on a schedule whatever a step takes;
     a step whose commands go out more than half a period after its instant is counted late and
     said. (Paced this way, the daemon once said 0 late steps whatever happened.)"""
-    from mavlink_bridge.mission_result import MissionAccount
-    from mavlink_bridge.pacing import PacingChoice, PacingContext
+    from mavlink_bridge.mission.pacing import PacingChoice, PacingContext
+    from mavlink_bridge.results.mission_result import MissionAccount
 
     link = SwarmLink.open([f"udpin:127.0.0.1:{udp_port}"])
     try:

@@ -1,7 +1,8 @@
-"""A resumed daemon's judgement of one plane in the air (mavlink_bridge/resume_takeback.py), on
-the geometry and the range account alone: continue when it is clear of the threats, in the
-area and has the range for the safe way home plus the reserve; home otherwise, saying why.
-(The whole resume, with real processes, is tests/reliability/test_resume_takeback.py.)"""
+"""A resumed daemon's judgement of one plane in the air
+(mavlink_bridge/mission/resume_takeback.py), on the geometry and the range account alone:
+continue when it is clear of the threats, in the area and has the range for the safe way home
+plus the reserve; home otherwise, saying why. (The whole resume, with real processes, is
+tests/reliability/test_resume_takeback.py.)"""
 
 from __future__ import annotations
 
@@ -9,17 +10,17 @@ import math
 
 import numpy as np
 
-from mavlink_bridge.flight_prediction import PlaneModel
-from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
-from mavlink_bridge.resume_takeback import (
+from mavlink_bridge.mission.resume_takeback import (
     CONTINUE,
     HOME,
     RangeAccount,
     TakeBackJudge,
     range_account,
 )
-from mavlink_bridge.safe_return import HomeRoutes
-from mavlink_bridge.vehicle_state import VehicleState
+from mavlink_bridge.vehicles.flight_prediction import PlaneModel
+from mavlink_bridge.vehicles.vehicle_state import VehicleState
+from mavlink_bridge.way_home.around_threats import HomeRoutes
+from mavlink_wire.protocol import PLANE_MODE_RTL, mavlink
 from planner.grid import Grid
 
 HOME_KM = np.array([5.5, 5.5])

@@ -1,4 +1,4 @@
-"""The flight home kept d_min apart (mavlink_bridge/return_separation.py), on the geometry alone:
+"""The flight home kept d_min apart (mavlink_bridge/way_home/kept_apart.py), on the geometry alone:
 which ways home conflict, who holds, and where."""
 
 from __future__ import annotations
@@ -7,10 +7,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from mavlink_bridge.flight_prediction import PlaneModel
-from mavlink_bridge.home_circles import home_circle_speeds
-from mavlink_bridge.return_separation import ReturnSeparation
-from mavlink_bridge.safe_return import HomeRoutes
+from mavlink_bridge.vehicles.flight_prediction import PlaneModel
+from mavlink_bridge.way_home.around_threats import HomeRoutes
+from mavlink_bridge.way_home.home_circles import home_circle_speeds
+from mavlink_bridge.way_home.kept_apart import ReturnSeparation
 from planner.grid import Grid
 
 THREAT_XY = np.array([[10.0, 10.0]])
@@ -209,7 +209,7 @@ def test_held_planes_circling_within_d_min_of_each_other_are_moved_apart():
     other for part of every lap); plane 3 is far. Plane 1, already on its circle, stays; plane
     2 is moved to a point whose circle, flown by the plane model, keeps d_min from plane 1's
     and the threat margin; plane 3 is left alone."""
-    from mavlink_bridge.keeping_up import held_apart
+    from mavlink_bridge.mission.keeping_up import held_apart
 
     s = separation()
     on_circle = np.array([20.0, 20.0]) + np.array([0.0, float(s.routes.plane.loiter_radius_km())])

@@ -1,6 +1,6 @@
-"""The way home around threats (mavlink_bridge/safe_return.py), on the geometry alone: RTL only
-where the straight line home and the turn onto it keep the margin; otherwise a waypoint that is a
-safe place to circle, reached by a leg and a turn that keep it too."""
+"""The way home around threats (mavlink_bridge/way_home/around_threats.py), on the geometry alone:
+RTL only where the straight line home and the turn onto it keep the margin; otherwise a waypoint
+that is a safe place to circle, reached by a leg and a turn that keep it too."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import math
 
 import numpy as np
 
-from mavlink_bridge.flight_prediction import PlaneModel, predict_paths
-from mavlink_bridge.safe_return import HomeRoutes
+from mavlink_bridge.vehicles.flight_prediction import PlaneModel, predict_paths
+from mavlink_bridge.way_home.around_threats import HomeRoutes
 from planner.constraints import segment_clearance
 from planner.grid import Grid
 

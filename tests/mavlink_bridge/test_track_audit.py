@@ -1,11 +1,11 @@
-"""The continuous safety account (mavlink_bridge/track_audit.py) on tracks built by hand: what
-happens between two reports is judged, not only the reports themselves."""
+"""The continuous safety account (mavlink_bridge/safety/track_audit.py) on tracks built by hand:
+what happens between two reports is judged, not only the reports themselves."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from mavlink_bridge.track_audit import TrackAudit
+from mavlink_bridge.safety.track_audit import TrackAudit
 
 
 def audit(threats=((5.0, 5.0, 1.0),), n=2, **kw) -> TrackAudit:

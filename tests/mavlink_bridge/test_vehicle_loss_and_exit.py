@@ -16,8 +16,8 @@ import pytest
 from loopback import free_port_block, free_udp_port, start_swarmplan, stop
 from vehicle_relays import DroppableTcpBridge, WatchingRelay
 
-from mavlink_bridge.daemon import DaemonOptions, MissionDaemon
-from mavlink_bridge.protocol import PLANE_MODE_RTL, mavlink
+from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon
+from mavlink_wire.protocol import PLANE_MODE_RTL, mavlink
 from planner.scenario import load_scenario
 
 STEPS = 14

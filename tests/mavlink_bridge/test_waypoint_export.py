@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 from loopback import run_swarmplan
 
-from mavlink_bridge.export_command import load_result
-from mavlink_bridge.waypoint_export import (
+from mavlink_bridge.export.waypoint_export import (
     export_all,
     simplify_path,
 )
 from planner.errors import UserError
 from planner.metrics import MissionRecorder
+from swarmplan.export_command import load_result
 
 
 @pytest.fixture

@@ -23,7 +23,8 @@ import pytest
 from loopback import run_swarmplan
 from reliability_harness import KEY_HEX
 
-from mavlink_bridge.checkpoint import (
+from mavlink_bridge.mission.decision_step import LoopState
+from mavlink_bridge.results.checkpoint import (
     DAEMON_STATE,
     MAGIC,
     CheckpointError,
@@ -33,9 +34,8 @@ from mavlink_bridge.checkpoint import (
     seal,
     with_derived,
 )
-from mavlink_bridge.checkpoint_layout import RANGES
-from mavlink_bridge.decision_step import LoopState
-from mavlink_bridge.mission_result import LinkEvent, MissionAccount
+from mavlink_bridge.results.checkpoint_layout import RANGES
+from mavlink_bridge.results.mission_result import LinkEvent, MissionAccount
 from planner.engagement import EngagementOutcome
 from planner.grid import Grid
 from planner.hapf_aco import HapfAcoPlanner

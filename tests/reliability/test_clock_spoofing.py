@@ -24,9 +24,9 @@ from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
 from reliability_harness import KEY_HEX, last_json  # noqa: E402
 from udp_fault_relay import FaultProfile, FaultRelay  # noqa: E402
 
-from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
-from mavlink_bridge.lockstep_clock import LockstepReleasedError  # noqa: E402
-from mavlink_bridge.signing import sign_outgoing  # noqa: E402
+from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon  # noqa: E402
+from mavlink_bridge.mission.lockstep_clock import LockstepReleasedError  # noqa: E402
+from mavlink_wire.signing import sign_outgoing  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 
 SCENARIO = "paper-10uav"

@@ -19,7 +19,7 @@ from loopback import env, free_udp_port, run_swarmplan, start_swarmplan, stop
 from pymavlink.dialects.v20 import ardupilotmega as ml
 from reliability_harness import KEY_HEX, last_json
 
-from mavlink_bridge.checkpoint import (
+from mavlink_bridge.results.checkpoint import (
     MAGIC,
     CheckpointError,
     CheckpointWriter,
@@ -144,7 +144,7 @@ def test_killed_daemon_resumes_from_its_checkpoint_and_finishes(tmp_path: Path):
 
 
 def _fake_state() -> dict:
-    from mavlink_bridge.checkpoint import LOOP_STATE
+    from mavlink_bridge.results.checkpoint import LOOP_STATE
 
     return {name: None for name in LOOP_STATE} | {"planner": {"tpm": np.arange(6.0)}}
 
@@ -219,7 +219,7 @@ def test_a_checkpoint_holds_only_the_planners_own_state_and_resumes_the_same_dec
     determines, were half of it). Written without them it pickles to ~5 MB and compresses
     (zlib level 1) to ~1.7 MB, and a planner resumed from it (those parts taken from a freshly
     built one) decides exactly as the one that kept flying."""
-    from mavlink_bridge.checkpoint import LOOP_STATE, with_derived
+    from mavlink_bridge.results.checkpoint import LOOP_STATE, with_derived
     from planner.grid import Grid
     from planner.hapf_aco import HapfAcoPlanner
     from planner.scenario import load_scenario

@@ -20,14 +20,14 @@ from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
 from reliability_harness import last_json  # noqa: E402
 from udp_fault_relay import FaultProfile, FaultRelay, MessageWithhold  # noqa: E402
 
-from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
-from mavlink_bridge.discovery import wait_for_vehicles  # noqa: E402
-from mavlink_bridge.gcs_failsafe import MISSION_FAILSAFE, set_gcs_failsafe  # noqa: E402
-from mavlink_bridge.guided_commands import engagement_command  # noqa: E402
-from mavlink_bridge.mission_upload import FenceCircle, upload_fence  # noqa: E402
-from mavlink_bridge.swarm_link import SwarmLink  # noqa: E402
-from mavlink_bridge.telemetry_plausibility import PlausibilityFilter  # noqa: E402
-from mavlink_bridge.vehicle_state import CommandAck, VehicleState  # noqa: E402
+from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon  # noqa: E402
+from mavlink_bridge.vehicles.discovery import wait_for_vehicles  # noqa: E402
+from mavlink_bridge.vehicles.fence_upload import FenceCircle, upload_fence  # noqa: E402
+from mavlink_bridge.vehicles.gcs_failsafe import MISSION_FAILSAFE, set_gcs_failsafe  # noqa: E402
+from mavlink_bridge.vehicles.guided_commands import engagement_command  # noqa: E402
+from mavlink_bridge.vehicles.swarm_link import SwarmLink  # noqa: E402
+from mavlink_bridge.vehicles.telemetry_plausibility import PlausibilityFilter  # noqa: E402
+from mavlink_bridge.vehicles.vehicle_state import CommandAck, VehicleState  # noqa: E402
 from planner.geodesy import local_km_to_geodetic  # noqa: E402
 from planner.scenario import load_scenario, parse_scenario  # noqa: E402
 from sim_gateway.simulator import SimOptions, Simulator  # noqa: E402

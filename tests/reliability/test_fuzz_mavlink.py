@@ -19,10 +19,10 @@ import pytest  # noqa: E402
 from mavlink_fuzz import Fuzzer, classes_named  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
 
-from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
-from mavlink_bridge.sensor_looks import look_report  # noqa: E402
-from mavlink_bridge.swarm_link import SwarmLink  # noqa: E402
-from mavlink_bridge.vehicle_link import UdpInEndpoint  # noqa: E402
+from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon  # noqa: E402
+from mavlink_bridge.vehicles.sensor_looks import look_report  # noqa: E402
+from mavlink_bridge.vehicles.swarm_link import SwarmLink  # noqa: E402
+from mavlink_wire.links import UdpInEndpoint  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 from sim_gateway.message_handlers import HANDLERS  # noqa: E402
 from sim_gateway.simulator import SimOptions, Simulator  # noqa: E402

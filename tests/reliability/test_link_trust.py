@@ -25,7 +25,7 @@ from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
 from reliability_harness import KEY_HEX, last_json  # noqa: E402
 from udp_fault_relay import FaultProfile, FaultRelay  # noqa: E402
 
-from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
+from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon  # noqa: E402
 from planner.geodesy import local_km_to_geodetic  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 

@@ -25,8 +25,8 @@ from loopback import env, free_udp_port, start_swarmplan, stop
 from pymavlink.dialects.v20 import ardupilotmega as ml
 from reliability_harness import KEY_HEX, last_json
 
-from mavlink_bridge import signing as bridge_signing
-from mavlink_bridge.checkpoint import CheckpointError, read_checkpoint
+from mavlink_bridge.results.checkpoint import CheckpointError, read_checkpoint
+from mavlink_wire import signing as bridge_signing
 from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
 from planner.hapf_aco import HapfAcoPlanner  # noqa: F401 - a checkpoint's classes, read fast
 from planner.scenario import Origin

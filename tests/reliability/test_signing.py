@@ -20,7 +20,7 @@ from loopback import env, free_udp_port, run_swarmplan  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
 from reliability_harness import KEY_HEX  # noqa: E402
 
-from mavlink_bridge import signing as bridge_signing  # noqa: E402
+from mavlink_wire import signing as bridge_signing  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 from sim_gateway.simulator import SimOptions, Simulator  # noqa: E402
 

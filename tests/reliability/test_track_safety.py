@@ -28,7 +28,7 @@ from pymavlink import mavutil
 from reliability_harness import last_json
 from udp_fault_relay import FaultProfile, FaultRelay, GrantHold
 
-from mavlink_bridge.checkpoint import CheckpointError, read_checkpoint
+from mavlink_bridge.results.checkpoint import CheckpointError, read_checkpoint
 from planner.constraints import segment_clearance
 from planner.scenario import Origin
 
@@ -344,7 +344,7 @@ def test_planes_whose_homes_are_close_circle_them_apart(tmp_path: Path):
     before the fix, as the track account and the simulator's truth both saw). Now each circles
     home at the speed that keeps d_min (above AIRSPEED_MIN, said at RTL), and the flight home
     is judged along the turns the plane model flies."""
-    from mavlink_bridge.flight_prediction import PlaneModel
+    from mavlink_bridge.vehicles.flight_prediction import PlaneModel
 
     scenario = tmp_path / "close.toml"
     scenario.write_text(CLOSE_HOMES)

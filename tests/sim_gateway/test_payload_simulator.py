@@ -15,10 +15,10 @@ os.environ.setdefault("MAVLINK20", "1")
 from loopback import start_swarmplan, stop  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
+from mavlink_wire.looks import parse_look_url  # noqa: E402
 from planner.geodesy import local_km_to_geodetic  # noqa: E402
 from planner.grid import Grid  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
-from sim_gateway.camera import parse_look_url  # noqa: E402
 
 SCENARIO = load_scenario("arduplane-3uav")
 STEP_MS = round(SCENARIO.config.step_s * 1000)

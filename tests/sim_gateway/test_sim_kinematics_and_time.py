@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from loopback import run_swarmplan
 
-from mavlink_bridge.flight_prediction import PlaneModel, predict_paths
+from mavlink_bridge.vehicles.flight_prediction import PlaneModel, predict_paths
+from mavlink_wire.looks import FILE_URL_CHARS, look_urls, parse_look_url
 from planner.scenario import load_scenario
-from sim_gateway.camera import FILE_URL_CHARS, look_urls, parse_look_url
 from sim_gateway.fixed_wing import ORBIT, FleetKinematics
 from sim_gateway.simulator import SimOptions, Simulator, SimulatorError
 
@@ -103,7 +103,7 @@ def test_command_line_errors_are_one_line_without_traceback(argv, needle):
 
 @pytest.mark.parametrize("speed_mps", [100.0, 140.0, 75.0])
 def test_daemon_flight_prediction_is_the_simulated_flight(speed_mps):
-    """The daemon's model of a plane (mavlink_bridge.flight_prediction) and the simulator's
+    """The daemon's model of a plane (mavlink_bridge.vehicles.flight_prediction) and the simulator's
     kinematics agree: sent to a point behind its left wing at a new airspeed, the simulated
     plane turns, speeds up or slows down, arrives and circles where the daemon predicted. A
     constant changed on one side only (bank limit, loiter size, acceleration) shows here."""

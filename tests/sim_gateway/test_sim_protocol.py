@@ -8,9 +8,9 @@ import numpy as np
 from pymavlink import mavutil
 from sim_harness import take_off
 
+from mavlink_wire.looks import parse_look_url
 from planner.geodesy import geodetic_to_local_km
 from planner.grid import Grid
-from sim_gateway.camera import parse_look_url
 
 ml = mavutil.mavlink
 

@@ -1,0 +1,226 @@
+"""The launch of a mission, phase by phase: discover, ready, fence, arm, take off, homes.
+
+Each phase is a named unit (:class:`LaunchPhase`) run in order by :func:`run_launch`; a phase
+that cannot complete raises a ``UserError`` naming the vehicle and the fix. A new phase (e.g.
+reading each airframe's limits before take-off) is one more entry in :func:`launch_phases`, not
+an edit of the others. The phases talk to the vehicles through the daemon's link and its
+``send`` (acknowledged, retried commands) and ``wait_sim`` (pumps; in lockstep it grants
+simulated time meanwhile).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from mavlink_bridge.mission.resume_takeback import flying, judge_fleet, send_home
+from mavlink_bridge.vehicles.airframe import read_airframes, scenario_warnings
+from mavlink_bridge.vehicles.discovery import wait_for_vehicles, wait_until_ready
+from mavlink_bridge.vehicles.fence_upload import FenceCircle, upload_fence
+from mavlink_bridge.vehicles.gcs_failsafe import MISSION_FAILSAFE, set_gcs_failsafe
+from mavlink_bridge.vehicles.guided_commands import (
+    request_message_command,
+    require_accepted,
+    set_mode_command,
+)
+from mavlink_bridge.vehicles.readiness import arm_when_ready
+from mavlink_wire.protocol import PLANE_MODE_GUIDED, PLANE_MODE_TAKEOFF, mavlink
+from planner.errors import UserError
+from planner.geodesy import local_km_to_geodetic
+
+if TYPE_CHECKING:
+    from mavlink_bridge.mission.daemon import MissionDaemon
+
+
+@dataclass(frozen=True)
+class LaunchPhase:
+    """One phase of the launch: its name (said and listed) and what it does."""
+
+    name: str
+    run: Callable[[MissionDaemon], None]
+
+
+def discover(daemon: MissionDaemon) -> None:
+    """A heartbeat of every expected system id (``discovery.wait_for_vehicles``)."""
+    link = daemon.require_link()
+    daemon.say(f"listening on {link.describe()} for {daemon.n} vehicles")
+    wait_for_vehicles(link, daemon.system_ids, daemon.options.discovery_timeout_s, daemon.say)
+    daemon.say(f"all {daemon.n} vehicles heard; waiting for them to finish initialising")
+
+
+def ready(daemon: MissionDaemon) -> None:
+    """Every autopilot past its initialisation (STANDBY). A resumed daemon does not wait for a
+    plane in the air, whatever it reports (a failsafe's CRITICAL): it takes it back
+    (``take_back``)."""
+    link = daemon.require_link()
+    ids = daemon.system_ids
+    if daemon.resume_from is not None:
+        vehicles = daemon.vehicles()
+        link.pump_until(lambda: all(v.has_position for v in vehicles if v.armed), 2.0)
+        ids = [v.system_id for v in vehicles if not flying(v, climb_m(daemon))]
+    wait_until_ready(link, ids, daemon.options.ready_timeout_s, wait=daemon.wait_sim)
+
+
+def fence(daemon: MissionDaemon) -> None:
+    """Every threat zone as a fence exclusion circle, to every vehicle."""
+    threats = daemon.scenario.threats
+    lat, lon = local_km_to_geodetic(
+        [t.x_km for t in threats], [t.y_km for t in threats], daemon.scenario.origin
+    )
+    circles = (
+        [
+            FenceCircle(float(la), float(lo), t.radius_km * 1000.0)
+            for la, lo, t in zip(lat, lon, threats, strict=True)
+        ]
+        if threats
+        else []
+    )
+    upload_fence(daemon.require_link(), daemon.vehicles(), circles)
+    daemon.say(f"fence uploaded: {len(circles)} exclusion circles to each vehicle")
+
+
+def failsafe(daemon: MissionDaemon) -> None:
+    """Every vehicle's GCS failsafe: fly on to the last guided target (``gcs_failsafe.py``)."""
+    settings = MISSION_FAILSAFE
+    set_gcs_failsafe(daemon.require_link(), daemon.vehicles(), settings)
+    daemon.say(
+        f"GCS failsafe set: FS_GCS_ENABL {settings.enable}, FS_LONG_ACTN {settings.long_action} "
+        f"(continue: circle the last guided target), FS_LONG_TIMEOUT {settings.long_timeout_s:g} s"
+    )
+
+
+def airframe(daemon: MissionDaemon) -> None:
+    """Each vehicle's flight limits (``airframe.read_airframes``): the plane model of the flight
+    prediction and leg timing follows them; a scenario the airframes cannot fly is said now."""
+    # the answers are waited for on the wall clock, never by granting a lockstep simulator time:
+    # how long they take must not change when the vehicles arm (a seed flies one mission)
+    frames = read_airframes(
+        daemon.vehicles(), daemon.scenario.config, daemon.require_link().pump_until
+    )
+    daemon.use_airframes(frames)
+    for frame in frames:
+        daemon.say(f"airframe {frame.describe()}")
+    margin = daemon.envelope.threat_margin_km
+    source = "given" if daemon.options.threat_margin_km is not None else "from the airframe"
+    daemon.say(f"safety envelope: legs kept {margin:.2f} km clear of the threat zones ({source})")
+    for line in scenario_warnings(frames, daemon.scenario.config):
+        daemon.say(f"warning: {line}")
+
+
+def arm(daemon: MissionDaemon) -> None:
+    """Arm every vehicle once it is ready to (``readiness.arm_when_ready``: pre-arm checks, GPS
+    fix, home), refusals retried within the readiness window, with progress lines. The line
+    that ends it says how long it took, and when on the vehicles' own clocks (s since boot)."""
+    started = time.monotonic()
+    arm_when_ready(
+        daemon.vehicles(),
+        daemon.options.ready_timeout_s,
+        send=lambda commands, tries: daemon.send(commands, tries),
+        wait=daemon.wait_sim,
+        progress=daemon.say,
+        arm_attempts=daemon.options.launch_command_attempts,
+        listen=daemon.require_link().pump_until,
+    )
+    clocks = [v.clock_ms / 1000.0 for v in daemon.vehicles()]
+    daemon.say(
+        f"armed {daemon.n} vehicles after {time.monotonic() - started:.1f} s (vehicle clocks "
+        f"{min(clocks):.1f}..{max(clocks):.1f} s since boot)"
+    )
+
+
+def take_off(daemon: MissionDaemon) -> None:
+    """TAKEOFF mode, then GUIDED for each plane as soon as it has climbed: in TAKEOFF a plane
+    flies straight on along its launch heading (ArduPlane until TKOFF_ALT, the simulator too),
+    so one kept waiting for a slower one flew on towards whatever lies ahead (at 30 % loss,
+    20x, a plane waited 2 s of wall time, 40 s of flight, for another's take-off, and entered
+    a threat 4.3 km ahead of its start)."""
+    link = daemon.require_link()
+    options = daemon.options
+    # (a plane a resumed daemon sent home flies home: ``take_back``)
+    vehicles = [v for v in daemon.vehicles() if v.system_id not in daemon.flight_home.sent_home]
+    climb = climb_m(daemon)
+    attempts = options.launch_command_attempts
+    if not vehicles:
+        return
+    # vehicles already flying (a restarted daemon, airborne SITL) go straight to GUIDED
+    link.pump_until(lambda: all(v.has_position for v in vehicles), 2.0)
+    on_ground = [v for v in vehicles if not flying(v, climb)]
+    require_accepted(
+        daemon.send([set_mode_command(v, PLANE_MODE_TAKEOFF) for v in on_ground], attempts)
+    )
+    guided: set[int] = set()
+    while len(guided) < len(vehicles):
+        if not daemon.wait_sim(
+            lambda: any(v.relative_alt_m >= climb for v in vehicles if v.system_id not in guided),
+            options.takeoff_timeout_s,
+        ):
+            low = [str(v.system_id) for v in vehicles if v.system_id not in guided]
+            raise UserError(
+                f"vehicle {', '.join(low)} did not climb to {climb:g} m within "
+                f"{options.takeoff_timeout_s:g} s of TAKEOFF; check its takeoff setup"
+            )
+        up = [v for v in vehicles if v.system_id not in guided and v.relative_alt_m >= climb]
+        require_accepted(
+            daemon.send([set_mode_command(v, PLANE_MODE_GUIDED) for v in up], attempts)
+        )
+        guided.update(v.system_id for v in up)
+    daemon.launched = True
+    daemon.say("airborne, GUIDED")
+
+
+def climb_m(daemon: MissionDaemon) -> float:
+    """The climb (above home) that ends the TAKEOFF phase; a plane armed and above it is
+    flying (``resume_takeback.flying``)."""
+    return min(daemon.options.takeoff_altitude_m, daemon.scenario.altitude_m)
+
+
+def take_back(daemon: MissionDaemon) -> None:
+    """A resumed daemon (nothing at a fresh launch): every plane in the air taken back
+    whatever its status and mode, judged from where it is: those that can continue the
+    mission go on (GUIDED at take-off, next), the others are sent home; one line per plane
+    says which and why (``resume_takeback.py``)."""
+    if daemon.resume_from is None:
+        return
+    vehicles = daemon.vehicles()
+    daemon.require_link().pump_until(lambda: all(v.has_position for v in vehicles), 2.0)
+    request_homes(daemon)  # the way home of a plane sent home is judged to its own
+    decisions = judge_fleet(daemon, climb_m(daemon))
+    daemon.take_back = decisions
+    for t in decisions:
+        daemon.say(t.line())
+    send_home(daemon, decisions)
+
+
+def request_homes(daemon: MissionDaemon) -> None:
+    """Ask every vehicle whose home is not known yet for HOME_POSITION (REQUEST_MESSAGE): the
+    launch point is each UAV's start and return point, and ArduPilot streams it rarely."""
+    link = daemon.require_link()
+    missing = [v for v in daemon.vehicles() if v.home is None]
+    if missing:
+        home = mavlink.MAVLINK_MSG_ID_HOME_POSITION
+        daemon.send([request_message_command(v, home) for v in missing])
+        link.pump_until(lambda: all(v.home is not None for v in missing), 1.0)
+
+
+def launch_phases() -> list[LaunchPhase]:
+    """The launch, in order (docs/daemon.md, "A mission, phase by phase")."""
+    return [
+        LaunchPhase("discover", discover),
+        LaunchPhase("ready", ready),
+        LaunchPhase("airframe", airframe),
+        LaunchPhase("fence", fence),
+        LaunchPhase("failsafe", failsafe),
+        LaunchPhase("arm", arm),
+        LaunchPhase("take back", take_back),
+        LaunchPhase("take off", take_off),
+        LaunchPhase("homes", request_homes),
+    ]
+
+
+def run_launch(daemon: MissionDaemon, phases: list[LaunchPhase]) -> None:
+    """Run ``phases`` in order; the daemon notes the phase it is in (for its exit report)."""
+    for phase in phases:
+        daemon.phase = phase.name
+        phase.run(daemon)

@@ -1,0 +1,268 @@
+"""Fly the airframe you have: each vehicle's own flight limits, read at launch.
+
+The daemon's plane model (``flight_prediction.PlaneModel``: turn radius, loiter circle, leg
+timing) used to assume our simulator's 100 m/s plane. A real autopilot knows its airframe; the
+daemon asks for it with PARAM_REQUEST_READ before take-off:
+
+* slowest airspeed, m/s: ArduPlane AIRSPEED_MIN (before 4.5: ARSPD_FBW_MIN), PX4 FW_AIRSPD_MIN
+* cruise airspeed, m/s: AIRSPEED_CRUISE (TRIM_ARSPD_CM / 100), FW_AIRSPD_TRIM
+* fastest airspeed, m/s: AIRSPEED_MAX (ARSPD_FBW_MAX), FW_AIRSPD_MAX
+* bank limit, deg: ROLL_LIMIT_DEG (LIM_ROLL_CD / 100), FW_R_LIM
+* loiter radius, m: WP_LOITER_RAD, NAV_LOITER_RAD
+* waypoint acceptance radius, m: WP_RADIUS, NAV_ACC_RAD
+
+(The PX4 names are those of its fixed-wing position controller and navigator parameter files.)
+A name the vehicle does not answer within the read window falls back to the daemon's own
+assumption, and the airframe says so (``source``).
+
+The fleet flies one plane model (the prediction is vectorised over UAVs): the most restrictive
+of the vehicles' limits (smallest bank limit, narrowest airspeed range, largest loiter and
+acceptance radii). Its turn radius at airspeed v is ``v**2 / (g tan(bank))`` (ArduPlane's
+defaults: 22 m/s at 65 deg, 23 m; the loiter circle is then WP_LOITER_RAD, 80 m).
+
+``scenario_warnings`` says, before take-off, when the scenario asks for what the airframe
+cannot fly: a UAV speed outside its airspeed range, or grid legs (one cell per decision step,
+a diagonal one sqrt(2) cells) faster than its fastest airspeed.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from mavlink_bridge.vehicles.flight_prediction import PlaneModel
+from mavlink_bridge.vehicles.vehicle_state import VehicleState
+from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, mavlink
+from planner.config import PlannerConfig
+from planner.errors import UserError
+
+#: field -> the parameter names that may hold it, newest first, with the scale to SI units
+ARDUPILOT_NAMES: dict[str, tuple[tuple[str, float], ...]] = {
+    "min_airspeed_mps": (("AIRSPEED_MIN", 1.0), ("ARSPD_FBW_MIN", 1.0)),
+    "cruise_mps": (("AIRSPEED_CRUISE", 1.0), ("TRIM_ARSPD_CM", 0.01)),
+    "max_airspeed_mps": (("AIRSPEED_MAX", 1.0), ("ARSPD_FBW_MAX", 1.0)),
+    "bank_limit_deg": (("ROLL_LIMIT_DEG", 1.0), ("LIM_ROLL_CD", 0.01)),
+    "wp_loiter_radius_m": (("WP_LOITER_RAD", 1.0),),
+    "capture_radius_m": (("WP_RADIUS", 1.0),),
+}
+PX4_NAMES: dict[str, tuple[tuple[str, float], ...]] = {
+    "min_airspeed_mps": (("FW_AIRSPD_MIN", 1.0),),
+    "cruise_mps": (("FW_AIRSPD_TRIM", 1.0),),
+    "max_airspeed_mps": (("FW_AIRSPD_MAX", 1.0),),
+    "bank_limit_deg": (("FW_R_LIM", 1.0),),
+    "wp_loiter_radius_m": (("NAV_LOITER_RAD", 1.0),),
+    "capture_radius_m": (("NAV_ACC_RAD", 1.0),),
+}
+#: how long to wait for the answers, and how often to ask again for the missing ones (wall s)
+READ_WINDOW_S = 4.0
+RESEND_S = 0.5
+
+
+@dataclass(frozen=True)
+class Airframe:
+    """One vehicle's flight limits (SI units), and where they came from."""
+
+    system_id: int
+    min_airspeed_mps: float
+    cruise_mps: float
+    max_airspeed_mps: float
+    bank_limit_deg: float
+    wp_loiter_radius_m: float
+    capture_radius_m: float
+    #: parameter names answered; the fields of names not answered hold the daemon's defaults
+    read: tuple[str, ...] = ()
+    defaulted: tuple[str, ...] = ()
+
+    def min_turn_radius_m(self, speed_mps: float) -> float:
+        """``v**2 / (g tan(bank))``."""
+        return speed_mps**2 / (9.80665 * math.tan(math.radians(self.bank_limit_deg)))
+
+    def describe(self) -> str:
+        speeds = f"{self.min_airspeed_mps:g}..{self.max_airspeed_mps:g}"
+        turn = self.min_turn_radius_m(self.cruise_mps)
+        text = (
+            f"vehicle {self.system_id}: airspeed {speeds} m/s (cruise {self.cruise_mps:g}), "
+            f"bank limit {self.bank_limit_deg:g} deg (turn radius {turn:.0f} m at cruise), "
+            f"loiter radius {self.wp_loiter_radius_m:g} m"
+        )
+        if self.defaulted:
+            text += f" (not reported, assumed: {', '.join(self.defaulted)})"
+        return text
+
+
+def names_for(vehicle: VehicleState) -> dict[str, tuple[tuple[str, float], ...]]:
+    """The parameter names of the vehicle's autopilot (PX4 by its HEARTBEAT, else ArduPilot)."""
+    return PX4_NAMES if vehicle.autopilot == mavlink.MAV_AUTOPILOT_PX4 else ARDUPILOT_NAMES
+
+
+def default_airframe(system_id: int, cfg: PlannerConfig) -> dict[str, float]:
+    """What the daemon assumes of an airframe that does not say: the scenario's speed, v..1.5 v
+    (the paper's grid flies a diagonal cell in one step), 45 deg bank, no loiter radius of its
+    own (the tightest circle it can fly), 90 m acceptance."""
+    v = cfg.speed_mps
+    return {
+        "min_airspeed_mps": v,
+        "cruise_mps": v,
+        "max_airspeed_mps": 1.5 * v,
+        "bank_limit_deg": 45.0,
+        "wp_loiter_radius_m": 0.0,
+        "capture_radius_m": 90.0,
+    }
+
+
+def _value(vehicle: VehicleState, options: tuple[tuple[str, float], ...]) -> tuple[str, float]:
+    for name, scale in options:
+        if name in vehicle.params:
+            return name, vehicle.params[name] * scale
+    return "", math.nan
+
+
+def airframe_from_params(vehicle: VehicleState, cfg: PlannerConfig) -> Airframe:
+    """The vehicle's airframe from the parameters it has answered (defaults for the rest)."""
+    fields = default_airframe(vehicle.system_id, cfg)
+    read, defaulted = [], []
+    for key, options in names_for(vehicle).items():
+        name, value = _value(vehicle, options)
+        if name and math.isfinite(value) and (value > 0 or key == "wp_loiter_radius_m"):
+            fields[key] = abs(value)  # WP_LOITER_RAD < 0 means counter-clockwise
+            read.append(name)
+        else:
+            defaulted.append(options[0][0])
+    return Airframe(vehicle.system_id, **fields, read=tuple(read), defaulted=tuple(defaulted))
+
+
+def request_params(vehicle: VehicleState, names: list[str]) -> None:
+    """PARAM_REQUEST_READ by name (param_index -1) for each name, to the autopilot."""
+    for name in names:
+        vehicle.link.mav.param_request_read_send(
+            vehicle.system_id, AUTOPILOT_COMPONENT_ID, name.encode(), -1
+        )
+
+
+def read_airframes(
+    vehicles: list[VehicleState],
+    cfg: PlannerConfig,
+    wait: Callable[[Callable[[], bool], float], bool],
+    window_s: float = READ_WINDOW_S,
+) -> list[Airframe]:
+    """Ask every vehicle for its limits (all names at once, the missing ones again every
+    ``RESEND_S``) and return each one's airframe once every field has an answer, or at the end
+    of ``window_s`` with defaults for the rest."""
+
+    def missing(v: VehicleState) -> list[str]:
+        out = []
+        for options in names_for(v).values():
+            if not any(name in v.params for name, _ in options):
+                out += [name for name, _ in options]
+        return out
+
+    deadline = time.monotonic() + window_s
+    while True:
+        todo = [(v, missing(v)) for v in vehicles]
+        todo = [(v, names) for v, names in todo if names]
+        if not todo or time.monotonic() >= deadline:
+            break
+        for v, names in todo:
+            request_params(v, names)
+        wait(lambda: all(not missing(v) for v in vehicles), RESEND_S)
+    return [airframe_from_params(v, cfg) for v in vehicles]
+
+
+def scenario_plane_model(
+    cfg: PlannerConfig,
+    airspeed_range_mps: tuple[float, float] | None = None,
+    bank_limit_deg: float | None = None,
+) -> PlaneModel:
+    """The plane model flown until the airframes are read at launch (then
+    :func:`fleet_plane_model`): the scenario's speed v, leg timing over ``airspeed_range_mps``
+    (default v .. 1.5 v), ``bank_limit_deg`` (default 45 deg). A range that does not hold v is
+    refused in one line."""
+    v = cfg.speed_mps
+    slowest, fastest = airspeed_range_mps or (v, 1.5 * v)
+    if not 0 < slowest <= v <= fastest:
+        raise UserError(
+            f"airspeed range {slowest:g}..{fastest:g} m/s must hold the scenario's speed "
+            f"{v:g} m/s (--airspeed-range MIN:MAX with MIN <= speed <= MAX)"
+        )
+    return PlaneModel(
+        speed_mps=v,
+        bank_limit_deg=bank_limit_deg or 45.0,
+        min_speed_mps=slowest,
+        max_speed_mps=fastest,
+        slowest_mps=v,
+    )
+
+
+def fleet_plane_model(
+    airframes: list[Airframe],
+    cfg: PlannerConfig,
+    airspeed_range_mps: tuple[float, float] | None = None,
+    bank_limit_deg: float | None = None,
+) -> PlaneModel:
+    """One plane model for the fleet: the most restrictive limits of its airframes. The leg
+    timing range is v .. min(1.5 v, AIRSPEED_MAX) (never below v: a slower plane turns more
+    than phi_max in a step), unless ``airspeed_range_mps`` is given; ``bank_limit_deg`` given
+    overrides the airframes' bank limit."""
+    v = cfg.speed_mps
+    slowest_allowed = max(a.min_airspeed_mps for a in airframes)
+    fastest_allowed = min(a.max_airspeed_mps for a in airframes)
+    if airspeed_range_mps is not None:
+        low, high = airspeed_range_mps
+    else:
+        low = min(max(v, slowest_allowed), fastest_allowed)
+        high = max(min(1.5 * v, fastest_allowed), low)
+    return PlaneModel(
+        speed_mps=v,
+        bank_limit_deg=bank_limit_deg or min(a.bank_limit_deg for a in airframes),
+        capture_radius_m=max(a.capture_radius_m for a in airframes),
+        wp_loiter_radius_m=max(a.wp_loiter_radius_m for a in airframes),
+        min_speed_mps=low,
+        max_speed_mps=high,
+        slowest_mps=min(slowest_allowed, v),
+    )
+
+
+#: the safety envelope's threat margin never exceeds this (km): about the minimum turn radius of
+#: the simulator's 100 m/s plane at 45 deg, the margin the daemon has always flown it with
+MAX_THREAT_MARGIN_KM = 1.0
+
+
+def threat_margin_km(model: PlaneModel, predicted_margin_km: float) -> float:
+    """The safety envelope's clearance of each leg from the threat circles for this airframe:
+    the circle the plane flies around a guided target at cruise (WP_LOITER_RAD, or its tightest
+    turn when wider) plus the flight envelope's predicted margin, at most
+    ``MAX_THREAT_MARGIN_KM``. ArduPlane's defaults: 0.08 + 0.25 = 0.33 km; the simulator's plane:
+    1 km. A 1 km margin for a plane that circles within 80 m left three ArduPlane SITL planes
+    held beside the threat zones of arduplane-3uav for most of a mission (59 overrides in 40
+    steps)."""
+    loiter_km = float(model.loiter_radius_km(model.speed_mps))
+    return min(loiter_km + predicted_margin_km, MAX_THREAT_MARGIN_KM)
+
+
+def scenario_warnings(airframes: list[Airframe], cfg: PlannerConfig) -> list[str]:
+    """One line per thing the scenario asks that an airframe cannot fly, each with its fix."""
+    lines = []
+    v, step, cell_m = cfg.speed_mps, cfg.step_s, cfg.cell_km * 1000.0
+    for a in airframes:
+        if not a.min_airspeed_mps <= v <= a.max_airspeed_mps:
+            fit_step = cell_m / a.cruise_mps
+            lines.append(
+                f"vehicle {a.system_id} flies {a.min_airspeed_mps:g}..{a.max_airspeed_mps:g} m/s "
+                f"but the scenario's UAV speed is {v:g} m/s: set speed_mps = {a.cruise_mps:g} in "
+                f"the scenario's [parameters] (its cruise) and step_s = {fit_step:.0f} (one "
+                f"{cfg.cell_km:g} km cell per step), or use an airframe that flies {v:g} m/s"
+            )
+            continue
+        diagonal = math.sqrt(2.0) * cell_m / step
+        if cell_m / step > a.max_airspeed_mps or diagonal > a.max_airspeed_mps:
+            need = math.ceil(math.sqrt(2.0) * cell_m / a.max_airspeed_mps)
+            which = "a cell" if cell_m / step > a.max_airspeed_mps else "a diagonal cell"
+            lines.append(
+                f"vehicle {a.system_id} cannot fly {which} of {cfg.cell_km:g} km in one "
+                f"{step:g} s step (needs {diagonal:.1f} m/s diagonally, AIRSPEED_MAX "
+                f"{a.max_airspeed_mps:g}): it will fall behind the grid; set step_s >= {need} "
+                f"in the scenario's [parameters], or a smaller cell_km"
+            )
+    return list(dict.fromkeys(lines))

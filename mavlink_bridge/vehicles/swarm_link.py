@@ -1,0 +1,232 @@
+"""All the daemon's endpoints and the vehicles heard on them, pumped from one loop.
+
+``SwarmLink.pump(timeout)`` waits for datagrams on every endpoint, parses them, logs every frame
+to the .tlog, routes each message to the ``VehicleState`` of its system id (a new vehicle is
+registered by its autopilot's HEARTBEAT), and sends the daemon's own GCS heartbeat at 1 Hz.
+
+Only what is authentic or plausible changes a vehicle's state (``_dispatch``): with signing on,
+an unsigned frame (RADIO_STATUS / RADIO, which pass the signature check unsigned) changes
+nothing; every other frame must come from the address its vehicle component is bound to and
+pass the plausibility rules (``telemetry_plausibility.py``). What fails is logged and counted.
+"""
+
+from __future__ import annotations
+
+import selectors
+import time
+from collections.abc import Callable, Iterable
+
+from mavlink_bridge.vehicles.telemetry_plausibility import PlausibilityFilter
+from mavlink_bridge.vehicles.vehicle_state import VehicleState
+from mavlink_wire.links import Address, Endpoint, VehicleLink, open_endpoint
+from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, mavlink
+from mavlink_wire.signing import SignatureCheck, is_signed, sign_outgoing
+from mavlink_wire.tlog import TlogWriter
+
+#: Vehicle kinds that are not vehicles (ground stations, cameras, gimbals...).
+_NOT_VEHICLES = {
+    mavlink.MAV_TYPE_GCS,
+    mavlink.MAV_TYPE_CAMERA,
+    mavlink.MAV_TYPE_GIMBAL,
+    mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+    mavlink.MAV_TYPE_ADSB,
+}
+
+
+class SwarmLink:
+    """The endpoints, the vehicles by system id, and the receive loop."""
+
+    def __init__(
+        self,
+        endpoints: list[Endpoint],
+        tlog: TlogWriter | None = None,
+        heartbeat_period_s: float = 1.0,
+        accept_system_id: Callable[[int], bool] | None = None,
+        signing_key: bytes | None = None,
+        plausibility: PlausibilityFilter | None = None,
+    ) -> None:
+        self.endpoints = endpoints
+        self.plausibility = plausibility or PlausibilityFilter()
+        # MAVLink 2 signing: every frame we send is signed, every frame we hear is checked
+        self.signing_key = signing_key
+        self.signature_check = SignatureCheck(signing_key) if signing_key is not None else None
+        for endpoint in endpoints:
+            endpoint.signature_check = self.signature_check
+        self.tlog = tlog
+        self.heartbeat_period_s = heartbeat_period_s
+        self.accept_system_id = accept_system_id or (lambda sysid: 1 <= sysid < 250)
+        self.vehicles: dict[int, VehicleState] = {}
+        self._selector = selectors.DefaultSelector()
+        self._watched: dict[int, int] = {}  # id(endpoint) -> the file descriptor selected on
+        for endpoint in endpoints:
+            self._watch(endpoint)
+        self._last_heartbeat_s = -1e9
+        # udpout peers that wait for our first word get their own GCS link until a vehicle answers
+        self._openers = [VehicleLink(0, e, None, tlog) for e in endpoints if e.needs_first_word]
+        for opener in self._openers:
+            self._secure(opener)
+        self.messages_received = 0
+        #: called with (vehicle, message) after the vehicle's state took each message in
+        #: (e.g. the continuous safety account, track_audit.py)
+        self.listeners: list[Callable[[VehicleState, mavlink.MAVLink_message], None]] = []
+
+    @classmethod
+    def open(
+        cls, specs: Iterable[str], tlog: TlogWriter | None = None, **kwargs: object
+    ) -> SwarmLink:
+        """Open every endpoint (closing those already opened if one fails)."""
+        opened: list[Endpoint] = []
+        try:
+            for spec in specs:
+                opened.append(open_endpoint(spec))
+        except Exception:
+            for endpoint in opened:
+                endpoint.close()
+            raise
+        return cls(opened, tlog, **kwargs)  # type: ignore[arg-type]
+
+    def describe(self) -> str:
+        """The endpoints as the user gave them, with the real port of udpin:...:0."""
+        parts = []
+        for e in self.endpoints:
+            kind = e.spec.split(":")[0]
+            parts.append(f"{kind}:{e.host}:{e.port}")
+        return ", ".join(parts)
+
+    # ------------------------------------------------------------------ receive
+
+    def _watch(self, endpoint: Endpoint) -> None:
+        fd = endpoint.fileno()
+        self._selector.register(fd, selectors.EVENT_READ, endpoint)
+        self._watched[id(endpoint)] = fd
+
+    def _unwatch(self, endpoint: Endpoint) -> None:
+        fd = self._watched.pop(id(endpoint), None)
+        if fd is not None:
+            self._selector.unregister(fd)
+
+    def _reconnect_due(self) -> None:
+        """Connections that went away (a TCP vehicle that closed) are tried again, with backoff."""
+        now = time.monotonic()
+        for endpoint in self.endpoints:
+            if endpoint.closed_reason is None:
+                continue
+            self._unwatch(endpoint)  # (it may have gone away while sending)
+            if endpoint.reconnect(now):
+                self._watch(endpoint)
+
+    def pump(self, timeout_s: float = 0.0) -> int:
+        """Receive and dispatch whatever arrives within ``timeout_s``; returns the message count.
+        An endpoint whose connection goes away stops being read (its vehicles fall silent) until
+        it is connected again."""
+        self._reconnect_due()
+        self.send_heartbeat_if_due()
+        count = 0
+        for key, _ in self._selector.select(max(0.0, timeout_s)):
+            endpoint: Endpoint = key.data
+            now = time.monotonic()
+            for msg, address in endpoint.receive():
+                self._dispatch(msg, endpoint, address, now)
+                count += 1
+            if endpoint.closed_reason is not None:
+                self._unwatch(endpoint)
+        self.messages_received += count
+        self.send_heartbeat_if_due()
+        return count
+
+    def pump_until(self, done: Callable[[], bool], timeout_s: float, poll_s: float = 0.05) -> bool:
+        """Pump until ``done()`` is true (returns True) or ``timeout_s`` passes (returns False)."""
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            self.pump(min(poll_s, left))
+        return True
+
+    def _dispatch(
+        self, msg: mavlink.MAVLink_message, endpoint: Endpoint, address: Address | None, now: float
+    ) -> None:
+        if self.tlog is not None:
+            self.tlog.write(msg.get_msgbuf())
+        trust = self.plausibility
+        if self.signature_check is not None and not is_signed(msg.get_msgbuf()):
+            trust.counts.unsigned_ignored += 1  # authentic frames are signed: believe nothing
+            return
+        sysid, compid = msg.get_srcSystem(), msg.get_srcComponent()
+        vehicle = self.vehicles.get(sysid)
+        if vehicle is None:
+            if not self._is_new_vehicle(msg) or not trust.admit(sysid, msg, now):
+                return
+            link = self._secure(VehicleLink(sysid, endpoint, address, self.tlog))
+            vehicle = VehicleState(sysid, link)
+            self.vehicles[sysid] = vehicle
+            trust.admit_address(sysid, compid, (id(endpoint), address), now)
+        else:
+            verdict = trust.admit_address(sysid, compid, (id(endpoint), address), now)
+            if verdict == "refused" or not trust.admit(sysid, msg, now):
+                return
+            if compid != AUTOPILOT_COMPONENT_ID:
+                self._route_component(vehicle, compid, endpoint, address)
+            elif verdict == "moved":
+                vehicle.link.moved(endpoint, address)  # a reboot, a new socket: replies follow
+        vehicle.handle(msg, now)
+        for listen in self.listeners:
+            listen(vehicle, msg)
+
+    def _route_component(
+        self, vehicle: VehicleState, component: int, endpoint: Endpoint, address: Address | None
+    ) -> None:
+        """Route by (system, component): a component heard where its autopilot is not (a
+        payload simulator's camera on its own link) is answered where it is heard; one heard
+        on the autopilot's link (routed through the autopilot, as ArduPilot does) shares it."""
+        on_autopilot_link = vehicle.link.endpoint is endpoint and (
+            address is None or address == vehicle.link.address
+        )
+        if on_autopilot_link:
+            vehicle.component_links.pop(component, None)
+            return
+        link = vehicle.component_links.get(component)
+        if link is None:
+            vehicle.component_links[component] = self._secure(
+                VehicleLink(vehicle.system_id, endpoint, address, self.tlog)
+            )
+        elif link.endpoint is not endpoint or (address is not None and link.address != address):
+            link.moved(endpoint, address)
+
+    def _secure(self, link: VehicleLink) -> VehicleLink:
+        """Sign what ``link`` sends (link id = the vehicle's system id: one stream each)."""
+        if self.signing_key is not None:
+            sign_outgoing(link.mav, self.signing_key, link.system_id)
+        return link
+
+    def _is_new_vehicle(self, msg: mavlink.MAVLink_message) -> bool:
+        return (
+            msg.get_type() == "HEARTBEAT"
+            and msg.get_srcComponent() == AUTOPILOT_COMPONENT_ID
+            and msg.type not in _NOT_VEHICLES
+            and self.accept_system_id(msg.get_srcSystem())
+        )
+
+    # ------------------------------------------------------------------ send
+
+    def send_heartbeat_if_due(self) -> None:
+        now = time.monotonic()
+        if now - self._last_heartbeat_s >= self.heartbeat_period_s:
+            self._last_heartbeat_s = now
+            self.send_heartbeat()
+
+    def send_heartbeat(self) -> None:
+        """Our GCS heartbeat to every vehicle (and to udpout peers not heard from yet)."""
+        links = [v.link for v in self.vehicles.values()]
+        served = {id(v.link.endpoint) for v in self.vehicles.values()}
+        links += [o for o in self._openers if id(o.endpoint) not in served]
+        for link in links:
+            link.mav.heartbeat_send(
+                mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
+            )
+
+    def close(self) -> None:
+        self._selector.close()
+        for endpoint in self.endpoints:
+            endpoint.close()
