@@ -28,7 +28,7 @@ def test_a_stalled_step_is_counted_late_and_said_once(paper10, udp_port, fake_sw
 
     def on_step(status) -> None:
         if status.step == 4:
-            late_before_stall.append(daemon.late_steps)
+            late_before_stall.append(daemon.account.late_steps)
             time.sleep(0.8)  # the planner stalls for ~40 s of the vehicles' clock
 
     daemon.options.on_step = on_step
@@ -79,12 +79,12 @@ def test_a_step_s_commands_are_sent_several_times_before_its_deadline(
         swarm.vehicles[0].silent.set()  # hears nothing: no acknowledgement
         home = mavlink.MAVLINK_MSG_ID_HOME_POSITION
         started = time.monotonic()
-        (step,) = daemon.send([request_message_command(vehicle, home)], deadline=started + 0.3)
+        (step,) = daemon.ctx.send([request_message_command(vehicle, home)], deadline=started + 0.3)
         assert step.ack is None and step.attempts >= STEP_SENDS, step.attempts
         assert time.monotonic() - started < 0.3 + 0.2  # and no later than the deadline
         assert 0.3 / step.attempts >= MIN_RETRY_S / 2  # never faster than the floor
         started = time.monotonic()
-        (launch,) = daemon.send([request_message_command(vehicle, home)], attempts=2)
+        (launch,) = daemon.ctx.send([request_message_command(vehicle, home)], attempts=2)
         # two sends 0.3 s apart at 1x; at 20x one every 20 ms over the same 0.6 s
         assert launch.ack is None and launch.attempts == 2 * round(0.3 / MIN_RETRY_S)
         assert 0.4 < time.monotonic() - started < 1.5
@@ -141,7 +141,7 @@ def test_without_looks_steps_keep_the_vehicles_clock_and_lateness_is_counted(
     schedule = instants[0] + step_ms * np.arange(len(instants))
     assert (np.array(instants) >= schedule - 2500).all(), (instants, schedule)
     assert result["late_steps"] >= int((gaps > 1.5 * step_ms).sum()), (gaps, result["late_steps"])
-    assert daemon.pacing is not None and daemon.pacing.current.name == "vehicle clock"
+    assert daemon.loop.pacing is not None and daemon.loop.pacing.current.name == "vehicle clock"
 
 
 def test_without_any_vehicle_clock_steps_keep_a_wall_clock_schedule_and_a_stall_is_late(udp_port):
