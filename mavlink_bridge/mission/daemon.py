@@ -305,14 +305,12 @@ class MissionDaemon:
         self.audit.set_phase("rtl")
         sent_to: list[int] = []
         skipped: dict[int, str] = {}
-        # an interrupted daemon does not stay to watch the flight home, so holds no plane
-        flight = self.home.state
         completed = ended.startswith("completed")
-        flight.separate = completed
         stages = self.loop.stages
         try:
+            # an interrupted daemon does not stay to watch the flight home, so holds no plane
             sent_to, skipped = self.home.return_to_launch(
-                None if stages is None else stages.end_leg_timing
+                None if stages is None else stages.end_leg_timing, separate=completed
             )
             if completed:  # (an interrupted daemon does not stay to watch)
                 self.home.watch_rtl()
@@ -326,15 +324,7 @@ class MissionDaemon:
         except Exception as exc:  # noqa: BLE001 - a result of what is known, whatever happens
             self.loop.state = None
             result = self.result_so_far(f"{ended} (no flight result: {exc})", where)
-        # a vehicle guided around threats got its RTL during the watch, once the way was clear
-        later = (flight.detoured | flight.held) - set(flight.homing) - set(flight.holding)
-        result["rtl_sent_to"] = sorted(set(sent_to) | later)
-        result["guided_home_around_threats"] = sorted(flight.detoured)
-        result["held_for_separation_home"] = sorted(flight.held)
-        result["home_circle_speeds_mps"] = {
-            str(k): round(v, 1) for k, v in sorted(flight.circles.speeds_mps.items())
-        }
-        result["rtl_not_sent"] = {str(k): why for k, why in sorted(skipped.items())}
+        result.update(self.home.result(sent_to, skipped))
         result["track_audit"] = self.audit.summary()
         self.close()
         self.report = MissionReport(result, self.account.events)

@@ -26,6 +26,7 @@ from mavlink_bridge.mission.loop_state import LoopState, course_heading
 from mavlink_bridge.mission.pacing import (
     STEP_DEADLINE_SHARE,
     DecisionInstant,
+    Lateness,
     PacingChoice,
     PacingContext,
 )
@@ -66,7 +67,6 @@ class DecisionLoop:
             None
             if ctx.options.lockstep
             else HoldWhenLate(
-                cfg.step_s,
                 cfg.step_s if ctx.options.late_bound_s is None else ctx.options.late_bound_s,
                 ctx.say,
             )
@@ -246,8 +246,9 @@ class DecisionLoop:
             if step < ctx.steps:  # the decisions of the mission's steps, as offline counts them
                 state.recorder.record_modes(plan.decision.modes)
             batch = stages.command_batch(state, inputs, plan, flight)
-            late = pacing.current.late(instant) if step > 0 else False
-            if self.holds(step, state, inputs.active):
+            # how late the step's commands go out, measured once (pacing.Lateness)
+            lateness = pacing.current.lateness(instant) if step > 0 else None
+            if self.holds(step, lateness):
                 self.audit.set_phase("hold")  # nothing new: the planes circle their last targets
                 self.hold_apart(state, inputs.active, instant.deadline)
             else:
@@ -259,18 +260,18 @@ class DecisionLoop:
             homeward = self.home.guide_stray_returns() + self.home.guide_sent_home()
             ctx.send(homeward, deadline=instant.deadline)
             self.look_times.note(step, state.positions_ms, inputs.active)
-            self.tell_listeners(state, inputs, plan, flight, late)
+            self.tell_listeners(state, inputs, plan, flight, lateness is not None and lateness.late)
             if checkpoints is not None:  # atomically, after every step
                 checkpoints.save(step, ctx.account, state.checkpoint_view(), elapsed_s())
             if plan.done.all() and not ctx.scenario.config.home_by_end:
                 break  # (home_by_end: the mission ends at its last step, as offline)
         ctx.options = replace(ctx.options, leg_timing=stages.leg_timing)
 
-    def holds(self, step: int, state: LoopState, active: np.ndarray) -> bool:
+    def holds(self, step: int, lateness: Lateness | None) -> bool:
         """Paced time: is this step too late to fly (``keeping_up.HoldWhenLate``)?"""
-        if self.hold_policy is None or step == 0:
+        if self.hold_policy is None or lateness is None:
             return False
-        return self.hold_policy.hold(step, state.positions_ms, self.ctx.vehicles(), active)
+        return self.hold_policy.hold(step, lateness.seconds)
 
     def hold_apart(self, state: LoopState, active: np.ndarray, deadline: float | None) -> None:
         """Held planes whose circles at their last targets would come within d_min of each

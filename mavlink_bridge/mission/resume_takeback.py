@@ -306,7 +306,7 @@ def send_home(
         return
     by_id = {v.system_id: v for v in ctx.vehicles()}
     for t in home:
-        flight_home.state.sent_home[t.system_id] = t.why
+        flight_home.send_home(t.system_id, t.why)
         loss.retire(t.system_id - 1, "sent home at the resume")
     planes = [by_id[t.system_id] for t in home]
     for c in ctx.send(flight_home.homeward_commands(planes, announce=True)):

@@ -81,7 +81,7 @@ _TAGGED = 32
 MAX_STATE_BYTES = 1 << 30
 _HINT = "delete it to start the mission afresh, or give another --checkpoint"
 
-#: The decision loop's variables a checkpoint holds (see MissionDaemon._decision_loop).
+#: The decision loop's variables a checkpoint holds (``mission.decision_loop``).
 LOOP_STATE = (
     "planner",
     "recorder",
@@ -471,12 +471,6 @@ def with_derived(restored: Any, fresh: Any) -> None:
             setattr(dst, name, getattr(src, name))
 
 
-def restore_counters(account: Any, checkpoint: Checkpoint) -> None:
-    """Put the mission's counters (``MissionAccount``, :data:`DAEMON_STATE`) back."""
-    for name in DAEMON_STATE:
-        setattr(account, name, checkpoint.daemon[name])
-
-
 def resume_loop_state(account: Any, checkpoint: Checkpoint, fresh_planner: Any) -> dict[str, Any]:
     """The decision loop's variables from ``checkpoint``, with the mission's counters restored
     into ``account``.
@@ -486,7 +480,8 @@ def resume_loop_state(account: Any, checkpoint: Checkpoint, fresh_planner: Any) 
     parts the restored one takes."""
     with_derived(checkpoint.loop["planner"], fresh_planner)
     break_measured_legs(checkpoint.loop["recorder"])
-    restore_counters(account, checkpoint)
+    for name in DAEMON_STATE:
+        setattr(account, name, checkpoint.daemon[name])
     return checkpoint.loop
 
 

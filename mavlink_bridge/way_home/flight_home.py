@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -110,6 +110,33 @@ class FlightHomePhase:
     def __init__(self, ctx: HomeContext, state: FlightHome | None = None) -> None:
         self.ctx = ctx
         self.state = FlightHome() if state is None else state
+
+    def send_home(self, system_id: int, why: str) -> None:
+        """A plane a resumed daemon sends home (``resume_takeback.py``): from now on it flies
+        the safe way home (``guide_sent_home``), never the mission."""
+        self.state.sent_home[system_id] = why
+
+    def sent_home(self) -> set[int]:
+        """The planes a resumed daemon sent home, by system id."""
+        return set(self.state.sent_home)
+
+    def result(self, sent_to: list[int], skipped: dict[int, str]) -> dict[str, Any]:
+        """The flight home in the mission's result: RTL sent to (``sent_to`` by
+        ``return_to_launch``, and every plane guided or held that got it during the watch),
+        guided around threats, held for separation, the home circles' speeds, and why RTL was
+        not sent (``skipped``)."""
+        flight = self.state
+        # a vehicle guided around threats got its RTL during the watch, once the way was clear
+        later = (flight.detoured | flight.held) - set(flight.homing) - set(flight.holding)
+        return {
+            "rtl_sent_to": sorted(set(sent_to) | later),
+            "guided_home_around_threats": sorted(flight.detoured),
+            "held_for_separation_home": sorted(flight.held),
+            "home_circle_speeds_mps": {
+                str(k): round(v, 1) for k, v in sorted(flight.circles.speeds_mps.items())
+            },
+            "rtl_not_sent": {str(k): why for k, why in sorted(skipped.items())},
+        }
 
     def home_routes(self) -> HomeRoutes:
         """The way home around threats (RTL flies straight) for the plane model and threat
@@ -290,15 +317,19 @@ class FlightHomePhase:
         return self.homeward_commands(planes, announce=False) if planes else []
 
     def return_to_launch(
-        self, end_leg_timing: Callable[[list[VehicleState]], object] | None = None
+        self,
+        end_leg_timing: Callable[[list[VehicleState]], object] | None = None,
+        separate: bool = False,
     ) -> tuple[list[int], dict[int, str]]:
         """RTL (at cruise speed) to every airborne vehicle still reachable whose way home is clear
         of threats; one whose is not is guided around them (``homeward_commands``, re-judged by
         ``watch_rtl``). Returns the system ids RTL was sent to and, for every vehicle not
         reachable or not flying, why not; says both, and warns of every vehicle that did not
         accept. ``end_leg_timing``: the decision loop's, once it ran; before it, cruise is asked
-        of every plane flying when leg timing is on."""
+        of every plane flying when leg timing is on. ``separate``: keep the ways home d_min
+        apart (only when the daemon stays to watch the flight home, ``watch_rtl``)."""
         flight = self.state
+        flight.separate = separate
         if self.ctx.link is None:
             return [], {}
         flying, skipped = rtl_recipients(

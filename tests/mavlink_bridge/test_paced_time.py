@@ -165,7 +165,7 @@ def test_without_any_vehicle_clock_steps_keep_a_wall_clock_schedule_and_a_stall_
         first = pacing.wait(1, [])
         assert pacing.current.name == "wall clock" and time.monotonic() >= before + period
         time.sleep(3 * period)  # this step stalls three periods before its commands go out
-        assert pacing.current.late(first)
+        assert pacing.current.lateness(first).late
         assert account.late_steps == 1 and "behind the vehicles' clock at step 1" in said[0]
         pacing.wait(2, [])
         # the schedule kept its phase: instants at whole periods from the start, none skipped
