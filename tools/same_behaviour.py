@@ -85,7 +85,8 @@ def main() -> int:
     before = json.loads(args.file.read_text())
     changed = 0
     for name in runs:
-        found = differences(before[name], runs[name])
+        recorded = {key: value for key, value in before[name].items() if key not in MACHINE}
+        found = differences(recorded, runs[name])
         changed += bool(found)
         print(f"{name}: {'identical' if not found else f'{len(found)} differences'}")
         for line in found[:5]:

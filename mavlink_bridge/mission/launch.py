@@ -162,8 +162,8 @@ def take_off(launch: Launch) -> None:
     link = ctx.require_link()
     options = ctx.options
     # (a plane a resumed daemon sent home flies home: ``take_back``)
-    home = launch.home.sent_home()
-    vehicles = [v for v in ctx.vehicles() if v.system_id not in home]
+    sent_home = launch.home.sent_home()
+    vehicles = [v for v in ctx.vehicles() if v.system_id not in sent_home]
     climb = climb_m(ctx)
     attempts = options.launch_command_attempts
     if not vehicles:
