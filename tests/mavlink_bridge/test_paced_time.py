@@ -148,7 +148,9 @@ def test_without_any_vehicle_clock_steps_keep_a_wall_clock_schedule_and_a_stall_
     """Vehicles that report no time at all (no position, no SYSTEM_TIME): a decision instant
     every period of the told time scale, never before it, on a schedule whatever a step takes;
     a step whose commands go out more than half a period after its instant is counted late and
-    said. (Paced this way, the daemon once said 0 late steps whatever happened.)"""
+    said. (Paced this way, the daemon once said 0 late steps whatever happened.) The hold when
+    late reads that same measure of the step's lateness."""
+    from mavlink_bridge.mission.keeping_up import HoldWhenLate
     from mavlink_bridge.mission.pacing import PacingChoice, PacingContext
     from mavlink_bridge.results.mission_result import MissionAccount
 
@@ -165,8 +167,11 @@ def test_without_any_vehicle_clock_steps_keep_a_wall_clock_schedule_and_a_stall_
         first = pacing.wait(1, [])
         assert pacing.current.name == "wall clock" and time.monotonic() >= before + period
         time.sleep(3 * period)  # this step stalls three periods before its commands go out
-        assert pacing.current.lateness(first).late
+        lateness = pacing.current.lateness(first)  # measured once: counted, said, held
+        assert lateness.late and lateness.seconds >= 20.0  # ~30 s of the vehicles' clock
         assert account.late_steps == 1 and "behind the vehicles' clock at step 1" in said[0]
+        hold = HoldWhenLate(bound_s=10.0, say=said.append)
+        assert hold.hold(1, lateness.seconds) and "holding at step 1" in said[-1]
         pacing.wait(2, [])
         # the schedule kept its phase: instants at whole periods from the start, none skipped
         # twice
