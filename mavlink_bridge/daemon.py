@@ -465,10 +465,15 @@ class MissionDaemon:
     def watch_links(self, step: int) -> None:
         """Loss and return (``vehicle_loss.LossWatch``), at every pump of the loop; and the
         lines the plausibility filter has to say (a clock restarted, an address moved)."""
+        self.say_notices()
+        self.loss.watch(step)
+
+    def say_notices(self) -> None:
+        """Say, once each, the lines the plausibility filter has to say (a clock restarted, an
+        address moved, a second address refused)."""
         notices = self.require_link().plausibility.notices
         while notices:
             self.say(f"warning: {notices.pop(0)}")
-        self.loss.watch(step)
 
     # ------------------------------------------------------------------ the mission
 

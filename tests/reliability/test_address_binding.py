@@ -1,0 +1,170 @@
+"""No address taken before discovery (issue 31, findings 3 and 6): a real simulator and a real
+daemon over loopback UDP, and a stranger's socket that talks to the daemon before the vehicles
+are first heard. Only an autopilot's HEARTBEAT that carries a vehicle type binds a system id to
+an address; a second address claiming a bound system id is refused, counted once and said in
+one line; nothing is sent to it; and every frame dropped before discovery is counted."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MAVLINK20", "1")
+
+import json  # noqa: E402
+import socket  # noqa: E402
+import threading  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+from loopback import free_udp_port, start_swarmplan, stop  # noqa: E402
+from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
+from reliability_harness import last_json  # noqa: E402
+from test_link_trust import NO_VIOLATIONS, Spoofer, pack  # noqa: E402
+
+from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
+from planner.scenario import load_scenario  # noqa: E402
+
+SCENARIO = "paper-10uav"
+STEPS = 4
+FIXED_WING, ARDUPILOT, GCS, INVALID = (
+    ml.MAV_TYPE_FIXED_WING, ml.MAV_AUTOPILOT_ARDUPILOTMEGA, ml.MAV_TYPE_GCS,
+    ml.MAV_AUTOPILOT_INVALID,
+)  # fmt: skip
+#: GLOBAL_POSITION_INT stamped with the end of the vehicle clock, near the scenario's origin
+FAR_FUTURE = ml.MAVLink_global_position_int_message(
+    0xFFFFFFFF, -353632620, 1491652370, 600000, 500000, 10000, 0, 0, 9000
+)
+
+
+def _heartbeat(kind: int, autopilot: int, version: int = 3) -> ml.MAVLink_heartbeat_message:
+    return ml.MAVLink_heartbeat_message(kind, autopilot, 0, 0, ml.MAV_STATE_STANDBY, version)
+
+
+#: What a stranger sends before the vehicles are heard, as each vehicle's system id and
+#: component 1: nothing here is a vehicle's HEARTBEAT, so none of it may bind an address
+BEFORE_DISCOVERY = [
+    _heartbeat(GCS, INVALID),  # a ground station
+    _heartbeat(FIXED_WING, INVALID),  # a vehicle type, but no autopilot (bound on main)
+    _heartbeat(200, ARDUPILOT),  # no vehicle type (a fuzzed one; bound on main)
+    _heartbeat(FIXED_WING, ARDUPILOT, version=0),  # not the protocol's version byte
+    ml.MAVLink_command_ack_message(ml.MAV_CMD_COMPONENT_ARM_DISARM, ml.MAV_RESULT_ACCEPTED),
+    FAR_FUTURE,
+]
+#: What it adds once the vehicles are bound: a vehicle's HEARTBEAT claiming their system ids
+AFTER_DISCOVERY = [*BEFORE_DISCOVERY, _heartbeat(FIXED_WING, ARDUPILOT)]
+
+
+def _wait_for_line(log: Path, text: str, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if text in log.read_text(errors="replace"):
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@pytest.mark.timeout(240)
+def test_a_stranger_heard_before_the_vehicles_takes_no_address(tmp_path: Path):
+    """Finding 3: without signing, a fuzzer started 1 s after launch was taken as vehicles 2,
+    3 and 10, got 29 COMMAND_LONG and 15 lockstep grants meant for them, and the mission
+    aborted before take-off. Here a stranger sends, as every vehicle, HEARTBEATs that are not a
+    vehicle's, COMMAND_ACKs and positions stamped 0xFFFFFFFF from before the daemon listens;
+    the simulator starts only once the daemon listens; after discovery the stranger also sends
+    a vehicle's HEARTBEAT claiming each system id. The daemon binds the simulator's vehicles,
+    flies its steps, sends the stranger nothing, and counts and says the refusals."""
+    port = free_udp_port()
+    sim_log, daemon_log, out = tmp_path / "sim.log", tmp_path / "daemon.log", tmp_path / "out"
+    n = load_scenario(SCENARIO).uav_count
+    discovered = threading.Event()
+
+    def make(k: int) -> bytes:
+        frames = AFTER_DISCOVERY if discovered.is_set() else BEFORE_DISCOVERY
+        sysid = 1 + k % n
+        return pack(frames[k // n % len(frames)], sysid, 1, k)
+
+    spoofer = Spoofer(port, make, period_s=0.002)
+    spoofer.start()
+    daemon = start_swarmplan(
+        ["daemon", "--connect", f"udpin:127.0.0.1:{port}", "--scenario", SCENARIO, "--seed", "3",
+         "--steps", str(STEPS), "--lockstep", "--timeout", "60", "--out", str(out), "--no-view"],
+        daemon_log,
+    )  # fmt: skip
+    sim = None
+    try:
+        assert _wait_for_line(daemon_log, "listening on", 60), daemon_log.read_text()[-2000:]
+        time.sleep(1.0)  # the stranger alone on the daemon's port, as in the audit
+        sim = start_swarmplan(
+            ["sim", "--scenario", SCENARIO, "--seed", "3", "--lockstep", "--speedup", "100",
+             "--gcs-port", str(port), "--quiet"],
+            sim_log,
+        )  # fmt: skip
+        assert _wait_for_line(daemon_log, "vehicles heard;", 60), daemon_log.read_text()[-2000:]
+        discovered.set()
+        daemon.wait(180)
+    finally:
+        spoofer.stop()
+        stop(daemon)
+        if sim is not None:
+            stop(sim)
+    log = daemon_log.read_text(errors="replace")
+    assert "Traceback" not in log, log[-3000:]
+    assert daemon.returncode == 0, log[-3000:]
+    result = json.loads((out / "result.json").read_text())
+    assert result["steps"] == STEPS and result["lost_uavs"] == []
+    assert result["violations"] == NO_VIOLATIONS
+    assert spoofer.sent > 1000
+    assert spoofer.received == 0, spoofer.received_types  # nothing meant for a vehicle
+    trust = result["plausibility"]
+    assert trust["unbound"] > 0, trust  # the stranger's frames before discovery, each counted
+    assert trust["second_address"] > 0, trust
+    # one address refused per system id it claims, counted once and said once
+    assert trust["address_conflicts"] == n, trust
+    said = [line for line in log.splitlines() if ": refused 127.0.0.1:" in line]
+    assert len(said) == n, said
+    assert trust["address_moves"] == 0, trust
+    summary = last_json(sim_log)
+    assert summary is not None and summary["fence_breaches"] == 0
+
+
+def _dropped(counts: dict[str, int]) -> int:
+    """Frames the plausibility filter dropped (its counters but the accepted events)."""
+    return sum(v for k, v in counts.items() if k not in ("address_moves", "clock_rebases"))
+
+
+@pytest.mark.timeout(200)
+def test_every_spoofed_clock_before_discovery_is_counted(tmp_path: Path):
+    """Finding 6: GLOBAL_POSITION_INT with time_boot_ms 0xFFFFFFFF sent 0.6 and 1.0 s after the
+    start was dropped but not counted (1.5 s after, once the vehicles were heard, it was). Here
+    the daemon listens, 20 such frames as vehicles 1 and 2 arrive before any vehicle, and every
+    one is counted; the mission then flies with the simulator."""
+    scenario = load_scenario("paper-2uav")
+    daemon = MissionDaemon(
+        scenario,
+        DaemonOptions(
+            connect=["udpin:127.0.0.1:0"], seed=2, steps=STEPS, lockstep=True,
+            discovery_timeout_s=60, rtl_watch_s=0.0,
+        ),
+    )  # fmt: skip
+    link = daemon.connect()
+    port = link.endpoints[0].port
+    spoofs = 20
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as stranger:
+        for k in range(spoofs):
+            stranger.sendto(pack(FAR_FUTURE, 1 + k % 2, 1, k), ("127.0.0.1", port))
+        deadline = time.monotonic() + 10
+        while link.messages_received < spoofs and time.monotonic() < deadline:
+            link.pump(0.1)
+    assert link.messages_received == spoofs and not link.vehicles
+    assert _dropped(link.plausibility.counts.as_dict()) == spoofs  # every one counted
+    sim = start_swarmplan(
+        ["sim", "--scenario", "paper-2uav", "--seed", "2", "--lockstep", "--speedup", "100",
+         "--gcs-port", str(port), "--quiet"],
+        tmp_path / "sim.log",
+    )  # fmt: skip
+    try:
+        result = daemon.fly().result
+    finally:
+        stop(sim)
+    assert result["steps"] == STEPS and result["violations"] == NO_VIOLATIONS
+    assert result["plausibility"]["unbound"] >= spoofs
