@@ -19,13 +19,17 @@ from pathlib import Path  # noqa: E402
 import pytest  # noqa: E402
 from loopback import free_udp_port, start_swarmplan, stop  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
-from reliability_harness import last_json  # noqa: E402
+from reliability_harness import KEY_HEX, last_json  # noqa: E402
 from test_link_trust import NO_VIOLATIONS, Spoofer, pack  # noqa: E402
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon  # noqa: E402
+from mavlink_bridge.signing import sign_outgoing  # noqa: E402
+from mavlink_bridge.swarm_link import SwarmLink  # noqa: E402
+from mavlink_bridge.telemetry_plausibility import PlausibilityFilter, PlausibilityLimits  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 
 SCENARIO = "paper-10uav"
+KEY = bytes.fromhex(KEY_HEX)
 STEPS = 4
 FIXED_WING, ARDUPILOT, GCS, INVALID = (
     ml.MAV_TYPE_FIXED_WING, ml.MAV_AUTOPILOT_ARDUPILOTMEGA, ml.MAV_TYPE_GCS,
@@ -168,3 +172,95 @@ def test_every_spoofed_clock_before_discovery_is_counted(tmp_path: Path):
         stop(sim)
     assert result["steps"] == STEPS and result["violations"] == NO_VIOLATIONS
     assert result["plausibility"]["unbound"] >= spoofs
+
+
+class _Sender:
+    """A UDP socket sending as (system 1, component 1) to ``port``: a vehicle, or a stranger."""
+
+    def __init__(self, port: int, key: bytes | None = None) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(2.0)
+        self.address = self.sock.getsockname()
+        self.target = ("127.0.0.1", port)
+        self.mav = ml.MAVLink(None, 1, 1)
+        if key is not None:
+            sign_outgoing(self.mav, key, 1)
+
+    def send(self, *msgs: ml.MAVLink_message) -> None:
+        for msg in msgs:
+            self.sock.sendto(bytes(msg.pack(self.mav)), self.target)
+
+    def heard_heartbeat(self) -> bool:
+        """A HEARTBEAT from the daemon arrived here within 2 s."""
+        try:
+            data = self.sock.recv(65535)
+        except TimeoutError:
+            return False
+        return any(m.get_type() == "HEARTBEAT" for m in ml.MAVLink(None).parse_buffer(data) or ())
+
+
+def _pump(link: SwarmLink, seconds: float) -> None:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        link.pump(0.05)
+
+
+@pytest.mark.timeout(60)
+def test_a_vehicle_moves_only_by_its_own_heartbeat_after_its_address_fell_silent():
+    """The rule for addresses that really move (a rebooted vehicle on a new socket): the bound
+    address silent for ``move_after_s`` and a vehicle HEARTBEAT of the same type from the new
+    one. A stranger's ACKs, positions, a ground station's or another vehicle type's HEARTBEAT
+    in that silence move nothing (before: any 3 frames did)."""
+    limits = PlausibilityLimits(move_after_s=1.0)
+    link = SwarmLink.open(["udpin:127.0.0.1:0"], plausibility=PlausibilityFilter(limits))
+    port = link.endpoints[0].port
+    vehicle, stranger, rebooted = _Sender(port), _Sender(port), _Sender(port)
+    try:
+        vehicle.send(_heartbeat(FIXED_WING, ARDUPILOT))
+        assert link.pump_until(lambda: 1 in link.vehicles, 5.0)
+        assert link.vehicles[1].link.address == vehicle.address
+        ack = ml.MAVLink_command_ack_message(ml.MAV_CMD_DO_REPOSITION, ml.MAV_RESULT_ACCEPTED)
+        quad = _heartbeat(ml.MAV_TYPE_QUADROTOR, ARDUPILOT)
+        stranger.send(ack, FAR_FUTURE)  # while the vehicle is alive: refused
+        _pump(link, 1.3)  # the vehicle falls silent for longer than move_after_s
+        for _ in range(5):
+            stranger.send(ack, FAR_FUTURE, _heartbeat(GCS, INVALID), quad)
+        _pump(link, 0.3)
+        assert link.vehicles[1].link.address == vehicle.address  # nothing there moved it
+        counts = link.plausibility.counts
+        assert counts.address_moves == 0 and counts.address_conflicts == 1
+        rebooted.send(_heartbeat(FIXED_WING, ARDUPILOT))  # the vehicle back on a new socket
+        _pump(link, 0.3)
+        assert link.vehicles[1].link.address == rebooted.address
+        assert counts.address_moves == 1
+        link.send_heartbeat()
+        assert rebooted.heard_heartbeat()  # the daemon's frames follow the vehicle
+    finally:
+        link.close()
+        for s in (vehicle, stranger, rebooted):
+            s.sock.close()
+
+
+@pytest.mark.timeout(60)
+def test_with_signing_only_a_signed_heartbeat_binds():
+    """Signing on: a stranger's unsigned vehicle HEARTBEATs, sent before the vehicle's own,
+    bind nothing (refused and counted by the signature check); the vehicle's signed HEARTBEAT binds it."""
+    link = SwarmLink.open(["udpin:127.0.0.1:0"], signing_key=KEY)
+    port = link.endpoints[0].port
+    stranger, vehicle = _Sender(port), _Sender(port, key=KEY)
+    try:
+        for _ in range(5):
+            stranger.send(_heartbeat(FIXED_WING, ARDUPILOT))
+        _pump(link, 0.3)
+        assert not link.vehicles and link.signature_check.unsigned_refused == 5
+        vehicle.send(_heartbeat(FIXED_WING, ARDUPILOT))
+        assert link.pump_until(lambda: 1 in link.vehicles, 5.0)
+        assert link.vehicles[1].link.address == vehicle.address
+        stranger.send(_heartbeat(FIXED_WING, ARDUPILOT))
+        _pump(link, 0.3)
+        assert link.vehicles[1].link.address == vehicle.address
+    finally:
+        link.close()
+        stranger.sock.close()
+        vehicle.sock.close()
