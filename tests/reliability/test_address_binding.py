@@ -69,16 +69,21 @@ def _wait_for_line(log: Path, text: str, timeout_s: float) -> bool:
 
 
 @pytest.mark.timeout(240)
-def test_a_stranger_heard_before_the_vehicles_takes_no_address(tmp_path: Path):
+@pytest.mark.parametrize("signed", [False, True], ids=["unsigned", "signed"])
+def test_a_stranger_heard_before_the_vehicles_takes_no_address(tmp_path: Path, signed: bool):
     """Finding 3: without signing, a fuzzer started 1 s after launch was taken as vehicles 2,
     3 and 10, got 29 COMMAND_LONG and 15 lockstep grants meant for them, and the mission
     aborted before take-off. Here a stranger sends, as every vehicle, HEARTBEATs that are not a
     vehicle's, COMMAND_ACKs and positions stamped 0xFFFFFFFF from before the daemon listens;
     the simulator starts only once the daemon listens; after discovery the stranger also sends
     a vehicle's HEARTBEAT claiming each system id. The daemon binds the simulator's vehicles,
-    flies its steps, sends the stranger nothing, and counts and says the refusals."""
+    flies its steps, sends the stranger nothing, and counts and says the refusals. Signed, the
+    signature check refuses all of it first (counted there; no second address to refuse)."""
     port = free_udp_port()
     sim_log, daemon_log, out = tmp_path / "sim.log", tmp_path / "daemon.log", tmp_path / "out"
+    key_file = tmp_path / "mission.key"
+    key_file.write_text(KEY_HEX + "\n")
+    signing = ["--signing-key-file", str(key_file)] if signed else []
     n = load_scenario(SCENARIO).uav_count
     discovered = threading.Event()
 
@@ -91,7 +96,8 @@ def test_a_stranger_heard_before_the_vehicles_takes_no_address(tmp_path: Path):
     spoofer.start()
     daemon = start_swarmplan(
         ["daemon", "--connect", f"udpin:127.0.0.1:{port}", "--scenario", SCENARIO, "--seed", "3",
-         "--steps", str(STEPS), "--lockstep", "--timeout", "60", "--out", str(out), "--no-view"],
+         "--steps", str(STEPS), "--lockstep", "--timeout", "60", "--out", str(out), "--no-view",
+         *signing],
         daemon_log,
     )  # fmt: skip
     sim = None
@@ -100,7 +106,7 @@ def test_a_stranger_heard_before_the_vehicles_takes_no_address(tmp_path: Path):
         time.sleep(1.0)  # the stranger alone on the daemon's port, as in the audit
         sim = start_swarmplan(
             ["sim", "--scenario", SCENARIO, "--seed", "3", "--lockstep", "--speedup", "100",
-             "--gcs-port", str(port), "--quiet"],
+             "--gcs-port", str(port), "--quiet", *signing],
             sim_log,
         )  # fmt: skip
         assert _wait_for_line(daemon_log, "vehicles heard;", 60), daemon_log.read_text()[-2000:]
@@ -117,18 +123,22 @@ def test_a_stranger_heard_before_the_vehicles_takes_no_address(tmp_path: Path):
     result = json.loads((out / "result.json").read_text())
     assert result["steps"] == STEPS and result["lost_uavs"] == []
     assert result["violations"] == NO_VIOLATIONS
+    summary = last_json(sim_log)
+    assert summary is not None and summary["fence_breaches"] == 0
     assert spoofer.sent > 1000
     assert spoofer.received == 0, spoofer.received_types  # nothing meant for a vehicle
     trust = result["plausibility"]
+    said = [line for line in log.splitlines() if ": refused 127.0.0.1:" in line]
+    if signed:  # nothing unsigned reaches the binding: refused and counted by the signature check
+        assert result["signing"]["unsigned_refused"] > 1000, result["signing"]
+        assert trust["address_conflicts"] == trust["second_address"] == 0 and not said, trust
+        return
     assert trust["unbound"] > 0, trust  # the stranger's frames before discovery, each counted
     assert trust["second_address"] > 0, trust
     # one address refused per system id it claims, counted once and said once
     assert trust["address_conflicts"] == n, trust
-    said = [line for line in log.splitlines() if ": refused 127.0.0.1:" in line]
     assert len(said) == n, said
     assert trust["address_moves"] == 0, trust
-    summary = last_json(sim_log)
-    assert summary is not None and summary["fence_breaches"] == 0
 
 
 def _dropped(counts: dict[str, int]) -> int:
@@ -245,7 +255,8 @@ def test_a_vehicle_moves_only_by_its_own_heartbeat_after_its_address_fell_silent
 @pytest.mark.timeout(60)
 def test_with_signing_only_a_signed_heartbeat_binds():
     """Signing on: a stranger's unsigned vehicle HEARTBEATs, sent before the vehicle's own,
-    bind nothing (refused and counted by the signature check); the vehicle's signed HEARTBEAT binds it."""
+    bind nothing (refused and counted by the signature check); the vehicle's signed HEARTBEAT
+    binds it."""
     link = SwarmLink.open(["udpin:127.0.0.1:0"], signing_key=KEY)
     port = link.endpoints[0].port
     stranger, vehicle = _Sender(port), _Sender(port, key=KEY)
