@@ -12,7 +12,8 @@ authentic"):
 2. **One address per vehicle component**: a vehicle exists once its autopilot (component 1)
    announces it: a HEARTBEAT that carries a vehicle type (``swarm_link.claims_vehicle``); it is
    bound to the address (and endpoint) of that HEARTBEAT. Another component is bound by its own
-   HEARTBEAT, or by its first frame from the autopilot's address (routed through it). Any other
+   HEARTBEAT, or by a frame from the autopilot's address (routed through it; this one wins over
+   a HEARTBEAT heard elsewhere first, which may have been a stranger's). Any other
    frame of a (system, component) bound to nothing binds nothing and is dropped (``unbound``).
    A frame of it from another address is ``second_address``; each such address is said once in
    a line and counted once (``address_conflicts``), and nothing is sent to it. A binding moves
@@ -208,23 +209,32 @@ class PlausibilityFilter:
         or ``"unbound"`` (the component is bound nowhere and this frame cannot bind it)."""
         trust = self._trust(sysid)
         binding = trust.bindings.get(compid)
+        autopilot = trust.bindings.get(AUTOPILOT_COMPONENT_ID)
+        via_autopilot = compid != AUTOPILOT_COMPONENT_ID and (
+            autopilot is not None and autopilot.where == where
+        )
         if binding is None:
-            autopilot = trust.bindings.get(AUTOPILOT_COMPONENT_ID)
-            if announces or (autopilot is not None and autopilot.where == where):
+            if announces or via_autopilot:
                 trust.bindings[compid] = _Binding(where, now_s)
                 return "bound"
-            self.counts.unbound += 1
+            self.unbound()
             return "unbound"
         if binding.where == where:
             binding.heard_s = now_s
             return "bound"
         silent_s = now_s - binding.heard_s
-        if announces and silent_s >= self.limits.move_after_s:
+        # a component heard through its autopilot is there, whoever claimed it elsewhere first
+        if via_autopilot or (announces and silent_s >= self.limits.move_after_s):
             trust.bindings[compid] = _Binding(where, now_s)
             self.counts.address_moves += 1
+            why = (
+                "heard through its autopilot"
+                if via_autopilot
+                else f"its old address silent {silent_s:.1f} s"
+            )
             self.notices.append(
                 f"vehicle {sysid} component {compid} moved to {_place(where)} "
-                f"(its old address silent {silent_s:.1f} s)"
+                f"from {_place(binding.where)} ({why})"
             )
             return "moved"
         self.counts.second_address += 1

@@ -30,6 +30,7 @@ from planner.scenario import load_scenario  # noqa: E402
 
 SCENARIO = "paper-10uav"
 KEY = bytes.fromhex(KEY_HEX)
+CAMERA = ml.MAV_COMP_ID_CAMERA
 STEPS = 4
 FIXED_WING, ARDUPILOT, GCS, INVALID = (
     ml.MAV_TYPE_FIXED_WING, ml.MAV_AUTOPILOT_ARDUPILOTMEGA, ml.MAV_TYPE_GCS,
@@ -275,3 +276,33 @@ def test_with_signing_only_a_signed_heartbeat_binds():
         link.close()
         stranger.sock.close()
         vehicle.sock.close()
+
+
+@pytest.mark.timeout(60)
+def test_a_camera_claimed_by_a_stranger_is_taken_back_through_its_autopilot():
+    """A stranger's camera HEARTBEAT as (1, 100), heard before the vehicle's own camera, bound
+    the camera to the stranger (engagement commands went there; before, the real camera's
+    frames were then refused). Now the camera's frames through its autopilot's address take it
+    back, and commands to it go there."""
+    link = SwarmLink.open(["udpin:127.0.0.1:0"])
+    port = link.endpoints[0].port
+    vehicle, stranger = _Sender(port), _Sender(port)
+    camera_of = {s: ml.MAVLink(None, 1, CAMERA) for s in (vehicle, stranger)}
+    camera_beat = _heartbeat(ml.MAV_TYPE_CAMERA, INVALID)
+    try:
+        vehicle.send(_heartbeat(FIXED_WING, ARDUPILOT))
+        assert link.pump_until(lambda: 1 in link.vehicles, 5.0)
+        stranger.sock.sendto(bytes(camera_beat.pack(camera_of[stranger])), stranger.target)
+        assert link.pump_until(lambda: CAMERA in link.vehicles[1].component_links, 5.0)
+        vehicle.sock.sendto(bytes(camera_beat.pack(camera_of[vehicle])), vehicle.target)
+        _pump(link, 0.3)
+        assert link.vehicles[1].link_for(CAMERA).address == vehicle.address
+        for _ in range(3):  # the stranger's camera HEARTBEATs go on: refused now
+            stranger.sock.sendto(bytes(camera_beat.pack(camera_of[stranger])), stranger.target)
+        _pump(link, 0.3)
+        assert link.vehicles[1].link_for(CAMERA).address == vehicle.address
+        assert link.plausibility.counts.address_conflicts == 1
+    finally:
+        link.close()
+        vehicle.sock.close()
+        stranger.sock.close()
