@@ -73,8 +73,12 @@ class SwarmLink:
         accept_system_id: Callable[[int], bool] | None = None,
         signing_key: bytes | None = None,
         plausibility: PlausibilityFilter | None = None,
+        may_move: Callable[[VehicleState], bool] | None = None,
     ) -> None:
         self.endpoints = endpoints
+        #: whether a vehicle's binding may move to a new address (the daemon: only a vehicle
+        #: it counts as gone); without it, the bound address's silence alone decides
+        self.may_move = may_move or (lambda vehicle: True)
         self.plausibility = plausibility or PlausibilityFilter()
         # MAVLink 2 signing: every frame we send is signed, every frame we hear is checked
         self.signing_key = signing_key
@@ -196,7 +200,8 @@ class SwarmLink:
             self.vehicles[sysid] = vehicle
             trust.admit_address(sysid, compid, where, now, announces=True)
         else:
-            verdict = trust.admit_address(sysid, compid, where, now, self._announces(vehicle, msg))
+            announces, may_move = self._announces(vehicle, msg), self.may_move(vehicle)
+            verdict = trust.admit_address(sysid, compid, where, now, announces, may_move)
             if verdict in ("refused", "unbound") or not trust.admit(sysid, msg, now):
                 return
             if compid != AUTOPILOT_COMPONENT_ID:

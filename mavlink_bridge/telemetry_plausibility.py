@@ -17,9 +17,12 @@ authentic"):
    frame of a (system, component) bound to nothing binds nothing and is dropped (``unbound``).
    A frame of it from another address is ``second_address``; each such address is said once in
    a line and counted once (``address_conflicts``), and nothing is sent to it. A binding moves
-   only when the bound address has been silent for ``move_after_s`` wall seconds *and* the new
-   one announces the component again (for the autopilot: the vehicle type it registered with):
-   a reboot, a new socket; the move is counted (``address_moves``) and said.
+   only when the bound address has been silent for ``move_after_s`` wall seconds, the daemon
+   counts the vehicle as gone (lost to silence or a closed link, ``vehicle_loss.py``: never in
+   a whole-swarm pause of a lockstep simulator, when every bound address is silent and a
+   stranger could step in), *and* the new address announces the component again (for the
+   autopilot: the vehicle type it registered with): a reboot, a new socket; the move is
+   counted (``address_moves``) and said.
 3. **Fields in range**: positions on Earth, altitude within ``altitude_range_m``, velocities
    below ``max_ground_speed_mps``, heading 0..359.99 deg or unknown, HEARTBEAT enums in range and
    the vehicle type it registered with (``out_of_range``). Before a vehicle's first believed
@@ -201,12 +204,19 @@ class PlausibilityFilter:
     # ------------------------------------------------------------------ address
 
     def admit_address(
-        self, sysid: int, compid: int, where: tuple[int, Any], now_s: float, announces: bool
+        self,
+        sysid: int,
+        compid: int,
+        where: tuple[int, Any],
+        now_s: float,
+        announces: bool,
+        may_move: bool = True,
     ) -> str:
         """Where a frame of (``sysid``, ``compid``) heard at ``where`` stands (rule 2):
         ``"bound"`` (its own address; a first frame that ``announces`` the component, its
-        HEARTBEAT, binds it), ``"moved"`` (it moves here now), ``"refused"`` (a second address)
-        or ``"unbound"`` (the component is bound nowhere and this frame cannot bind it)."""
+        HEARTBEAT, binds it), ``"moved"`` (it moves here now; only if ``may_move``: the daemon
+        says so of a vehicle it counts as gone), ``"refused"`` (a second address) or
+        ``"unbound"`` (the component is bound nowhere and this frame cannot bind it)."""
         trust = self._trust(sysid)
         binding = trust.bindings.get(compid)
         autopilot = trust.bindings.get(AUTOPILOT_COMPONENT_ID)
@@ -224,7 +234,7 @@ class PlausibilityFilter:
             return "bound"
         silent_s = now_s - binding.heard_s
         # a component heard through its autopilot is there, whoever claimed it elsewhere first
-        if via_autopilot or (announces and silent_s >= self.limits.move_after_s):
+        if via_autopilot or (announces and may_move and silent_s >= self.limits.move_after_s):
             trust.bindings[compid] = _Binding(where, now_s)
             self.counts.address_moves += 1
             why = (

@@ -10,7 +10,9 @@ import os
 
 os.environ.setdefault("MAVLINK20", "1")
 
+import contextlib  # noqa: E402
 import json  # noqa: E402
+import signal  # noqa: E402
 import socket  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
@@ -77,7 +79,8 @@ def test_a_stranger_heard_before_the_vehicles_takes_no_address(tmp_path: Path, s
     aborted before take-off. Here a stranger sends, as every vehicle, HEARTBEATs that are not a
     vehicle's, COMMAND_ACKs and positions stamped 0xFFFFFFFF from before the daemon listens;
     the simulator starts only once the daemon listens; after discovery the stranger also sends
-    a vehicle's HEARTBEAT claiming each system id. The daemon binds the simulator's vehicles,
+    a vehicle's HEARTBEAT claiming each system id, also while the whole simulator is paused
+    longer than --lost-after. The daemon binds the simulator's vehicles,
     flies its steps, sends the stranger nothing, and counts and says the refusals. Signed, the
     signature check refuses all of it first (counted there; no second address to refuse)."""
     port = free_udp_port()
@@ -112,11 +115,19 @@ def test_a_stranger_heard_before_the_vehicles_takes_no_address(tmp_path: Path, s
         )  # fmt: skip
         assert _wait_for_line(daemon_log, "vehicles heard;", 60), daemon_log.read_text()[-2000:]
         discovered.set()
+        # the whole simulator paused longer than --lost-after (a loaded machine): every bound
+        # address silent while the stranger claims the vehicles; no vehicle moves to it
+        assert _wait_for_line(daemon_log, "airborne, GUIDED", 120), daemon_log.read_text()[-2000:]
+        os.kill(sim.pid, signal.SIGSTOP)
+        time.sleep(4.5)
+        os.kill(sim.pid, signal.SIGCONT)
         daemon.wait(180)
     finally:
         spoofer.stop()
         stop(daemon)
         if sim is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(sim.pid, signal.SIGCONT)
             stop(sim)
     log = daemon_log.read_text(errors="replace")
     assert "Traceback" not in log, log[-3000:]
