@@ -52,8 +52,8 @@ def _heartbeat(kind: int, autopilot: int, version: int = 3) -> ml.MAVLink_heartb
 #: component 1: nothing here is a vehicle's HEARTBEAT, so none of it may bind an address
 BEFORE_DISCOVERY = [
     _heartbeat(GCS, INVALID),  # a ground station
-    _heartbeat(FIXED_WING, INVALID),  # a vehicle type, but no autopilot (bound on main)
-    _heartbeat(200, ARDUPILOT),  # no vehicle type (a fuzzed one; bound on main)
+    _heartbeat(FIXED_WING, INVALID),  # a vehicle type, but no autopilot (once enough to bind)
+    _heartbeat(200, ARDUPILOT),  # no vehicle type (a fuzzed one; once enough to bind)
     _heartbeat(FIXED_WING, ARDUPILOT, version=0),  # not the protocol's version byte
     ml.MAVLink_command_ack_message(ml.MAV_CMD_COMPONENT_ARM_DISARM, ml.MAV_RESULT_ACCEPTED),
     FAR_FUTURE,
