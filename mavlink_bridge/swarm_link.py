@@ -191,7 +191,7 @@ class SwarmLink:
         vehicle = self.vehicles.get(sysid)
         if vehicle is None:
             if not (claims_vehicle(msg) and self.accept_system_id(sysid)):
-                trust.unbound()  # nothing binds but a vehicle's HEARTBEAT (rule 2)
+                trust.unbound(sysid, where)  # nothing binds but a vehicle's HEARTBEAT (rule 2)
                 return
             if not trust.admit(sysid, msg, now):
                 return

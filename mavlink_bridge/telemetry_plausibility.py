@@ -14,7 +14,9 @@ authentic"):
    bound to the address (and endpoint) of that HEARTBEAT. Another component is bound by its own
    HEARTBEAT, or by a frame from the autopilot's address (routed through it; this one wins over
    a HEARTBEAT heard elsewhere first, which may have been a stranger's). Any other
-   frame of a (system, component) bound to nothing binds nothing and is dropped (``unbound``).
+   frame of a (system, component) bound to nothing binds nothing and is dropped (``unbound``:
+   the frames of senders that never became the vehicle; a vehicle's own frames before its
+   first HEARTBEAT are taken back from it when it binds).
    A frame of it from another address is ``second_address``; each such address is said once in
    a line and counted once (``address_conflicts``), and nothing is sent to it. A binding moves
    only when the bound address has been silent for ``move_after_s`` wall seconds, the daemon
@@ -114,6 +116,9 @@ class PlausibilityCounts:
 _NO_POSITION_E7 = 10_000
 #: second addresses remembered (each counted once in ``address_conflicts``), and said in a line
 _CONFLICTS_REMEMBERED = 1024
+#: (system id, address) pairs whose unbound frames are remembered (a vehicle's own, before its
+#: first HEARTBEAT, are taken back when it binds); beyond, a new sender's frames just count
+_SENDERS_REMEMBERED = 4096
 _CONFLICTS_SAID = 10
 
 
@@ -200,6 +205,8 @@ class PlausibilityFilter:
         self.notices: list[str] = []
         #: (system, component, where) of every second address refused so far
         self._conflicts: set[tuple[int, int, tuple[int, Any]]] = set()
+        #: frames of (system, where) dropped while nothing was bound (``unbound``)
+        self._unbound: dict[tuple[int, tuple[int, Any]], int] = {}
 
     # ------------------------------------------------------------------ address
 
@@ -225,9 +232,9 @@ class PlausibilityFilter:
         )
         if binding is None:
             if announces or via_autopilot:
-                trust.bindings[compid] = _Binding(where, now_s)
+                self._bind(trust, compid, where, now_s)
                 return "bound"
-            self.unbound()
+            self.unbound(sysid, where)
             return "unbound"
         if binding.where == where:
             binding.heard_s = now_s
@@ -235,7 +242,7 @@ class PlausibilityFilter:
         silent_s = now_s - binding.heard_s
         # a component heard through its autopilot is there, whoever claimed it elsewhere first
         if via_autopilot or (announces and may_move and silent_s >= self.limits.move_after_s):
-            trust.bindings[compid] = _Binding(where, now_s)
+            self._bind(trust, compid, where, now_s)
             self.counts.address_moves += 1
             why = (
                 "heard through its autopilot"
@@ -273,10 +280,19 @@ class PlausibilityFilter:
                 "(address_conflicts), not said"
             )
 
-    def unbound(self) -> None:
-        """A frame of a system id no vehicle is bound to (before its autopilot's first
-        HEARTBEAT, or a sender that is not a vehicle): dropped, counted."""
+    def unbound(self, sysid: int, where: tuple[int, Any]) -> None:
+        """A frame of (``sysid``, bound to nothing) from ``where``: dropped, and counted while
+        ``where`` is not bound to ``sysid`` (``_bind`` takes back the count of a vehicle's own
+        frames before its first HEARTBEAT: ``unbound`` is what senders that never became a
+        vehicle sent)."""
         self.counts.unbound += 1
+        key = (sysid, where)
+        if key in self._unbound or len(self._unbound) < _SENDERS_REMEMBERED:
+            self._unbound[key] = self._unbound.get(key, 0) + 1
+
+    def _bind(self, trust: VehicleTrust, compid: int, where: tuple[int, Any], now_s: float) -> None:
+        trust.bindings[compid] = _Binding(where, now_s)
+        self.counts.unbound -= self._unbound.pop((trust.system_id, where), 0)
 
     def _trust(self, sysid: int) -> VehicleTrust:
         trust = self.vehicles.get(sysid)
