@@ -11,7 +11,7 @@ from typing import Any
 
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, StepStatus
 from mavlink_bridge.mission_result import lost_vehicle_lines
-from mavlink_bridge.signing import KEY_ENV, load_signing_key
+from mavlink_bridge.signing import KEY_ENV, load_signing_key, unsigned_warning
 from mission_view.view_session import add_view_arguments
 from planner.errors import UserError
 from planner.metrics import format_summary
@@ -66,6 +66,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "vehicle has no clock of its own; default 3)",
     )
     parser.add_argument(
+        "--rtl-watch",
+        type=non_negative_float,
+        metavar="S",
+        help="after the last step, watch the flight home for at most S of the vehicles' "
+        "seconds (0: not at all; default: the farthest plane's flight home plus two minutes)",
+    )
+    parser.add_argument(
         "--threat-margin-km",
         type=non_negative_float,
         default=None,
@@ -96,7 +103,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         metavar="PATH",
         help="MAVLink 2 signing key (64 hex characters or 32 bytes): sign everything sent, "
-        f"refuse unsigned frames; default ${KEY_ENV} if set (never a command-line value)",
+        f"refuse unsigned frames; default ${KEY_ENV} if set (never a command-line value), "
+        "else unsigned (said at start); `swarmplan sim --signing-key-file PATH` makes one",
     )
     parser.add_argument(
         "--lockstep",
@@ -150,6 +158,13 @@ def validate(args: argparse.Namespace) -> None:
         raise UserError("--resume needs --checkpoint PATH (the file to resume from)")
 
 
+def warn_if_unsigned(daemon: MissionDaemon) -> None:
+    """One line on stderr (also with --json) when the mission flies without MAVLink signing."""
+    if daemon.options.signing_key is None:
+        fix = "give --signing-key-file PATH with the vehicles' key"
+        print(f"swarmplan daemon: warning: {unsigned_warning(fix)}", file=sys.stderr, flush=True)
+
+
 def print_step(status: StepStatus) -> None:
     lost = f" lost {status.lost}" if status.lost else ""
     print(
@@ -179,6 +194,7 @@ def daemon_options(args: argparse.Namespace, out: Path) -> DaemonOptions:
         lockstep=args.lockstep,
         leg_timing=args.leg_timing,
         airspeed_range_mps=args.airspeed_range,
+        rtl_watch_s=args.rtl_watch,
         checkpoint_path=args.checkpoint,
         resume=args.resume,
         signing_key=load_signing_key(args.signing_key_file),

@@ -38,6 +38,7 @@ from mavlink_bridge.airframe import (
     threat_margin_km,
 )
 from mavlink_bridge.checkpoint import (
+    DAEMON_STATE,
     Checkpoint,
     CheckpointError,
     CheckpointWriter,
@@ -49,6 +50,7 @@ from mavlink_bridge.decision_step import DecisionStep, LoopState, course_heading
 from mavlink_bridge.flight_envelope import FlightEnvelope
 from mavlink_bridge.flight_home import (
     FlightHome,
+    guide_sent_home,
     guide_stray_returns,
     reposition_to,
     return_separation,
@@ -81,6 +83,7 @@ from mavlink_bridge.mission_result import (
 )
 from mavlink_bridge.pacing import STEP_DEADLINE_SHARE, DecisionInstant, PacingChoice, PacingContext
 from mavlink_bridge.protocol import mavlink
+from mavlink_bridge.resume_takeback import CONTINUE, LAUNCH, TakeBack, account_outage
 from mavlink_bridge.safety_envelope import SafetyEnvelope
 from mavlink_bridge.swarm_link import SwarmLink
 from mavlink_bridge.telemetry_plausibility import PlausibilityFilter, PlausibilityLimits
@@ -251,9 +254,13 @@ class MissionDaemon:
         self.checkpoints = (
             None
             if options.checkpoint_path is None
-            else CheckpointWriter(options.checkpoint_path, self.fingerprint, background=True)
+            else CheckpointWriter(
+                options.checkpoint_path, self.fingerprint, background=True, key=options.signing_key
+            )
         )
         self.resume_from: Checkpoint | None = None
+        #: a resumed daemon's decision for each plane (resume_takeback.py)
+        self.take_back: list[TakeBack] = []
         self.clock: LockstepClock | None = None
         self.pacing: PacingChoice | None = None
         self.stages: DecisionStep | None = None
@@ -283,6 +290,7 @@ class MissionDaemon:
             project=lambda lat, lon: geodetic_to_local_km(lat, lon, scenario.origin),
         )
         self.state: LoopState | None = None  # the decision loop's, once it runs
+        self.ended_early: str | None = None  # why the mission ended before its last step
         self.report: MissionReport | None = None  # set on every way out of fly()
         self.started = time.monotonic()
         #: one vehicle's failure stays one vehicle's: lost and rejoined (vehicle_loss.py)
@@ -490,9 +498,18 @@ class MissionDaemon:
         if self.options.resume and self.resume_from is None:
             if self.options.checkpoint_path is None:
                 raise UserError("--resume needs --checkpoint PATH (the file to resume from)")
-            HapfAcoPlanner, _ = _import_planner()
             self.resume_from = load_for_mission(
-                self.options.checkpoint_path, self.fingerprint, HapfAcoPlanner
+                self.options.checkpoint_path,
+                self.fingerprint,
+                self.checkpoint_template(),
+                self.options.signing_key,
+            )
+        writer = self.checkpoints
+        if writer is not None and writer.key is None and not writer.announced:
+            writer.announced = True  # (once: a caller may call prepare first)
+            self.say(
+                f"note: checkpoint {self.options.checkpoint_path} is not authenticated (no "
+                f"signing key): anyone who can write it can change what --resume does"
             )
         self.refuse_unkeepable_time_scale()
         return self.link if self.link is not None else self.connect()
@@ -515,7 +532,7 @@ class MissionDaemon:
         except BaseException as exc:
             self.finish(ended_by(exc))
             raise
-        return self.finish("completed")
+        return self.finish(self.ended_early or "completed")
 
     def refuse_unkeepable_time_scale(self) -> None:
         """Paced time: calibrate a step's computation on this machine and refuse, in one line,
@@ -547,10 +564,11 @@ class MissionDaemon:
         skipped: dict[int, str] = {}
         # an interrupted daemon does not stay to watch the flight home, so holds no plane
         flight = self.flight_home
-        flight.separate = ended == "completed"
+        completed = ended.startswith("completed")
+        flight.separate = completed
         try:
             sent_to, skipped = return_to_launch(self)
-            if ended == "completed":  # (an interrupted daemon does not stay to watch)
+            if completed:  # (an interrupted daemon does not stay to watch)
                 watch_rtl(self)
         except Exception as exc:  # noqa: BLE001 - the cleanup goes on whatever happens
             self.say(f"warning: RTL could not be sent to every vehicle ({exc})")
@@ -588,6 +606,8 @@ class MissionDaemon:
         )
         extra["ended"] = ended
         extra["ended_in_phase"] = phase
+        if self.take_back:
+            extra["resume_decisions"] = [t.row() for t in self.take_back]
         if self.hold_policy is not None:
             extra["held_steps"] = self.hold_policy.held_steps
             extra["max_lateness_s"] = round(self.hold_policy.max_lateness_s, 2)
@@ -701,13 +721,20 @@ class MissionDaemon:
         )
         return PacingChoice(ctx, self.clock)
 
-    def start_state(self, planner_cls: Any, recorder_cls: Any) -> LoopState:
-        """The loop's state at step 0: the planner and recorder from the UAVs' launch points.
-        Real planes stray from cell centres (turn circle ~1 km, 14 s diagonal legs), so the
-        planner plans with the margins a flown plane needs (``flown_planning.planning_scenario``);
-        the recorder keeps judging against the scenario's own limits."""
+    def start_state(
+        self,
+        planner_cls: Any,
+        recorder_cls: Any,
+        starts: tuple[UavStart, ...] | None = None,
+        consumed: list[int] | None = None,
+    ) -> LoopState:
+        """The loop's state at step 0: the planner and recorder from the UAVs' launch points
+        (``starts``, else from telemetry). Real planes stray from cell centres (turn circle
+        ~1 km, 14 s diagonal legs), so the planner plans with the margins a flown plane needs
+        (``flown_planning.planning_scenario``); the recorder keeps judging against the
+        scenario's own limits."""
         scenario = self.scenario
-        starts = self.starts_from_telemetry()
+        starts = self.starts_from_telemetry() if starts is None else starts
         planner = planner_cls(self.planning_scenario(), starts, self.options.seed)
         PursuitLog().attach(planner)  # the planner's half of the per-target account (read-only)
         recorder = recorder_cls(
@@ -716,8 +743,22 @@ class MissionDaemon:
             turn_tolerance_deg=self.options.turn_tolerance_deg,
             home_reach_km=float(self.plane.loiter_reach_km(self.plane.speed_mps)),
         )
-        consumed = [v.latest_look for v in self.vehicles()]
+        if consumed is None:
+            consumed = [v.latest_look for v in self.vehicles()]
         return LoopState.start(self.grid, planner, recorder, starts, consumed)
+
+    def checkpoint_template(self) -> dict[str, Any]:
+        """What a checkpoint of this mission must look like (``checkpoint.load_for_mission``):
+        the loop state this daemon starts from (at the scenario's starts: the layout is the
+        same) and, under ``daemon``, its counters."""
+        planner_cls, recorder_cls = _import_planner()
+        fallback = self.scenario.starts_for_seed(self.options.seed)
+        starts = tuple(
+            fallback[i] if i < len(fallback) else UavStart(0.5, 0.5, 0.0) for i in range(self.n)
+        )
+        state = self.start_state(planner_cls, recorder_cls, starts, [-1] * self.n)
+        counters = {name: getattr(self, name) for name in DAEMON_STATE}
+        return {**state.checkpoint_view(), "daemon": counters}
 
     def first_instant(self) -> DecisionInstant:
         """Step 0 is the start (no wait): its commands are due within the paced deadline."""
@@ -739,6 +780,11 @@ class MissionDaemon:
                 resume_loop_state(self, self.resume_from, state.planner)
             )
             first_step = self.resume_from.step + 1
+            account_outage(state, self.take_back)
+            if self.take_back and not any(t.decision in (CONTINUE, LAUNCH) for t in self.take_back):
+                self.ended_early = "completed at the resume: no plane can continue (all sent home)"
+                self.say(f"mission {self.ended_early}")
+                return
         for step in range(first_step, self.steps + 1):  # the start, then one record per step
             instant = pacing.wait(step, state.consumed) if step > 0 else self.first_instant()
             inputs = stages.gather(state, step, instant.looks)
@@ -756,8 +802,10 @@ class MissionDaemon:
                 self.audit.set_phase("mission")
                 sent = self.send(batch.commands, deadline=instant.deadline)
                 stages.account(state, step, batch, sent, flight)
-            # planes their fence (or a failsafe) switched to RTL through a zone: guided out
-            self.send(guide_stray_returns(self), deadline=instant.deadline)
+            # planes their fence (or a failsafe) switched to RTL through a zone: guided out;
+            # planes a resumed daemon sent home: on their safe way home
+            homeward = guide_stray_returns(self) + guide_sent_home(self)
+            self.send(homeward, deadline=instant.deadline)
             self.look_times.note(step, state.positions_ms, inputs.active)
             self.tell_listeners(state, inputs, plan, flight, late)
             if self.checkpoints is not None:  # atomically, after every step

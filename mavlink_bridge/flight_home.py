@@ -58,6 +58,8 @@ class FlightHome:
     strays: set[int] = field(default_factory=set)
     #: who circles home slower than cruise, its home being near another's (``home_circles``)
     circles: HomeCircles = field(default_factory=HomeCircles)
+    #: planes a resumed daemon sent home (resume_takeback.py), by system id: why
+    sent_home: dict[int, str] = field(default_factory=dict)
 
 
 def home_routes(daemon: MissionDaemon) -> HomeRoutes:
@@ -203,6 +205,8 @@ def guide_stray_returns(daemon: MissionDaemon) -> list[Command]:
     for v in daemon.vehicles():
         if not (v.custom_mode == PLANE_MODE_RTL and v.armed and v.airborne):
             continue
+        if v.system_id in daemon.flight_home.sent_home:
+            continue  # its flight home is guide_sent_home's
         if v.home is None or not v.has_position or v.link is None or link_down(v) is not None:
             continue
         waypoint = way_home(daemon, routes, v)[3]
@@ -217,6 +221,20 @@ def guide_stray_returns(daemon: MissionDaemon) -> list[Command]:
             )
         commands.append(reposition_to(daemon, v, waypoint))
     return commands
+
+
+def guide_sent_home(daemon: MissionDaemon) -> list[Command]:
+    """During the mission: the planes a resumed daemon sent home (``FlightHome.sent_home``) on
+    their safe way home, re-judged at every decision step (``homeward_commands``: RTL once the
+    straight line is clear, else the next waypoint around the threats, sent when it changes).
+    Returns the commands to send."""
+    sent = daemon.flight_home.sent_home
+    planes = [
+        v
+        for v in daemon.vehicles()
+        if v.system_id in sent and v.airborne and v.home is not None and link_down(v) is None
+    ]
+    return homeward_commands(daemon, planes, announce=False) if planes else []
 
 
 def return_to_launch(daemon: MissionDaemon) -> tuple[list[int], dict[int, str]]:

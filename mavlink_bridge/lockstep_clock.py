@@ -60,7 +60,8 @@ class LockstepError(UserError):
 
 
 class LockstepReleasedError(LockstepError):
-    """The vehicles' clock runs past the granted time: their simulator does not hold."""
+    """The vehicles' clock runs past the granted time: their simulator does not hold (someone
+    else released or granted it time, or it is not in lockstep)."""
 
 
 class LockstepClock:
@@ -72,6 +73,7 @@ class LockstepClock:
         self.wall_timeout_s = wall_timeout_s
         self.time_ms = 0  # where the vehicles hold now
         self.grants = 0
+        self.holds = 0  # grants of ours every vehicle held at: the simulator was in lockstep
 
     def sync(self, vehicles: Sequence[VehicleState]) -> None:
         """Take the vehicles' newest time as the current one (the simulator starts held at 0)."""
@@ -120,30 +122,48 @@ class LockstepClock:
                 ]
                 raise LockstepError(
                     f"vehicle {', '.join(behind)} did not reach simulated time {target / 1000:g} s "
-                    f"within {self.wall_timeout_s:g} s of the grant; is the simulator running "
-                    f"with --lockstep?"
+                    f"within {self.wall_timeout_s:g} s of the grant: its simulator is not running "
+                    f"with --lockstep, is stopped, or refuses our grants (a lockstep simulator "
+                    f"takes them only from the address its vehicles send to: check its "
+                    f"--gcs-host/--gcs-port, and its log for 'refused a lockstep grant')"
                 )
             if now - last_grant > REGRANT_WALL_S:
                 self.grant(vehicles, target)
                 last_grant = now
         self.time_ms = target
+        self.holds += 1
         return target
 
     def _check_held(self, vehicles: Sequence[VehicleState], target: int) -> None:
         """A vehicle whose clock runs past the grant (its positions, dropped, say so): the
-        simulator does not hold any more (it released lockstep after a silence of the ground
-        station, or it was started without --lockstep). Decisions would no longer take effect
-        at the instants they were made for: stop, in one line."""
+        simulator does not hold any more. Decisions would no longer take effect at the instants
+        they were made for: stop, in one line that names what can have happened."""
         trust = self.link.plausibility
         free = [v.system_id for v in vehicles if not v.lost and trust.running_free(v.system_id)]
         if free:
             raise LockstepReleasedError(
-                f"vehicle {', '.join(map(str, free))} runs past the granted simulated time "
-                f"{target / 1000:g} s: its simulator is not in lockstep (released after the "
-                f"ground station was silent, or started without --lockstep); no decision is "
-                f"made against a free-running clock: restart the simulator with --lockstep, or "
-                f"run the daemon paced (--time-scale, no --lockstep)"
+                f"vehicle {', '.join(map(str, free))} ran past the granted simulated time "
+                f"{target / 1000:g} s{self._why_free()}"
             )
+
+    def _why_free(self) -> str:
+        """What can make a simulator run past our grant, and what to do, most likely first."""
+        if self.holds:  # it held at our grants, so it was in lockstep: something released it
+            return (
+                f" after holding at each of our grants up to {self.time_ms / 1000:g} s: "
+                f"something else released or advanced its clock (another ground station or a "
+                f"stranger on its link, sending from the address its vehicles send to; turn "
+                f"signing on), or its simulator released the lock after this daemon was silent "
+                f"for its --lockstep-timeout; no decision is made against a free-running clock: "
+                f"find what released it, then restart the simulator with --lockstep"
+            )
+        return (
+            ": something else grants it time (another ground station on its link?) or its "
+            "simulator is not in lockstep (started without --lockstep, or released after a "
+            "ground station was silent); no decision is made against a free-running clock: "
+            "restart the simulator with --lockstep, or run the daemon paced (--time-scale, no "
+            "--lockstep)"
+        )
 
     def run_until(
         self,

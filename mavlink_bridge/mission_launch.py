@@ -26,6 +26,7 @@ from mavlink_bridge.guided_commands import (
 from mavlink_bridge.mission_upload import FenceCircle, upload_fence
 from mavlink_bridge.protocol import PLANE_MODE_GUIDED, PLANE_MODE_TAKEOFF, mavlink
 from mavlink_bridge.readiness import arm_when_ready
+from mavlink_bridge.resume_takeback import flying, judge_fleet, send_home
 from planner.errors import UserError
 from planner.geodesy import local_km_to_geodetic
 
@@ -50,13 +51,16 @@ def discover(daemon: MissionDaemon) -> None:
 
 
 def ready(daemon: MissionDaemon) -> None:
-    """Every autopilot past its initialisation (STANDBY)."""
-    wait_until_ready(
-        daemon.require_link(),
-        daemon.system_ids,
-        daemon.options.ready_timeout_s,
-        wait=daemon.wait_sim,
-    )
+    """Every autopilot past its initialisation (STANDBY). A resumed daemon does not wait for a
+    plane in the air, whatever it reports (a failsafe's CRITICAL): it takes it back
+    (``take_back``)."""
+    link = daemon.require_link()
+    ids = daemon.system_ids
+    if daemon.resume_from is not None:
+        vehicles = daemon.vehicles()
+        link.pump_until(lambda: all(v.has_position for v in vehicles if v.armed), 2.0)
+        ids = [v.system_id for v in vehicles if not flying(v, climb_m(daemon))]
+    wait_until_ready(link, ids, daemon.options.ready_timeout_s, wait=daemon.wait_sim)
 
 
 def fence(daemon: MissionDaemon) -> None:
@@ -134,12 +138,15 @@ def take_off(daemon: MissionDaemon) -> None:
     a threat 4.3 km ahead of its start)."""
     link = daemon.require_link()
     options = daemon.options
-    vehicles = daemon.vehicles()
-    climb = min(options.takeoff_altitude_m, daemon.scenario.altitude_m)
+    # (a plane a resumed daemon sent home flies home: ``take_back``)
+    vehicles = [v for v in daemon.vehicles() if v.system_id not in daemon.flight_home.sent_home]
+    climb = climb_m(daemon)
     attempts = options.launch_command_attempts
+    if not vehicles:
+        return
     # vehicles already flying (a restarted daemon, airborne SITL) go straight to GUIDED
     link.pump_until(lambda: all(v.has_position for v in vehicles), 2.0)
-    on_ground = [v for v in vehicles if not (v.armed and v.relative_alt_m >= climb)]
+    on_ground = [v for v in vehicles if not flying(v, climb)]
     require_accepted(
         daemon.send([set_mode_command(v, PLANE_MODE_TAKEOFF) for v in on_ground], attempts)
     )
@@ -163,6 +170,29 @@ def take_off(daemon: MissionDaemon) -> None:
     daemon.say("airborne, GUIDED")
 
 
+def climb_m(daemon: MissionDaemon) -> float:
+    """The climb (above home) that ends the TAKEOFF phase; a plane armed and above it is
+    flying (``resume_takeback.flying``)."""
+    return min(daemon.options.takeoff_altitude_m, daemon.scenario.altitude_m)
+
+
+def take_back(daemon: MissionDaemon) -> None:
+    """A resumed daemon (nothing at a fresh launch): every plane in the air taken back
+    whatever its status and mode, judged from where it is: those that can continue the
+    mission go on (GUIDED at take-off, next), the others are sent home; one line per plane
+    says which and why (``resume_takeback.py``)."""
+    if daemon.resume_from is None:
+        return
+    vehicles = daemon.vehicles()
+    daemon.require_link().pump_until(lambda: all(v.has_position for v in vehicles), 2.0)
+    request_homes(daemon)  # the way home of a plane sent home is judged to its own
+    decisions = judge_fleet(daemon, climb_m(daemon))
+    daemon.take_back = decisions
+    for t in decisions:
+        daemon.say(t.line())
+    send_home(daemon, decisions)
+
+
 def request_homes(daemon: MissionDaemon) -> None:
     """Ask every vehicle whose home is not known yet for HOME_POSITION (REQUEST_MESSAGE): the
     launch point is each UAV's start and return point, and ArduPilot streams it rarely."""
@@ -183,6 +213,7 @@ def launch_phases() -> list[LaunchPhase]:
         LaunchPhase("fence", fence),
         LaunchPhase("failsafe", failsafe),
         LaunchPhase("arm", arm),
+        LaunchPhase("take back", take_back),
         LaunchPhase("take off", take_off),
         LaunchPhase("homes", request_homes),
     ]

@@ -158,18 +158,11 @@ class HomeRoutes:
             course_rad is None or self.rtl_clear(xy, course_rad, home)
         ):
             return None
-        if self._nodes_km is None:
-            self._build()
-        assert self._nodes_km is not None
-        if len(self._nodes_km) == 0:
+        ways = self._ways(xy, home)
+        if ways is None:
             return None
-        paths = self._from_home(home)
-        n = len(self._nodes_km)
-        # a plane already nearer a threat than the margin (or inside it: a fence breach) takes
-        # legs that get no nearer
-        need = min(self.margin_km, float(self.point_clearance(xy[None])[0]) - 1e-6)
-        reach = self.leg_clearance(np.broadcast_to(xy, (n, 2)), self._nodes_km) >= need
-        total = np.where(reach, np.hypot(*(self._nodes_km - xy).T) + paths.distance_km, np.inf)
+        assert self._nodes_km is not None
+        paths, reach, total = ways
         first = int(np.argmin(total))
         if not math.isfinite(total[first]):
             return None
@@ -187,6 +180,34 @@ class HomeRoutes:
         clear = turns >= self.turn_margin_km
         best = int(np.argmax(clear)) if clear.any() else int(np.argmax(turns))
         return self._nodes_km[order[best]].copy()
+
+    def way_length_km(self, xy_km: np.ndarray, home_km: np.ndarray) -> float:
+        """Length of the safe way home from ``xy_km``: the straight line where it keeps
+        ``margin_km``, else the shortest way through the waypoints (``inf``: none known)."""
+        xy, home = np.asarray(xy_km, float), np.asarray(home_km, float)
+        if self.line_clear(xy, home):
+            return float(np.hypot(*(home - xy)))
+        ways = self._ways(xy, home)
+        return math.inf if ways is None else float(ways[2].min())
+
+    def _ways(
+        self, xy: np.ndarray, home: np.ndarray
+    ) -> tuple[_FromHome, np.ndarray, np.ndarray] | None:
+        """The waypoints towards ``home`` and, per waypoint, whether ``xy`` reaches it in a
+        straight leg and the length of the way home through it (None: no waypoint at all)."""
+        if self._nodes_km is None:
+            self._build()
+        assert self._nodes_km is not None
+        if len(self._nodes_km) == 0:
+            return None
+        paths = self._from_home(home)
+        n = len(self._nodes_km)
+        # a plane already nearer a threat than the margin (or inside it: a fence breach) takes
+        # legs that get no nearer
+        need = min(self.margin_km, float(self.point_clearance(xy[None])[0]) - 1e-6)
+        reach = self.leg_clearance(np.broadcast_to(xy, (n, 2)), self._nodes_km) >= need
+        total = np.where(reach, np.hypot(*(self._nodes_km - xy).T) + paths.distance_km, np.inf)
+        return paths, reach, total
 
     def turn_clearance(self, xy: np.ndarray, course_rad: float, aims: np.ndarray) -> np.ndarray:
         """Per aim: threat clearance of the path a plane at ``xy`` flying ``course_rad`` flies

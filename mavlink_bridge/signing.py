@@ -4,6 +4,9 @@ hears.
 The key is 32 bytes shared with every vehicle. It comes from a file (``--signing-key-file PATH``:
 32 raw bytes, or 64 hex characters) or from the environment (``SWARMPLAN_SIGNING_KEY``, 64 hex
 characters), never from a command-line value (the process list and shell history show those).
+Where the project runs both ends it makes the key for the mission (:func:`mission_key`): the
+simulator writes it to its key file if that does not exist yet (:func:`load_or_create_key_file`,
+mode 0600), and ``swarmplan demo`` hands it to the simulator it starts in the environment.
 ``sha256(passphrase)`` is the key MAVProxy's ``signing setup PASSPHRASE`` derives, so
 ``python -c "import hashlib; print(hashlib.sha256(b'PASSPHRASE').hexdigest())" > key.hex``
 gives the key an ArduPilot set up from MAVProxy uses (docs/reliability.md).
@@ -27,6 +30,7 @@ import hashlib
 import hmac
 import os
 import re
+import secrets
 import struct
 import time
 from dataclasses import dataclass, field
@@ -70,7 +74,8 @@ def load_signing_key(
             raw = Path(path).read_bytes()
         except OSError as exc:
             raise SigningKeyError(
-                f"cannot read signing key file {path} ({exc.strerror}); check the path"
+                f"cannot read signing key file {path} ({exc.strerror}); check the path "
+                "(`swarmplan sim --signing-key-file PATH` makes one for its vehicles)"
             ) from None
         return parse_key(raw, f"signing key file {path}")
     env = os.environ if environ is None else environ
@@ -78,6 +83,57 @@ def load_signing_key(
     if value is None or value == "":
         return None
     return parse_key(value.encode("utf-8", "replace"), f"${KEY_ENV}")
+
+
+def mission_key() -> bytes:
+    """A new random 32-byte key for one mission."""
+    return secrets.token_bytes(KEY_BYTES)
+
+
+def load_or_create_key_file(path: str | Path) -> tuple[bytes, bool]:
+    """The key in ``path``, or a new one written there (64 hex characters, mode 0600) when the
+    file does not exist; and whether it was made now. The file appears whole or not at all (a
+    private temporary file hard-linked into place), and an existing one is never replaced."""
+    path = Path(path)
+    if path.exists():
+        return load_signing_key(path), False
+    key = mission_key()
+    partial = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as sink:
+            sink.write(key.hex() + "\n")
+        try:
+            os.link(partial, path)
+        except FileExistsError:  # made meanwhile by another process: that one is the key
+            return load_signing_key(path), False
+        finally:
+            partial.unlink(missing_ok=True)
+    except OSError as exc:
+        raise SigningKeyError(
+            f"cannot create signing key file {path} ({exc.strerror}); choose a writable "
+            "--signing-key-file path"
+        ) from None
+    return key, True
+
+
+def key_environment(key: bytes | None, environ: dict[str, str] | None = None) -> dict[str, str]:
+    """The environment for a child process (the demo's simulator) that signs with ``key``, or
+    unsigned when None: a caller's ``$SWARMPLAN_SIGNING_KEY`` never leaks into an unsigned one."""
+    out = dict(os.environ if environ is None else environ)
+    out.pop(KEY_ENV, None)
+    if key is not None:
+        out[KEY_ENV] = key.hex()
+    return out
+
+
+def unsigned_warning(fix: str) -> str:
+    """The one line said at the start of a mission flown without signing; ``fix`` says how to
+    sign (it differs between the daemon and the demo)."""
+    return (
+        "flying unsigned: any host that can reach the vehicles' links can command them "
+        f"(arm, disarm, change mode); {fix} (docs/reliability.md, MAVLink 2 signing)"
+    )
 
 
 def signing_clock() -> int:

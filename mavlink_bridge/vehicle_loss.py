@@ -72,11 +72,20 @@ class LossWatch:
     #: lockstep: whole-swarm silences (the simulator or the machine paused, simulated time stood
     #: still), which count as no one's silence
     pauses: SwarmPauses | None = None
+    #: UAV -> why it was sent home for the rest of the mission (``retire``)
+    retired: dict[int, str] = field(default_factory=dict)
     #: UAV -> its heartbeat count when first seen disarmed / out of GUIDED
     _off_since: dict[int, int] = field(default_factory=dict)
 
+    def retire(self, i: int, why: str) -> None:
+        """UAV ``i`` is out of the mission for good (a resumed daemon sent it home,
+        ``resume_takeback.py``): lost, with ``why``, at the next watch, and it never rejoins."""
+        self.retired[i] = why
+
     def reason(self, i: int, v: VehicleState, now: float) -> str | None:
         """Why vehicle ``v`` (UAV ``i``) cannot take part in the mission now, or None."""
+        if i in self.retired:
+            return self.retired[i]
         closed = link_down(v)
         if closed is not None:
             return f"link {v.link.endpoint.spec}: {closed}"

@@ -97,6 +97,9 @@ class VehicleState:
     sensors_health: int = 0
     has_sys_status: bool = False
     gps_fix_type: int = -1  # -1: no GPS_RAW_INT heard
+    #: SYS_STATUS battery_remaining, % (-1: not reported); the simulator reports the share of
+    #: its range (L_max) left
+    battery_pct: int = -1
     #: parameters the vehicle reported (PARAM_VALUE), by name (gcs_failsafe.py, airframe.py)
     params: dict[str, float] = field(default_factory=dict)
     # components other than the autopilot heard by HEARTBEAT (100: a camera), by component id
@@ -115,6 +118,12 @@ class VehicleState:
     def standby_or_active(self) -> bool:
         """Initialisation finished: the autopilot is ready to upload and arm (or already flying)."""
         return self.system_status in (mavlink.MAV_STATE_STANDBY, mavlink.MAV_STATE_ACTIVE)
+
+    @property
+    def fence_breached(self) -> bool:
+        """Its geofence reports a breach (SYS_STATUS: GEOFENCE enabled and not healthy)."""
+        bit = mavlink.MAV_SYS_STATUS_GEOFENCE
+        return bool(self.sensors_enabled & bit) and not self.sensors_health & bit
 
     @property
     def airborne(self) -> bool:
@@ -290,6 +299,7 @@ class VehicleState:
         self.sensors_present = msg.onboard_control_sensors_present
         self.sensors_enabled = msg.onboard_control_sensors_enabled
         self.sensors_health = msg.onboard_control_sensors_health
+        self.battery_pct = msg.battery_remaining
 
     def on_gps_raw_int(self, msg: mavlink.MAVLink_gps_raw_int_message) -> None:
         if msg.get_srcComponent() == AUTOPILOT_COMPONENT_ID:

@@ -100,11 +100,21 @@ class Scenario:
         return replace(self, config=self.config.replace(**changes))
 
 
+#: random starts stay this many cells inside the area's edge, and this far (km) beyond every
+#: threat's radius plus the sensor's (``detection_radius_km``)
+START_EDGE_CELLS = 4
+START_THREAT_GAP_KM = 2.0
+
+
+def _start_gap_km(cfg: PlannerConfig, threat: ThreatSpec) -> float:
+    return threat.radius_km + cfg.detection_radius_km + START_THREAT_GAP_KM
+
+
 def random_starts(scenario: Scenario, rng: np.random.Generator) -> tuple[UavStart, ...]:
     """Random start cells and headings (section 4.3) that are safe: clear of every threat by the
     sensor radius, at least two cells apart, and a few cells inside the area's edge."""
     cfg = scenario.config
-    margin_cells = 4
+    margin_cells = START_EDGE_CELLS
     starts: list[UavStart] = []
     for _ in range(10_000):
         if len(starts) == scenario.uav_count:
@@ -114,19 +124,58 @@ def random_starts(scenario: Scenario, rng: np.random.Generator) -> tuple[UavStar
         x, y = (ix + 0.5) * cfg.cell_km, (iy + 0.5) * cfg.cell_km
         heading = float(rng.integers(0, 8) * 45.0)
         clear = all(
-            math.hypot(x - t.x_km, y - t.y_km) > t.radius_km + cfg.detection_radius_km + 2
-            for t in scenario.threats
+            math.hypot(x - t.x_km, y - t.y_km) > _start_gap_km(cfg, t) for t in scenario.threats
         )
         apart = all(math.hypot(x - s.x_km, y - s.y_km) >= 2 * cfg.cell_km + 1e-9 for s in starts)
         if clear and apart:
             starts.append(UavStart(x, y, heading))
     if len(starts) < scenario.uav_count:
-        raise ScenarioError(
-            f"scenario {scenario.name!r}: cannot place {scenario.uav_count} UAVs clear of the"
-            " threats;"
-            " give fewer UAVs or explicit [[uavs.start]] entries"
-        )
+        raise no_room_for_starts(scenario, repr(scenario.name), len(starts))
     return tuple(starts)
+
+
+def start_room(scenario: Scenario) -> tuple[int, np.ndarray]:
+    """The cells random starts may take (inside the edge, clear of every threat), and per threat
+    how many of the cells inside the edge it takes."""
+    cfg = scenario.config
+    m = START_EDGE_CELLS
+    ix, iy = np.meshgrid(
+        np.arange(m, max(m, cfg.grid_nx - m)), np.arange(m, max(m, cfg.grid_ny - m)), indexing="ij"
+    )
+    x, y = (ix + 0.5) * cfg.cell_km, (iy + 0.5) * cfg.cell_km
+    taken = np.array(
+        [np.hypot(x - t.x_km, y - t.y_km) <= _start_gap_km(cfg, t) for t in scenario.threats]
+    ).reshape(len(scenario.threats), *x.shape)
+    return int((~taken.any(axis=0)).sum()), taken.sum(axis=(1, 2))
+
+
+def no_room_for_starts(scenario: Scenario, source: str, placed: int | None) -> ScenarioError:
+    """The one line that says which threat leaves no room for the random starts (``placed``:
+    how many the draw placed, None: before drawing) and how to fix it."""
+    cfg = scenario.config
+    room, taken = start_room(scenario)
+    n = scenario.uav_count
+    rule = (
+        f"a start keeps radius_km + detection_radius_km {cfg.detection_radius_km:g} + "
+        f"{START_THREAT_GAP_KM:g} km from every threat and {START_EDGE_CELLS} cells from the edge"
+    )
+    fix = "or give the starts as [[uavs.start]] entries"
+    if not len(taken) or taken.max() == 0:
+        return ScenarioError(
+            f"scenario {source}: the {cfg.grid_nx} x {cfg.grid_ny} cell area has room for "
+            f"{room} of the {n} random UAV starts ({rule}); give fewer UAVs, a larger area, {fix}"
+        )
+    k = int(np.argmax(taken))
+    t = scenario.threats[k]
+    others = int((taken > 0).sum()) - 1
+    who = f"threats[{k}] (centre ({t.x_km:g}, {t.y_km:g}) km, radius_km {t.radius_km:g})"
+    if others:
+        who += f" and {others} other threat{'s' if others > 1 else ''}"
+    left = f"room for {room}" if placed is None else f"room for {placed} (two cells apart)"
+    return ScenarioError(
+        f"scenario {source}: {who} leave{'' if others else 's'} {left} of the {n} random UAV "
+        f"starts ({rule}); make radius_km smaller, give fewer UAVs, {fix}"
+    )
 
 
 # ----------------------------------------------------------------------------- parsing
@@ -344,11 +393,14 @@ def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
     description = doc.get("description", "")
     if not isinstance(description, str):
         raise ScenarioError(f"scenario {source}: description must be a string")
-    return Scenario(
+    scenario = Scenario(
         name=str(name), config=config, targets=tuple(targets), threats=tuple(threats),
         uav_count=count, uav_starts=starts, steps=steps, threats_known=threats_known,
         origin=origin, altitude_m=altitude, description=description,
     )  # fmt: skip
+    if starts is None and start_room(scenario)[0] < count:
+        raise no_room_for_starts(scenario, source, None)
+    return scenario
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:

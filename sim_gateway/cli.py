@@ -21,7 +21,7 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from planner.errors import UserError  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
-from sim_gateway.signing import load_signing_key  # noqa: E402
+from sim_gateway.signing import load_or_create_key_file, load_signing_key  # noqa: E402
 from swarmplan.arguments import (  # noqa: E402
     OneLineParser,
     add_seed_argument,
@@ -126,7 +126,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         metavar="PATH",
         help="MAVLink 2 signing key (64 hex characters or 32 bytes): sign everything, refuse "
-        "unsigned or wrongly signed commands; default $SWARMPLAN_SIGNING_KEY if set",
+        "unsigned or wrongly signed commands; a file that does not exist is created with a new "
+        "key for this mission (mode 0600): give the daemon the same --signing-key-file; "
+        "default $SWARMPLAN_SIGNING_KEY if set, else unsigned",
     )
     parser.add_argument(
         "--target-account",
@@ -142,6 +144,7 @@ def main(args: argparse.Namespace) -> int:
     from sim_gateway.simulator import SimOptions, Simulator
 
     scenario = load_scenario(args.scenario)
+    signing_key = simulator_key(args.signing_key_file)
     options = SimOptions(
         seed=args.seed,
         vehicles=args.vehicles,
@@ -157,7 +160,7 @@ def main(args: argparse.Namespace) -> int:
         boot_s=args.boot_s,
         airborne=args.airborne,
         position_rate_hz=args.telemetry_hz,
-        signing_key=load_signing_key(args.signing_key_file),
+        signing_key=signing_key,
         lockstep=args.lockstep,
         lockstep_timeout_s=args.lockstep_timeout,
     )
@@ -198,6 +201,21 @@ def main(args: argparse.Namespace) -> int:
         if args.target_account is not None:
             write_target_truth(sim.target_account, args.target_account)
     return 0
+
+
+def simulator_key(path: Path | None) -> bytes | None:
+    """The vehicles' signing key: from ``path``, made for this mission there when the file does
+    not exist (said in one line), else ``$SWARMPLAN_SIGNING_KEY``, else None (unsigned)."""
+    if path is None:
+        return load_signing_key(None)
+    key, made = load_or_create_key_file(path)
+    if made:
+        print(
+            f"sim: made a signing key for this mission in {path} (mode 0600); fly with "
+            f"`swarmplan daemon --signing-key-file {path}`",
+            flush=True,
+        )
+    return key
 
 
 def write_target_truth(account: TargetAccount, path: Path) -> None:

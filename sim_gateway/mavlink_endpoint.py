@@ -134,6 +134,12 @@ class ComponentSender:
         return bytes(buf)
 
 
+def station_address(ip: str, port: int) -> tuple[str, int]:
+    """The address replies from a ground station at ``ip:port`` come from: itself, but for
+    0.0.0.0, which sends to this host, whose replies come from 127.0.0.1."""
+    return ("127.0.0.1" if ip == "0.0.0.0" else ip, port)
+
+
 class VehicleSocket:
     """The UDP socket of one vehicle: sends to its ground-station address, receives replies."""
 
@@ -144,7 +150,9 @@ class VehicleSocket:
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         self.sock.bind((bind_host, bind_port))
         self.sock.setblocking(False)
-        self.destination = destination
+        self.destination = destination  # (IPv4 address, port)
+        #: the ground station this vehicle is bound to: the address its replies come from
+        self.station = station_address(*destination)
         self.stats = stats
 
     @property
@@ -158,17 +166,17 @@ class VehicleSocket:
         except OSError:
             pass  # nobody listening yet (ICMP refused) or buffer full: a radio link loses it too
 
-    def receive_all(self, limit: int = 256) -> list[bytes]:
-        """Datagrams waiting on the socket (at most ``limit``)."""
+    def receive_all(self, limit: int = 256) -> list[tuple[bytes, tuple[str, int]]]:
+        """Datagrams waiting on the socket (at most ``limit``), each with its sender's address."""
         out = []
         for _ in range(limit):
             try:
-                data, _addr = self.sock.recvfrom(MAX_DATAGRAM)
+                data, addr = self.sock.recvfrom(MAX_DATAGRAM)
             except (BlockingIOError, InterruptedError):
                 break
             except OSError:
                 break  # e.g. ECONNREFUSED reported for an earlier send
-            out.append(data)
+            out.append((data, addr[:2]))
         return out
 
     def close(self) -> None:

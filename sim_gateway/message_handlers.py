@@ -158,11 +158,9 @@ def handle_timesync(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
 
 
 def handle_system_time(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
-    """A ground station's SYSTEM_TIME without UTC (time_unix_usec 0) is a lockstep grant: the
-    simulator may run until ``time_boot_ms`` (sim_gateway/lockstep.py). With UTC it is the
-    station's clock, which a simulated vehicle has no use for."""
-    if msg.time_unix_usec == 0:
-        v.host.lockstep_grant(msg.time_boot_ms)
+    """A ground station's clock (SYSTEM_TIME with UTC), which a simulated vehicle has no use for.
+    One without UTC (time_unix_usec 0) is a lockstep grant: the simulator judges who sent it
+    before any vehicle sees it (``Simulator.lockstep_grant``, sim_gateway/lockstep.py)."""
 
 
 Handler = Callable[[Vehicle, mavlink.MAVLink_message], None]

@@ -1,7 +1,8 @@
 """MAVLink 2 message signing of the simulated vehicles, as ArduPilot does it once a key is set.
 
 With a key (``swarmplan sim --signing-key-file PATH`` or ``$SWARMPLAN_SIGNING_KEY``; 32 raw bytes
-or 64 hex characters, never a command-line value), every vehicle:
+or 64 hex characters, never a command-line value; a key file that does not exist is made with a
+new key for the mission, mode 0600, for the daemon to read), every vehicle:
 
 * signs everything it sends (each component its own stream, timestamps from the wall clock);
 * refuses every frame that is unsigned, wrongly signed, or a replay (a timestamp not newer than
@@ -29,6 +30,7 @@ from mavlink_bridge.signing import (
     KEY_ENV,
     SignatureCheck,
     SigningKeyError,
+    load_or_create_key_file,
     load_signing_key,
     sign_outgoing,
 )
@@ -36,7 +38,14 @@ from mavlink_bridge.signing import (
 if TYPE_CHECKING:
     from sim_gateway.simulator import Simulator
 
-__all__ = ["KEY_ENV", "SignatureCheck", "SigningKeyError", "enable_signing", "load_signing_key"]
+__all__ = [
+    "KEY_ENV",
+    "SignatureCheck",
+    "SigningKeyError",
+    "enable_signing",
+    "load_or_create_key_file",
+    "load_signing_key",
+]
 
 
 def enable_signing(sim: Simulator, key: bytes) -> SignatureCheck:

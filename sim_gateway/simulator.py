@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import selectors
+import socket
 import struct
 import threading
 import time
@@ -42,7 +43,7 @@ from sim_gateway.camera import look_messages
 from sim_gateway.fixed_wing import FleetKinematics
 from sim_gateway.geofence import FleetFence
 from sim_gateway.ground_truth import GROUPS, GroundTruthSafety
-from sim_gateway.lockstep import LockstepGate
+from sim_gateway.lockstep import Address, ClockMaster, LockstepGate
 from sim_gateway.mavlink_endpoint import DatagramParser, LinkStats, VehicleSocket
 from sim_gateway.message_handlers import AUTOPILOT_ONLY, HANDLERS
 from sim_gateway.mission_protocol import retry_upload
@@ -122,6 +123,18 @@ class SimOptions:
                 raise SimulatorError(f"{name} must be a UDP port in {low}..65535, got {port}")
 
 
+def resolve_gcs_host(host: str) -> str:
+    """The IPv4 address of ``--gcs-host`` (looked up once: the vehicles' ground station is
+    bound to it, sim_gateway/lockstep.py)."""
+    try:
+        return socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_DGRAM)[0][4][0]
+    except (OSError, UnicodeError) as exc:
+        raise SimulatorError(
+            f"--gcs-host {host!r} is not an IPv4 address or a name this machine can resolve "
+            f"({exc}); e.g. --gcs-host 127.0.0.1"
+        ) from None
+
+
 def with_vehicle_count(scenario: Scenario, count: int | None) -> Scenario:
     """The scenario with ``count`` UAVs (random starts only: fixed starts fix the count)."""
     if count is None or count == scenario.uav_count:
@@ -171,6 +184,7 @@ class Simulator:
         self.fence = FleetFence(n)
         self.sockets: list[VehicleSocket] = []
         self.vehicles: list[Vehicle] = []
+        gcs_ip = resolve_gcs_host(options.gcs_host)
         try:
             for i in range(n):
                 port = (
@@ -179,9 +193,7 @@ class Simulator:
                     else options.per_vehicle_port_base + i
                 )
                 bind_port = options.bind_port_base + i if options.bind_port_base else 0
-                sock = VehicleSocket(
-                    options.bind_host, bind_port, (options.gcs_host, port), self.stats
-                )
+                sock = VehicleSocket(options.bind_host, bind_port, (gcs_ip, port), self.stats)
                 self.sockets.append(sock)
                 vehicle = Vehicle(i, self.fleet, self, sock, scenario.altitude_m)
                 for name in ("GLOBAL_POSITION_INT", "ATTITUDE"):
@@ -204,12 +216,13 @@ class Simulator:
             self.selector.register(sock.sock, selectors.EVENT_READ, sock)
         self.fence_breached = np.zeros(n, dtype=bool)
         self.range_exhausted = np.zeros(n, dtype=bool)
-        self.recent_frames: dict[bytes, float] = {}
+        self.recent_frames: dict[tuple[Address | None, bytes], float] = {}
         self.next_purge_wall = 0.0
         self.next_frame_wall = 0.0
         self.looks_sent = 0
         self.engagements = 0
         self.lockstep = LockstepGate(options.lockstep, options.lockstep_timeout_s)
+        self.clock_master = ClockMaster()
         self.fence_breaches = 0
         self.truth = GroundTruthSafety(
             n,
@@ -284,9 +297,17 @@ class Simulator:
     def time_boot_ms(self) -> int:
         return int(round(self.sim_time_s * 1000))
 
-    def lockstep_grant(self, time_boot_ms: int) -> None:
-        """A ground station's SYSTEM_TIME grant: run until ``time_boot_ms`` (lockstep mode)."""
-        self.lockstep.on_grant(time_boot_ms, self.wall_s())
+    def lockstep_grant(
+        self, message: mavlink.MAVLink_message, sock: VehicleSocket | None, sender: Address | None
+    ) -> None:
+        """A SYSTEM_TIME without UTC that arrived on ``sock`` from ``sender``: a lockstep grant
+        if it comes from the vehicles' ground station (``ClockMaster``), else dropped."""
+        if not self.options.lockstep:
+            return  # not a lockstep simulator: a grant means nothing here
+        station = None if sock is None else sock.station
+        if self.clock_master.admits(message.get_srcSystem(), sender, station, set(self.sysids)):
+            self.clock_master.last_heard_wall_s = now = self.wall_s()
+            self.lockstep.on_grant(message.time_boot_ms, now)
 
     # ------------------------------------------------------------------ setup
 
@@ -306,32 +327,50 @@ class Simulator:
         handled = 0
         for key, _ in self.selector.select(timeout_s):
             sock: VehicleSocket = key.data
-            for data in sock.receive_all():
-                self.handle_datagram(data)
+            for data, sender in sock.receive_all():
+                self.handle_datagram(data, sock, sender)
                 handled += 1
         return handled
 
-    def handle_datagram(self, data: bytes) -> None:
+    def handle_datagram(
+        self, data: bytes, sock: VehicleSocket | None = None, sender: Address | None = None
+    ) -> None:
+        """One datagram that arrived on ``sock`` from ``sender`` (None: fed in directly)."""
         now = self.wall_s()
         for message in self.parser.parse(data):
-            key = bytes(message.get_msgbuf())
+            # a frame one sender wrote to several vehicle sockets is handled once; the same
+            # bytes from another sender are its own (a copy sent ahead cannot mask the original)
+            key = (sender, bytes(message.get_msgbuf()))
             seen = self.recent_frames.get(key)
             if seen is not None and now - seen < DUPLICATE_WINDOW_S:
                 self.stats.duplicates += 1
                 continue
             self.recent_frames[key] = now
-            self.dispatch(message)
+            self.dispatch(message, sock, sender)
         if now >= self.next_purge_wall:
             self.recent_frames = {
                 k: t for k, t in self.recent_frames.items() if now - t < DUPLICATE_WINDOW_S
             }
             self.next_purge_wall = now + DUPLICATE_WINDOW_S
 
-    def dispatch(self, message: mavlink.MAVLink_message) -> None:
-        """Hand a good message to the vehicle(s) it is addressed to."""
+    def dispatch(
+        self,
+        message: mavlink.MAVLink_message,
+        sock: VehicleSocket | None = None,
+        sender: Address | None = None,
+    ) -> None:
+        """Hand a good message to the vehicle(s) it is addressed to; a lockstep grant to the
+        clock, if it comes from the vehicles' ground station."""
         mtype = message.get_type()
         stats = self.stats
         stats.by_type[mtype] = stats.by_type.get(mtype, 0) + 1
+        if mtype == "SYSTEM_TIME" and message.time_unix_usec == 0:
+            self.lockstep_grant(message, sock, sender)
+            return
+        if mtype == "HEARTBEAT" and self.clock_master.is_master(
+            message.get_srcSystem(), sender, None if sock is None else sock.station
+        ):
+            self.clock_master.last_heard_wall_s = self.wall_s()  # keeps the lock (lockstep.py)
         handler = HANDLERS.get(mtype)
         if handler is None or message.get_srcSystem() in self.sysids:
             stats.ignored_messages += 1
@@ -563,12 +602,7 @@ class Simulator:
             for _ in range(8):
                 if not self.poll(0.0):
                     break
-        heard = [
-            v.failsafe.last_heartbeat_wall_s
-            for v in self.vehicles
-            if v.failsafe.last_heartbeat_wall_s is not None
-        ]
-        if gate.timed_out(time.monotonic(), max(heard) if heard else None):
+        if gate.timed_out(time.monotonic(), self.clock_master.last_heard_wall_s):
             print(
                 f"sim: lockstep released at t={self.sim_time_s:.1f}s: no grant or heartbeat from "
                 f"the ground station for {gate.timeout_wall_s:g} s; running at "
@@ -625,6 +659,7 @@ class Simulator:
             "ignored_messages": s.ignored_messages,
             "sent": s.sent,
             "stale_commands": s.stale_commands,
+            "foreign_grants": self.clock_master.refused,
             **(
                 {}
                 if self.signature_check is None

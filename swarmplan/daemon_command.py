@@ -21,6 +21,7 @@ from mavlink_bridge.cli import (
     fly_with_view,
     print_summary,
     validate,
+    warn_if_unsigned,
 )
 from mavlink_bridge.daemon import MissionDaemon, MissionInterrupted
 from planner.errors import UserError
@@ -50,6 +51,7 @@ def main(args: argparse.Namespace) -> int:
     out: Path = writable_folder(args.out)
     daemon = MissionDaemon(scenario, daemon_options(args, out))
     daemon.prepare()  # a bad checkpoint, time scale or endpoint: one line, before the view
+    warn_if_unsigned(daemon)
     with MissionSignals() as signals:
         try:
             fly_with_view(daemon, args, out)

@@ -2,6 +2,14 @@
 subprocess, ``swarmplan sim``) and the planner daemon on loopback UDP, flies the mission with a
 progress bar, and prints the metrics measured over MAVLink (positions from telemetry, engagements
 from their acknowledged outcomes) plus where the result, figures, waypoint files and .tlog are.
+
+Both ends sign (MAVLink 2) with a key made for the mission unless told otherwise (``--no-signing``,
+or a key given with ``--signing-key-file`` / ``$SWARMPLAN_SIGNING_KEY``). The simulator gets the
+key in its environment (``$SWARMPLAN_SIGNING_KEY``): never on its command line, which ``ps``
+shows every user, and never in a file, which would be left in the run folder users share or in a
+temporary folder after a kill; a process's environment is readable by its own user only, as a
+0600 file would be. The daemon runs in this process and takes the key directly. Nothing written
+(result.json, replay, .tlog, sim.log) holds the key; result.json's ``signing`` says it was on.
 """
 
 from __future__ import annotations
@@ -18,6 +26,13 @@ from mavlink_bridge.cli import add_leg_timing_arguments
 from mavlink_bridge.daemon import DaemonOptions, MissionDaemon, MissionInterrupted, StepStatus
 from mavlink_bridge.discovery import DiscoveryError
 from mavlink_bridge.mission_result import lost_vehicle_lines
+from mavlink_bridge.signing import (
+    KEY_ENV,
+    key_environment,
+    load_signing_key,
+    mission_key,
+    unsigned_warning,
+)
 from mavlink_bridge.vehicle_loss import paced_lost_after_s
 from mavlink_bridge.view_feed import DaemonViewFeed
 from mission_view.replay_file import replay_path
@@ -71,17 +86,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="output folder (default runs/<scenario>-seed<S>-demo)",
     )
     add_leg_timing_arguments(parser)
+    signing = parser.add_mutually_exclusive_group()
+    signing.add_argument(
+        "--no-signing",
+        action="store_true",
+        help="fly without MAVLink 2 signing (default: the simulator and the daemon sign with a "
+        "key made for this mission, kept in memory only)",
+    )
+    signing.add_argument(
+        "--signing-key-file",
+        type=Path,
+        metavar="PATH",
+        help=f"sign with this key (64 hex characters or 32 bytes) instead; ${KEY_ENV} if set",
+    )
     add_view_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print only the result JSON on stdout")
+
+
+def demo_key(args: argparse.Namespace) -> bytes | None:
+    """The mission's signing key: None with ``--no-signing``, else the one given (a file or the
+    environment), else a new one."""
+    if args.no_signing:
+        return None
+    return load_signing_key(args.signing_key_file) or mission_key()
 
 
 def start_simulator(
     scenario: str, seed: int, speedup: float | None, port: int, log: Path,
     target_truth: Path | None = None, truth_port: int | None = None,
+    signing_key: bytes | None = None,
 ) -> subprocess.Popen:  # fmt: skip
     """``python -m swarmplan sim`` sending to our port (``--lockstep`` when ``speedup`` is
     None); its output goes to ``log``, its ground-truth target account to ``target_truth``, its
-    true targets for the live view to UDP ``truth_port``."""
+    true targets for the live view to UDP ``truth_port``; signing with ``signing_key`` (handed
+    over in its environment), unsigned when None."""
     pace = ["--lockstep", "--speedup", f"{RELEASED_SPEEDUP:g}"]
     if speedup is not None:
         pace = ["--speedup", f"{speedup:g}"]
@@ -105,8 +143,9 @@ def start_simulator(
     ]
     with open(log, "wb") as sink:
         return subprocess.Popen(
-            command, stdout=sink, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL
-        )
+            command, stdout=sink, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            env=key_environment(signing_key),
+        )  # fmt: skip
 
 
 def stop_simulator(proc: subprocess.Popen) -> None:
@@ -178,6 +217,7 @@ def main(args: argparse.Namespace) -> int:
             feed.progress(text)
 
     lockstep = args.speedup is None
+    signing_key = demo_key(args)
     options = DaemonOptions(
         connect=["udpin:127.0.0.1:0"],
         seed=args.seed,
@@ -189,6 +229,7 @@ def main(args: argparse.Namespace) -> int:
         time_scale=RELEASED_SPEEDUP if lockstep else args.speedup,
         lockstep=lockstep,
         leg_timing=args.leg_timing,
+        signing_key=signing_key,
         tlog_path=out / "mission.tlog",
         progress=say,
         on_step=on_step,
@@ -202,6 +243,9 @@ def main(args: argparse.Namespace) -> int:
     truth = TruthReceiver()  # the simulator's true targets, for the view only
     feeds.append(DaemonViewFeed(daemon, view, truth.latest))
     options.step_listeners.append(feeds[0].listener)
+    if signing_key is None:  # said even with --json (on stderr), like the view's address
+        fix = "drop --no-signing to sign with a key made for the mission"
+        bar.write(f"demo: warning: {unsigned_warning(fix)}", file=sys.stderr)
     if view.url is not None:  # printed even with --json (on stderr): the way to open it
         bar.write(f"demo: live view at {view.url}", file=sys.stderr)
     try:
@@ -216,12 +260,13 @@ def main(args: argparse.Namespace) -> int:
     truth_path = out / "target_truth.json"
     truth_path.unlink(missing_ok=True)  # a file from an earlier run must not be joined
     sim = start_simulator(
-        args.scenario, args.seed, args.speedup, port, sim_log, truth_path, truth.port
-    )
+        args.scenario, args.seed, args.speedup, port, sim_log, truth_path, truth.port,
+        signing_key,
+    )  # fmt: skip
     say(
         f"simulator started (pid {sim.pid}, {scenario.uav_count} vehicles, "
-        f"{'lockstep' if lockstep else f'{args.speedup:g}x'}) "
-        f"-> udp {port}"
+        f"{'lockstep' if lockstep else f'{args.speedup:g}x'}, "
+        f"{'unsigned' if signing_key is None else 'signed'}) -> udp {port}"
     )
     started = time.monotonic()
     signals = MissionSignals()

@@ -1,7 +1,8 @@
 """``swarmplan demo`` starts its own simulator. When that simulator is never heard (a machine too
 busy to start it in time: seen with the demo at the lowest priority against four busy processes
 on two cores), the demo's error is its own, not the daemon's advice to start the vehicles or
-check where they send to, and the simulator it started is stopped."""
+check where they send to, and the simulator it started is stopped. Flown ``--no-signing``, the
+demo says so in one line as it starts (issue 31, finding 4)."""
 
 from __future__ import annotations
 
@@ -33,7 +34,9 @@ def test_a_demo_whose_simulator_is_never_heard_says_so_in_one_line(tmp_path: Pat
     environ["PYTHONPATH"] = f"{inject}{os.pathsep}{environ['PYTHONPATH']}"
     out = tmp_path / "out"
     done = run_swarmplan(
-        ["demo", "paper-2uav", "--steps", "2", "--no-view", "--out", str(out)], 100, environ
+        ["demo", "paper-2uav", "--steps", "2", "--no-view", "--no-signing", "--out", str(out)],
+        100,
+        environ,
     )
     assert done.returncode == 2, done.stderr[-2000:]
     assert "Traceback" not in done.stderr
@@ -45,5 +48,7 @@ def test_a_demo_whose_simulator_is_never_heard_says_so_in_one_line(tmp_path: Pat
     assert error.startswith(said), error
     assert "0 of 2 vehicles" in error and str(out / "sim.log") in error
     assert "--expect" not in error  # the daemon's advice
+    unsigned = [line for line in done.stderr.splitlines() if "flying unsigned" in line]
+    assert len(unsigned) == 1 and "--no-signing" in unsigned[0], done.stderr[-2000:]
     # the simulator it started is gone (stopped processes are killed, not left behind)
     assert subprocess.run(["kill", "-0", str(pid)], capture_output=True).returncode != 0

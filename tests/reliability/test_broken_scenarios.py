@@ -40,3 +40,22 @@ def test_broken_scenarios_through_the_real_command_line(tmp_path: Path):
         assert proc.returncode == 2
         assert "Traceback" not in proc.stderr
         assert proc.stderr.strip().splitlines()[-1].startswith("swarmplan run: error: scenario")
+
+
+@pytest.mark.timeout(60)
+def test_a_threat_that_leaves_no_room_for_the_starts_is_named_with_the_file(tmp_path: Path):
+    """Issue 31: a copy of paper-10uav (still named so) with a threat of radius 500 km said
+    "scenario 'paper-10uav': cannot place 10 UAVs clear of the threats", naming neither the
+    threat nor the file. Now the planner and the simulator say both, and the fix."""
+    path = CORPUS[0].parent / "threat_radius_500km.toml"
+    for command in (
+        ["run", str(path), "--out", str(tmp_path)],
+        ["sim", "--scenario", str(path), "--duration-s", "1", "--quiet"],
+    ):
+        proc = run_swarmplan(command, timeout=60)
+        assert proc.returncode == 2, (command, proc.stderr)
+        lines = proc.stderr.strip().splitlines()
+        assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+        assert str(path) in lines[0], lines[0]
+        assert "threats[0] (centre (30, 65) km, radius_km 500)" in lines[0], lines[0]
+        assert "make radius_km smaller" in lines[0] and "[[uavs.start]]" in lines[0]

@@ -1,6 +1,7 @@
 """MAVLink 2 signing: the simulator refuses and counts unsigned, wrongly signed and replayed
 commands while signing is on (a spoofer on another port changes nothing), the two sides'
-implementations agree, and keys come only from a file or the environment."""
+implementations agree, and keys come only from a file or the environment: the simulator makes
+its key file when there is none, and a daemon flying unsigned says so as it starts."""
 
 from __future__ import annotations
 
@@ -9,12 +10,13 @@ import os
 os.environ.setdefault("MAVLINK20", "1")
 
 import socket  # noqa: E402
+import stat  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
-from loopback import env, run_swarmplan  # noqa: E402
+from loopback import env, free_udp_port, run_swarmplan  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
 from reliability_harness import KEY_HEX  # noqa: E402
 
@@ -202,3 +204,33 @@ def test_sim_cli_bad_key_is_one_line_exit_2(tmp_path: Path):
         assert proc.returncode == 2
         assert "signing key" in proc.stderr and "Traceback" not in proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_the_simulator_makes_its_key_file_once(tmp_path: Path):
+    """``swarmplan sim --signing-key-file K`` with no K makes one (64 hex characters, mode 0600,
+    said in one line) and signs with it; an existing key file is kept, never replaced."""
+    key_file = tmp_path / "mission.key"
+    args = ["sim", "--fast", "--duration-s", "0.1", "--signing-key-file", str(key_file)]
+    first = run_swarmplan(args, 60)
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert f"made a signing key for this mission in {key_file}" in first.stdout
+    assert stat.S_IMODE(key_file.stat().st_mode) == 0o600
+    key = bridge_signing.load_signing_key(key_file, {})
+    assert len(key) == 32 and key.hex() not in first.stdout + first.stderr
+    assert "unsigned_refused" in first.stdout.splitlines()[-1]  # its summary: signing was on
+    assert bridge_signing.load_or_create_key_file(key_file) == (key, False)
+    assert list(tmp_path.iterdir()) == [key_file]  # no partial file left behind
+
+
+@pytest.mark.timeout(60)
+def test_a_daemon_flying_unsigned_says_so_in_one_line_at_start(tmp_path: Path):
+    """No key: one line saying so before anything else happens (here: no vehicle answers, and
+    the daemon ends in one line of its own). Signed, it says nothing of the kind
+    (tests/cli/test_two_shell_demo.py)."""
+    args = ["daemon", "--connect", f"udpin:127.0.0.1:{free_udp_port()}", "--timeout", "1",
+            "--no-view", "--out", str(tmp_path / "out")]  # fmt: skip
+    proc = run_swarmplan(args, 50)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    said = [line for line in proc.stderr.splitlines() if "flying unsigned" in line]
+    assert len(said) == 1 and "--signing-key-file" in said[0], proc.stderr[-2000:]
+    assert proc.stderr.splitlines()[0] == said[0]  # at start: the first thing it says
