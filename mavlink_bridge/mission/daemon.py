@@ -83,7 +83,7 @@ from mavlink_bridge.vehicles.guided_commands import (
 )
 from mavlink_bridge.vehicles.swarm_link import SwarmLink
 from mavlink_bridge.vehicles.telemetry_plausibility import PlausibilityFilter, PlausibilityLimits
-from mavlink_bridge.vehicles.vehicle_loss import LossWatch
+from mavlink_bridge.vehicles.vehicle_loss import GONE, LossWatch
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_bridge.way_home.flight_home import (
     FlightHome,
@@ -454,6 +454,7 @@ class MissionDaemon:
             accept_system_id=lambda s: s in expected,
             signing_key=self.options.signing_key,
             plausibility=PlausibilityFilter(limits),
+            may_move=self.gone,
         )
         if self.options.lockstep:
             self.clock = LockstepClock(self.link, self.scenario.config.step_s)
@@ -478,10 +479,20 @@ class MissionDaemon:
     def watch_links(self, step: int) -> None:
         """Loss and return (``vehicle_loss.LossWatch``), at every pump of the loop; and the
         lines the plausibility filter has to say (a clock restarted, an address moved)."""
+        self.say_notices()
+        self.loss.watch(step)
+
+    def gone(self, v: VehicleState) -> bool:
+        """Vehicle ``v`` counts as gone (lost to silence or a closed link; a whole-swarm pause
+        of a lockstep simulator is no one's silence): only then may its address move."""
+        return self.loss.reasons.get(v.system_id - 1, "").startswith(GONE)
+
+    def say_notices(self) -> None:
+        """Say, once each, the lines the plausibility filter has to say (a clock restarted, an
+        address moved, a second address refused)."""
         notices = self.require_link().plausibility.notices
         while notices:
             self.say(f"warning: {notices.pop(0)}")
-        self.loss.watch(step)
 
     # ------------------------------------------------------------------ the mission
 

@@ -223,4 +223,7 @@ def run_launch(daemon: MissionDaemon, phases: list[LaunchPhase]) -> None:
     """Run ``phases`` in order; the daemon notes the phase it is in (for its exit report)."""
     for phase in phases:
         daemon.phase = phase.name
-        phase.run(daemon)
+        try:
+            phase.run(daemon)
+        finally:
+            daemon.say_notices()  # e.g. a second address refused while the vehicles were found
