@@ -33,7 +33,7 @@ from sim_gateway.parameter_protocol import (
     handle_param_request_read,
     handle_param_set,
 )
-from sim_gateway.telemetry import DATA_STREAMS
+from sim_gateway.telemetry_streams import DATA_STREAMS
 from sim_gateway.vehicle import Vehicle
 
 FTP_OPCODE_NAK = 129

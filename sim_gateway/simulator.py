@@ -47,6 +47,7 @@ from sim_gateway.lockstep import Address, ClockMaster, LockstepGate
 from sim_gateway.mavlink_endpoint import DatagramParser, LinkStats, VehicleSocket
 from sim_gateway.message_handlers import AUTOPILOT_ONLY, HANDLERS
 from sim_gateway.mission_protocol import retry_upload
+from sim_gateway.signing import enable_signing
 from sim_gateway.target_account import TargetAccount
 from sim_gateway.telemetry import BUILDERS, FleetSnapshot
 from sim_gateway.truth_feed import TruthFeed
@@ -208,9 +209,8 @@ class Simulator:
         self.sysids = {v.sysid: v for v in self.vehicles}
         self.signature_check = None
         if options.signing_key is not None:
-            from sim_gateway.signing import enable_signing
-
-            self.signature_check = enable_signing(self, options.signing_key)
+            senders = (c for v in self.vehicles for c in (v.autopilot, v.camera))
+            self.signature_check = enable_signing(self.parser, senders, options.signing_key)
         self.selector = selectors.DefaultSelector()
         for sock in self.sockets:
             self.selector.register(sock.sock, selectors.EVENT_READ, sock)
