@@ -1,8 +1,9 @@
 """One simulated ArduPlane: its state (armed, mode, home, boot phase, guided target, mission
 progress) and its autopilot logic (mode changes, take-off, RTL, failsafe and fence actions;
-flying AUTO missions is :class:`~sim_gateway.auto_mission.AutoMission`). Its motion lives in the fleet's :class:`~sim_gateway.fixed_wing.FleetKinematics`
-(row ``index``); what it says and hears over MAVLink lives in ``message_handlers``,
-``commands``, ``mission_protocol``, ``parameter_protocol`` and ``telemetry``.
+flying AUTO missions is :class:`~sim_gateway.auto_mission.AutoMission`). Its motion lives in
+the fleet's :class:`~sim_gateway.fixed_wing.FleetKinematics` (row ``index``); what it says and
+hears over MAVLink lives in ``message_handlers``, ``commands``, ``mission_protocol``,
+``parameter_protocol`` and ``telemetry``.
 """
 
 from __future__ import annotations
