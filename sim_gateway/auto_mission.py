@@ -1,7 +1,7 @@
 """Flying the stored mission in AUTO, the way ArduPlane does: item by item (DO items at once,
 DO_JUMP with its repeat count, loiter times and turns, take-off and landing), what the
 vehicle does when its kinematics reach an item's point or altitude, and the MISSION_CURRENT
-that reports where it is. :class:`AutoMission` is part of every
+that reports where it is. :class:`AutoMission` is a base class of every
 :class:`~sim_gateway.vehicle.Vehicle`; the upload and download of missions is
 ``sim_gateway/mission_protocol.py``.
 """
