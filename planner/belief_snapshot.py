@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planner.swarm_beliefs import beliefs_of
+from planner.belief_planner import beliefs_of
 from planner.target_probability_map import existence_of_layers
 
 

@@ -31,6 +31,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import ndimage
 
+from planner.belief_planner import BeliefPlanner
 from planner.grid import HEADING_STEPS, corridor_offsets
 from planner.pheromone import PheromoneMaps
 from planner.planner_interface import MODES, StepDecision
@@ -43,7 +44,7 @@ from planner.potential_field import (
     threat_repulsion,
 )
 from planner.scenario import Scenario, UavStart
-from planner.swarm_beliefs import BeliefPlanner, Hearing, SwarmBeliefs
+from planner.swarm_beliefs import Hearing, SwarmBeliefs
 from planner.target_probability_map import TargetProbabilityMaps
 from planner.transition import (
     deterministic_scores,

@@ -39,11 +39,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from planner.belief_planner import BeliefPlanner
 from planner.feasibility import MoveOptions, threat_groups
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, turn_options
 from planner.planner_interface import MODES, StepDecision
 from planner.scenario import Scenario, UavStart
-from planner.swarm_beliefs import BeliefPlanner, Hearing, SwarmBeliefs
+from planner.swarm_beliefs import Hearing, SwarmBeliefs
 
 
 def _clamp(a: np.ndarray, low: float, high: float) -> np.ndarray:

@@ -24,7 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planner.swarm_beliefs import SwarmBeliefs, beliefs_of
+from planner.belief_planner import beliefs_of
+from planner.swarm_beliefs import SwarmBeliefs
 
 #: Belief below this is not logged (the account's peak reads 0 for a target never above it).
 BELIEF_FLOOR = 0.05

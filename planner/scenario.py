@@ -231,32 +231,59 @@ def parse_scenario(text: str, source: str = "<string>") -> Scenario:
 
 
 def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
+    """A scenario from its TOML tables (docs/scenarios.md); every fault is one ScenarioError
+    line naming the entry and the fix."""
     allowed = {
         "name", "description", "steps", "threats_known", "origin", "altitude_m",
         "parameters", "uavs", "targets", "threats",
     }  # fmt: skip
     _check_unknown(doc, allowed, source, "top level")
     name = _table(doc, "name", source, Path(source).stem)
-    params = _table(doc, "parameters", source, {})
+    config = _config(_table(doc, "parameters", source, {}), source)
+    steps = doc.get("steps", 250)
+    if isinstance(steps, bool) or not isinstance(steps, int) or not 0 < steps <= MAX_STEPS:
+        raise ScenarioError(
+            f"scenario {source}: steps must be a positive integer up to {MAX_STEPS}, got {steps!r}"
+        )
+    origin, altitude = _origin(doc, source)
+    area = _Area(source, *config.area_km)
+    threats = _threats(doc, area)
+    targets = _targets(doc, area)
+    count, starts = _uavs(doc, area, threats, config)
+    threats_known = doc.get("threats_known", False)
+    if not isinstance(threats_known, bool):
+        raise ScenarioError(f"scenario {source}: threats_known must be true or false")
+    description = doc.get("description", "")
+    if not isinstance(description, str):
+        raise ScenarioError(f"scenario {source}: description must be a string")
+    scenario = Scenario(
+        name=str(name), config=config, targets=targets, threats=threats,
+        uav_count=count, uav_starts=starts, steps=steps, threats_known=threats_known,
+        origin=origin, altitude_m=altitude, description=description,
+    )  # fmt: skip
+    if starts is None and start_room(scenario)[0] < count:
+        raise no_room_for_starts(scenario, source, None)
+    return scenario
+
+
+def _config(params: dict[str, Any], source: str) -> PlannerConfig:
+    """``[parameters]`` as the planner's configuration, within the grid size a UAV can map."""
     try:
         config = PlannerConfig.from_mapping(params)
     except ConfigError as exc:
         raise ScenarioError(f"scenario {source}: [parameters]: {exc}") from None
     except TypeError as exc:
         raise ScenarioError(f"scenario {source}: [parameters]: {exc}") from None
-    width, height = config.area_km
     if config.grid_nx * config.grid_ny > MAX_GRID_CELLS:
         raise ScenarioError(
             f"scenario {source}: [parameters] grid {config.grid_nx} x {config.grid_ny} has more "
             f"than {MAX_GRID_CELLS:,} cells (every UAV keeps maps of it); use larger cell_km"
         )
+    return config
 
-    steps = doc.get("steps", 250)
-    if isinstance(steps, bool) or not isinstance(steps, int) or not 0 < steps <= MAX_STEPS:
-        raise ScenarioError(
-            f"scenario {source}: steps must be a positive integer up to {MAX_STEPS}, got {steps!r}"
-        )
 
+def _origin(doc: dict[str, Any], source: str) -> tuple[Origin, float]:
+    """``[origin]`` (the area's south-west corner on Earth) and the flight altitude."""
     origin_t = _table(doc, "origin", source, {})
     _check_unknown(origin_t, {"lat", "lon", "alt_m"}, source, "origin")
     origin = Origin(
@@ -269,15 +296,28 @@ def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
     altitude = _number(doc, "altitude_m", source, "top level", 500.0)
     if altitude <= 0:
         raise ScenarioError(f"scenario {source}: altitude_m must be > 0, got {altitude}")
+    return origin, altitude
 
-    def inside(x: float, y: float, path: str) -> None:
-        if not (0 <= x < width and 0 <= y < height):
+
+@dataclass(frozen=True)
+class _Area:
+    """The mission area of the scenario file ``source``, for placing its entries."""
+
+    source: str
+    width_km: float
+    height_km: float
+
+    def inside(self, x: float, y: float, path: str) -> None:
+        if not (0 <= x < self.width_km and 0 <= y < self.height_km):
             raise ScenarioError(
-                f"{_where(source, path)} position ({x:g}, {y:g}) km is outside the "
-                f"{width:g} x {height:g} km area; move it inside"
+                f"{_where(self.source, path)} position ({x:g}, {y:g}) km is outside the "
+                f"{self.width_km:g} x {self.height_km:g} km area; move it inside"
             )
 
-    threats = []
+
+def _threats(doc: dict[str, Any], area: _Area) -> tuple[ThreatSpec, ...]:
+    """``[[threats]]``: circles inside the area."""
+    source, threats = area.source, []
     for i, t in enumerate(_table(doc, "threats", source, [])):
         path = f"threats[{i}]"
         if not isinstance(t, dict):
@@ -294,10 +334,14 @@ def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
             raise ScenarioError(
                 f"{_where(source, path)}.radius_km must be > 0, got {threat.radius_km}"
             )
-        inside(threat.x_km, threat.y_km, path)
+        area.inside(threat.x_km, threat.y_km, path)
         threats.append(threat)
+    return tuple(threats)
 
-    targets = []
+
+def _targets(doc: dict[str, Any], area: _Area) -> tuple[TargetSpec, ...]:
+    """``[[targets]]``: at least one, each of a kind of Table 1 with what its kind needs."""
+    source, targets = area.source, []
     seen_ids: set[int] = set()
     for i, t in enumerate(_table(doc, "targets", source, [])):
         path = f"targets[{i}]"
@@ -329,46 +373,28 @@ def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
             tid, kind, _number(t, "x_km", source, path), _number(t, "y_km", source, path),
             value, speed, heading,
         )  # fmt: skip
-        inside(target.x_km, target.y_km, path)
+        area.inside(target.x_km, target.y_km, path)
         targets.append(target)
     if not targets:
         raise ScenarioError(f"scenario {source}: no [[targets]]; add at least one")
+    return tuple(targets)
 
+
+def _uavs(
+    doc: dict[str, Any], area: _Area, threats: tuple[ThreatSpec, ...], config: PlannerConfig
+) -> tuple[int, tuple[UavStart, ...] | None]:
+    """``[uavs]``: the count and, unless the starts are random, each start (inside the area,
+    outside every threat, one UAV per cell)."""
+    source = area.source
     uavs = _table(doc, "uavs", source, {})
     _check_unknown(uavs, {"count", "random_start", "start"}, source, "uavs")
     starts_t = uavs.get("start")
     random_start = uavs.get("random_start", starts_t is None)
     if not isinstance(random_start, bool):
         raise ScenarioError(f"scenario {source}: uavs.random_start must be true or false")
-    starts: tuple[UavStart, ...] | None = None
+    starts = None
     if starts_t is not None and not random_start:
-        if not isinstance(starts_t, list) or not starts_t:
-            raise ScenarioError(
-                f"scenario {source}: uavs.start must be a non-empty array of tables"
-            )
-        parsed = []
-        for i, s in enumerate(starts_t):
-            path = f"uavs.start[{i}]"
-            if not isinstance(s, dict):
-                raise ScenarioError(f"{_where(source, path)} must be a table with x_km, y_km")
-            _check_unknown(s, {"x_km", "y_km", "heading_deg"}, source, path)
-            start = UavStart(
-                _number(s, "x_km", source, path),
-                _number(s, "y_km", source, path),
-                _number(s, "heading_deg", source, path, 0.0),
-            )
-            inside(start.x_km, start.y_km, path)
-            for j, threat in enumerate(threats):
-                if (
-                    math.hypot(start.x_km - threat.x_km, start.y_km - threat.y_km)
-                    <= threat.radius_km
-                ):
-                    raise ScenarioError(
-                        f"{_where(source, path)} starts inside threats[{j}];"
-                        " move the start or the threat"
-                    )
-            parsed.append(start)
-        starts = tuple(parsed)
+        starts = _given_starts(starts_t, area, threats)
     count = uavs.get("count", len(starts) if starts else None)
     if isinstance(count, bool) or not isinstance(count, int) or not 0 < count <= MAX_UAVS:
         raise ScenarioError(
@@ -386,21 +412,36 @@ def scenario_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Scenario:
             raise ScenarioError(
                 f"scenario {source}: two UAVs start in the same cell; separate them"
             )
+    return count, starts
 
-    threats_known = doc.get("threats_known", False)
-    if not isinstance(threats_known, bool):
-        raise ScenarioError(f"scenario {source}: threats_known must be true or false")
-    description = doc.get("description", "")
-    if not isinstance(description, str):
-        raise ScenarioError(f"scenario {source}: description must be a string")
-    scenario = Scenario(
-        name=str(name), config=config, targets=tuple(targets), threats=tuple(threats),
-        uav_count=count, uav_starts=starts, steps=steps, threats_known=threats_known,
-        origin=origin, altitude_m=altitude, description=description,
-    )  # fmt: skip
-    if starts is None and start_room(scenario)[0] < count:
-        raise no_room_for_starts(scenario, source, None)
-    return scenario
+
+def _given_starts(
+    starts_t: Any, area: _Area, threats: tuple[ThreatSpec, ...]
+) -> tuple[UavStart, ...]:
+    """``[[uavs.start]]``: each inside the area and outside every threat."""
+    source = area.source
+    if not isinstance(starts_t, list) or not starts_t:
+        raise ScenarioError(f"scenario {source}: uavs.start must be a non-empty array of tables")
+    parsed = []
+    for i, s in enumerate(starts_t):
+        path = f"uavs.start[{i}]"
+        if not isinstance(s, dict):
+            raise ScenarioError(f"{_where(source, path)} must be a table with x_km, y_km")
+        _check_unknown(s, {"x_km", "y_km", "heading_deg"}, source, path)
+        start = UavStart(
+            _number(s, "x_km", source, path),
+            _number(s, "y_km", source, path),
+            _number(s, "heading_deg", source, path, 0.0),
+        )
+        area.inside(start.x_km, start.y_km, path)
+        for j, threat in enumerate(threats):
+            if math.hypot(start.x_km - threat.x_km, start.y_km - threat.y_km) <= threat.radius_km:
+                raise ScenarioError(
+                    f"{_where(source, path)} starts inside threats[{j}];"
+                    " move the start or the threat"
+                )
+        parsed.append(start)
+    return tuple(parsed)
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:

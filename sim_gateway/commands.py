@@ -17,7 +17,8 @@ from sim_gateway import flight_modes as modes
 from sim_gateway.camera import engagement_sequence, engagement_text
 from sim_gateway.geofence import point_excluded
 from sim_gateway.mission_store import RELATIVE_FRAMES
-from sim_gateway.telemetry import BUILDERS, MESSAGE_IDS, NAMES_BY_ID, build_autopilot_version
+from sim_gateway.telemetry import BUILDERS, build_autopilot_version
+from sim_gateway.telemetry_streams import MESSAGE_IDS, NAMES_BY_ID
 from sim_gateway.vehicle import GuidedTarget, Vehicle
 
 FORCE_DISARM_MAGIC = 21196

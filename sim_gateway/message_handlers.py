@@ -33,7 +33,7 @@ from sim_gateway.parameter_protocol import (
     handle_param_request_read,
     handle_param_set,
 )
-from sim_gateway.telemetry import DATA_STREAMS
+from sim_gateway.telemetry_streams import DATA_STREAMS
 from sim_gateway.vehicle import Vehicle
 
 FTP_OPCODE_NAK = 129
@@ -160,7 +160,7 @@ def handle_timesync(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
 def handle_system_time(v: Vehicle, msg: mavlink.MAVLink_message) -> None:
     """A ground station's clock (SYSTEM_TIME with UTC), which a simulated vehicle has no use for.
     One without UTC (time_unix_usec 0) is a lockstep grant: the simulator judges who sent it
-    before any vehicle sees it (``Simulator.lockstep_grant``, sim_gateway/lockstep.py)."""
+    before any vehicle sees it (``Inbox.lockstep_grant``, sim_gateway/inbox.py and lockstep.py)."""
 
 
 Handler = Callable[[Vehicle, mavlink.MAVLink_message], None]

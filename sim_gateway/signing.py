@@ -24,7 +24,7 @@ simulated vehicles. (``mavlink_bridge`` never imports ``sim_gateway``; the other
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Iterable
 
 from mavlink_wire.signing import (
     KEY_ENV,
@@ -34,9 +34,7 @@ from mavlink_wire.signing import (
     load_signing_key,
     sign_outgoing,
 )
-
-if TYPE_CHECKING:
-    from sim_gateway.simulator import Simulator
+from sim_gateway.mavlink_endpoint import ComponentSender, DatagramParser
 
 __all__ = [
     "KEY_ENV",
@@ -48,11 +46,13 @@ __all__ = [
 ]
 
 
-def enable_signing(sim: Simulator, key: bytes) -> SignatureCheck:
-    """Make every vehicle of ``sim`` sign what it sends and refuse what is not signed."""
+def enable_signing(
+    parser: DatagramParser, senders: Iterable[ComponentSender], key: bytes
+) -> SignatureCheck:
+    """Make ``senders`` (each component of each vehicle) sign what they send, and ``parser``
+    (the vehicles' one way in) refuse what is not signed."""
     check = SignatureCheck(key)
-    sim.parser.signature_check = check
-    for vehicle in sim.vehicles:
-        for sender in (vehicle.autopilot, vehicle.camera):
-            sign_outgoing(sender.mav, key, link_id=0)
+    parser.signature_check = check
+    for sender in senders:
+        sign_outgoing(sender.mav, key, link_id=0)
     return check

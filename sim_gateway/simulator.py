@@ -4,10 +4,11 @@ One process, one thread, one loop. Each pass of the loop:
 
 1. reads every datagram waiting on any vehicle socket, parses each on its own and dispatches the
    good messages by target system (a frame that reached several vehicle sockets, as a pymavlink
-   ``udpin`` sends to every client, is handled once);
+   ``udpin`` sends to every client, is handled once; ``sim_gateway/inbox.py``);
 2. when a physics tick is due, advances simulated time by exactly ``tick_s`` (kinematics,
    mission progress, fence, range) and, on each decision-period boundary (``step_s`` of the
-   scenario), steps the world and reports one sensor look per airborne vehicle;
+   scenario), steps the world and reports one sensor look per airborne vehicle
+   (``sim_gateway/sensor_looks.py``);
 3. when a telemetry frame is due (wall clock), sends the telemetry streams that are due.
 
 Time: ticks are due at ``tick * tick_s / speedup`` wall seconds after the start (real time is
@@ -16,26 +17,18 @@ horizon the ground station granted, and the simulator holds there (``sim_gateway
 Simulated time only ever moves in whole ticks and the world draws its randomness only from the
 seed, so a run without ground-station input is the same for the same seed whatever the speed,
 and commands take effect at tick boundaries (in lockstep, at the hold they were sent in).
+Its settings are :class:`~sim_gateway.sim_options.SimOptions`.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import math
-import selectors
-import socket
-import struct
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from mavlink_wire.looks import look_messages
 from planner.engagement import EngagementOutcome
-from planner.errors import UserError
 from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
 from planner.grid import Grid
 from planner.scenario import Origin, Scenario
@@ -43,108 +36,25 @@ from sim_gateway import flight_modes as modes
 from sim_gateway.fixed_wing import FleetKinematics
 from sim_gateway.geofence import FleetFence
 from sim_gateway.ground_truth import GROUPS, GroundTruthSafety
+from sim_gateway.inbox import Inbox
 from sim_gateway.lockstep import Address, ClockMaster, LockstepGate
-from sim_gateway.mavlink_endpoint import DatagramParser, LinkStats, VehicleSocket
-from sim_gateway.message_handlers import AUTOPILOT_ONLY, HANDLERS
+from sim_gateway.mavlink_endpoint import LinkStats, VehicleSocket
 from sim_gateway.mission_protocol import retry_upload
+from sim_gateway.sensor_looks import Looks
+from sim_gateway.signing import enable_signing
+from sim_gateway.sim_options import SimOptions, SimulatorError, resolve_gcs_host, with_vehicle_count
 from sim_gateway.target_account import TargetAccount
-from sim_gateway.telemetry import BUILDERS, FleetSnapshot
+from sim_gateway.telemetry import BUILDERS
+from sim_gateway.telemetry_streams import FleetSnapshot
 from sim_gateway.truth_feed import TruthFeed
 from sim_gateway.vehicle import Vehicle
 from sim_gateway.world import World
 
-MAX_VEHICLES = 200  # system ids 201-255 are left to ground stations (MAVSDK 245, MAVProxy 255)
 TELEMETRY_FRAME_S = 0.02  # telemetry is checked at most 50 times per wall second
 #: lockstep: GLOBAL_POSITION_INT of every vehicle once per this many simulated seconds, instead
 #: of the wall-clock stream (ticks run back to back, so a wall-clock rate would report a few
 #: positions per decision period, at instants that differ from run to run)
 LOCKSTEP_POSITION_S = 1.0
-DUPLICATE_WINDOW_S = 2.0
-
-
-class SimulatorError(UserError):
-    """The simulator cannot start with these settings; the message says what to change."""
-
-
-@dataclass(frozen=True)
-class SimOptions:
-    """How the simulator runs and where its vehicles talk."""
-
-    seed: int = 0
-    vehicles: int | None = None  # None: the scenario's UAV count
-    speedup: float = 1.0
-    fast: bool = False
-    tick_s: float = 0.1
-    gcs_host: str = "127.0.0.1"
-    gcs_port: int = 14550
-    per_vehicle_port_base: int | None = None  # vehicle i sends to base + i instead of gcs_port
-    bind_host: str = "127.0.0.1"
-    bind_port_base: int = 0  # vehicle i binds base + i; 0: any free port
-    boot_s: float = 20.0
-    airborne: bool = False
-    position_rate_hz: float = 10.0
-    signing_key: bytes | None = None  # MAVLink 2 signing (sim_gateway/signing.py); None: off
-    lockstep: bool = False  # hold at the horizon the ground station grants (SYSTEM_TIME)
-    lockstep_timeout_s: float = 10.0  # wall s of ground-station silence that end the lock
-    truth_port: int | None = None  # send the true targets to 127.0.0.1:PORT (truth_feed.py)
-
-    def validate(self) -> None:
-        if self.fast and self.lockstep:
-            raise SimulatorError(
-                "--fast and --lockstep exclude each other: lockstep already runs as fast as the "
-                "ground station allows; drop one"
-            )
-        if not (math.isfinite(self.lockstep_timeout_s) and self.lockstep_timeout_s > 0):
-            raise SimulatorError(
-                f"--lockstep-timeout must be a positive number of seconds, got "
-                f"{self.lockstep_timeout_s}"
-            )
-        if not (math.isfinite(self.speedup) and self.speedup > 0):
-            raise SimulatorError(
-                f"--speedup must be a positive number, got {self.speedup}; e.g. --speedup 50"
-            )
-        if not (math.isfinite(self.tick_s) and 0.001 <= self.tick_s <= 1.0):
-            raise SimulatorError(
-                f"--tick-s must be in [0.001, 1] s, got {self.tick_s}; 0.1 is the default"
-            )
-        if not (math.isfinite(self.boot_s) and 0 <= self.boot_s <= 600):
-            raise SimulatorError(f"--boot-s must be in [0, 600] s, got {self.boot_s}")
-        if not (math.isfinite(self.position_rate_hz) and 0 < self.position_rate_hz <= 50):
-            raise SimulatorError(f"--telemetry-hz must be in (0, 50], got {self.position_rate_hz}")
-        if self.vehicles is not None and not 1 <= self.vehicles <= MAX_VEHICLES:
-            raise SimulatorError(f"--vehicles must be in 1..{MAX_VEHICLES}, got {self.vehicles}")
-        for name, port, low in (
-            ("--gcs-port", self.gcs_port, 1),
-            ("--per-vehicle-ports", self.per_vehicle_port_base, 1),
-            ("--bind-base-port", self.bind_port_base, 0),
-            ("--truth-port", self.truth_port, 1),
-        ):
-            if port is not None and not low <= port <= 65535:
-                raise SimulatorError(f"{name} must be a UDP port in {low}..65535, got {port}")
-
-
-def resolve_gcs_host(host: str) -> str:
-    """The IPv4 address of ``--gcs-host`` (looked up once: the vehicles' ground station is
-    bound to it, sim_gateway/lockstep.py)."""
-    try:
-        return socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_DGRAM)[0][4][0]
-    except (OSError, UnicodeError) as exc:
-        raise SimulatorError(
-            f"--gcs-host {host!r} is not an IPv4 address or a name this machine can resolve "
-            f"({exc}); e.g. --gcs-host 127.0.0.1"
-        ) from None
-
-
-def with_vehicle_count(scenario: Scenario, count: int | None) -> Scenario:
-    """The scenario with ``count`` UAVs (random starts only: fixed starts fix the count)."""
-    if count is None or count == scenario.uav_count:
-        return scenario
-    if scenario.uav_starts is not None:
-        raise SimulatorError(
-            f"scenario {scenario.name!r} fixes {scenario.uav_count} UAV starts; drop --vehicles "
-            "or use a scenario with random starts"
-        )
-    return dataclasses.replace(scenario, uav_count=count)
 
 
 class Simulator:
@@ -162,13 +72,11 @@ class Simulator:
         self.truth_feed = None if options.truth_port is None else TruthFeed(options.truth_port)
         self.target_account = TargetAccount(self.world)  # ground truth per target (never sent)
         self.stats = LinkStats()
-        self.parser = DatagramParser(self.stats)
         self.boot_s = 0.0 if options.airborne else options.boot_s
         self.sim_time_s = 0.0
         self.ticks = 0
         self.decision_step = 0
         self.next_decision_s = self.config.step_s
-        self.wall0 = time.monotonic()
         self.utc0_us = int(time.time() * 1e6)
         self.max_range_m = self.config.max_range_km * 1000.0
 
@@ -184,45 +92,19 @@ class Simulator:
         self.fence = FleetFence(n)
         self.sockets: list[VehicleSocket] = []
         self.vehicles: list[Vehicle] = []
-        gcs_ip = resolve_gcs_host(options.gcs_host)
-        try:
-            for i in range(n):
-                port = (
-                    options.gcs_port
-                    if options.per_vehicle_port_base is None
-                    else options.per_vehicle_port_base + i
-                )
-                bind_port = options.bind_port_base + i if options.bind_port_base else 0
-                sock = VehicleSocket(options.bind_host, bind_port, (gcs_ip, port), self.stats)
-                self.sockets.append(sock)
-                vehicle = Vehicle(i, self.fleet, self, sock, scenario.altitude_m)
-                for name in ("GLOBAL_POSITION_INT", "ATTITUDE"):
-                    vehicle.streams.set_rate_hz(name, options.position_rate_hz)
-                self.vehicles.append(vehicle)
-        except OSError as exc:
-            self.close()
-            raise SimulatorError(
-                f"cannot open UDP socket on {options.bind_host} ({exc.strerror}); choose another "
-                "--bind-host / --bind-base-port or stop what holds the port"
-            ) from None
-        self.sysids = {v.sysid: v for v in self.vehicles}
+        self._open_vehicles(n, resolve_gcs_host(options.gcs_host))
+        self.lockstep = LockstepGate(options.lockstep, options.lockstep_timeout_s)
+        self.clock_master = ClockMaster()
+        self.inbox = Inbox(self.vehicles, self.stats, self.lockstep, self.clock_master)
         self.signature_check = None
         if options.signing_key is not None:
-            from sim_gateway.signing import enable_signing
-
-            self.signature_check = enable_signing(self, options.signing_key)
-        self.selector = selectors.DefaultSelector()
-        for sock in self.sockets:
-            self.selector.register(sock.sock, selectors.EVENT_READ, sock)
+            senders = (c for v in self.vehicles for c in (v.autopilot, v.camera))
+            self.signature_check = enable_signing(self.inbox.parser, senders, options.signing_key)
         self.fence_breached = np.zeros(n, dtype=bool)
         self.range_exhausted = np.zeros(n, dtype=bool)
-        self.recent_frames: dict[tuple[Address | None, bytes], float] = {}
-        self.next_purge_wall = 0.0
         self.next_frame_wall = 0.0
         self.looks_sent = 0
         self.engagements = 0
-        self.lockstep = LockstepGate(options.lockstep, options.lockstep_timeout_s)
-        self.clock_master = ClockMaster()
         self.fence_breaches = 0
         self.truth = GroundTruthSafety(
             n,
@@ -234,6 +116,31 @@ class Simulator:
         self._home_cache: tuple[tuple[float, ...], list[int], list[int]] | None = None
         if options.airborne:
             self._start_airborne()
+
+    def _open_vehicles(self, n: int, gcs_ip: str) -> None:
+        """One UDP socket and one :class:`Vehicle` per row of the fleet, each sending to its
+        ground-station port (``--gcs-port`` or ``--per-vehicle-ports``)."""
+        options = self.options
+        try:
+            for i in range(n):
+                port = (
+                    options.gcs_port
+                    if options.per_vehicle_port_base is None
+                    else options.per_vehicle_port_base + i
+                )
+                bind_port = options.bind_port_base + i if options.bind_port_base else 0
+                sock = VehicleSocket(options.bind_host, bind_port, (gcs_ip, port), self.stats)
+                self.sockets.append(sock)
+                vehicle = Vehicle(i, self.fleet, self, sock, self.scenario.altitude_m)
+                for name in ("GLOBAL_POSITION_INT", "ATTITUDE"):
+                    vehicle.streams.set_rate_hz(name, options.position_rate_hz)
+                self.vehicles.append(vehicle)
+        except OSError as exc:
+            self.close()
+            raise SimulatorError(
+                f"cannot open UDP socket on {options.bind_host} ({exc.strerror}); choose another "
+                "--bind-host / --bind-base-port or stop what holds the port"
+            ) from None
 
     # ------------------------------------------------------------------ host services
 
@@ -297,18 +204,6 @@ class Simulator:
     def time_boot_ms(self) -> int:
         return int(round(self.sim_time_s * 1000))
 
-    def lockstep_grant(
-        self, message: mavlink.MAVLink_message, sock: VehicleSocket | None, sender: Address | None
-    ) -> None:
-        """A SYSTEM_TIME without UTC that arrived on ``sock`` from ``sender``: a lockstep grant
-        if it comes from the vehicles' ground station (``ClockMaster``), else dropped."""
-        if not self.options.lockstep:
-            return  # not a lockstep simulator: a grant means nothing here
-        station = None if sock is None else sock.station
-        if self.clock_master.admits(message.get_srcSystem(), sender, station, set(self.sysids)):
-            self.clock_master.last_heard_wall_s = now = self.wall_s()
-            self.lockstep.on_grant(message.time_boot_ms, now)
-
     # ------------------------------------------------------------------ setup
 
     def _start_airborne(self) -> None:
@@ -323,83 +218,15 @@ class Simulator:
     # ------------------------------------------------------------------ receiving
 
     def poll(self, timeout_s: float) -> int:
-        """Wait up to ``timeout_s`` for datagrams and handle all that arrived; returns how many."""
-        handled = 0
-        for key, _ in self.selector.select(timeout_s):
-            sock: VehicleSocket = key.data
-            for data, sender in sock.receive_all():
-                self.handle_datagram(data, sock, sender)
-                handled += 1
-        return handled
+        """Wait up to ``timeout_s`` for datagrams and handle all that arrived; returns how many
+        (:meth:`Inbox.poll <sim_gateway.inbox.Inbox.poll>`)."""
+        return self.inbox.poll(timeout_s)
 
     def handle_datagram(
         self, data: bytes, sock: VehicleSocket | None = None, sender: Address | None = None
     ) -> None:
         """One datagram that arrived on ``sock`` from ``sender`` (None: fed in directly)."""
-        now = self.wall_s()
-        for message in self.parser.parse(data):
-            # a frame one sender wrote to several vehicle sockets is handled once; the same
-            # bytes from another sender are its own (a copy sent ahead cannot mask the original)
-            key = (sender, bytes(message.get_msgbuf()))
-            seen = self.recent_frames.get(key)
-            if seen is not None and now - seen < DUPLICATE_WINDOW_S:
-                self.stats.duplicates += 1
-                continue
-            self.recent_frames[key] = now
-            self.dispatch(message, sock, sender)
-        if now >= self.next_purge_wall:
-            self.recent_frames = {
-                k: t for k, t in self.recent_frames.items() if now - t < DUPLICATE_WINDOW_S
-            }
-            self.next_purge_wall = now + DUPLICATE_WINDOW_S
-
-    def dispatch(
-        self,
-        message: mavlink.MAVLink_message,
-        sock: VehicleSocket | None = None,
-        sender: Address | None = None,
-    ) -> None:
-        """Hand a good message to the vehicle(s) it is addressed to; a lockstep grant to the
-        clock, if it comes from the vehicles' ground station."""
-        mtype = message.get_type()
-        stats = self.stats
-        stats.by_type[mtype] = stats.by_type.get(mtype, 0) + 1
-        if mtype == "SYSTEM_TIME" and message.time_unix_usec == 0:
-            self.lockstep_grant(message, sock, sender)
-            return
-        if mtype == "HEARTBEAT" and self.clock_master.is_master(
-            message.get_srcSystem(), sender, None if sock is None else sock.station
-        ):
-            self.clock_master.last_heard_wall_s = self.wall_s()  # keeps the lock (lockstep.py)
-        handler = HANDLERS.get(mtype)
-        if handler is None or message.get_srcSystem() in self.sysids:
-            stats.ignored_messages += 1
-            return
-        target = getattr(message, "target_system", 0)
-        if mtype in AUTOPILOT_ONLY and getattr(message, "target_component", 0) not in (0, 1):
-            stats.ignored_messages += 1
-            return
-        if target == 0:
-            targets = self.vehicles
-        elif target in self.sysids:
-            targets = [self.sysids[target]]
-        else:
-            stats.ignored_messages += 1
-            return
-        for vehicle in targets:
-            try:
-                handler(vehicle, message)
-            except (
-                ValueError,
-                TypeError,
-                OverflowError,
-                ArithmeticError,
-                KeyError,
-                IndexError,
-                struct.error,
-            ):
-                # a value no handler expected (NaN where an int goes...): refuse it, keep flying
-                stats.rejected_commands += 1
+        self.inbox.handle_datagram(data, sock, sender)
 
     # ------------------------------------------------------------------ simulating
 
@@ -473,37 +300,19 @@ class Simulator:
         self.decision_step += 1
         if self.truth_feed is not None:
             self.truth_feed.send(self.world, self.decision_step)
-        flying = np.flatnonzero(self.fleet.airborne)
-        if flying.size == 0:
+        if not self.fleet.airborne.any():
             return
-        # The look is taken at the position as reported (degE7), so a receiver that converts the
-        # reported lat/lon with planner.geodesy finds the very same cell.
-        lat, lon = local_km_to_geodetic(
-            self.fleet.x_m[flying] / 1000.0, self.fleet.y_m[flying] / 1000.0, self.origin
+        looks = Looks.take(self.world, self.grid, self.origin, self.fleet)
+        self.target_account.observe(
+            self.decision_step, looks.xy_km, None, looks.reports, self.time_boot_ms()
         )
-        lat_e7, lon_e7 = np.rint(lat * 1e7).astype(np.int64), np.rint(lon * 1e7).astype(np.int64)
-        x_km, y_km = geodetic_to_local_km(lat_e7 / 1e7, lon_e7 / 1e7, self.origin)
-        xy = np.stack([x_km, y_km], axis=1)
-        reports = self.world.sense(xy)
-        self.target_account.observe(self.decision_step, xy, None, reports, self.time_boot_ms())
-        look_cells = self.grid.cell_of(xy)
         boot_ms = self.time_boot_ms()
         utc_us = self.utc0_us + int(self.sim_time_s * 1e6)
         home_amsl = self.home_amsl_m()
-        for k, i in enumerate(flying):
+        for k, i in enumerate(looks.flying):
             v = self.vehicles[i]
-            detected = reports[k].cells[reports[k].detected] - look_cells[k]
-            rel_mm = round(float(self.fleet.alt_m[i]) * 1000)
-            for message in look_messages(
-                ((int(dx), int(dy)) for dx, dy in detected),
-                v.look_index,
-                boot_ms,
-                utc_us,
-                int(lat_e7[k]),
-                int(lon_e7[k]),
-                round(home_amsl * 1000) + rel_mm,
-                rel_mm,
-            ):
+            altitude = float(self.fleet.alt_m[i])
+            for message in looks.messages(k, v.look_index, boot_ms, utc_us, home_amsl, altitude):
                 v.send_from_camera(message)
             v.look_index += 1
             self.looks_sent += 1
@@ -626,8 +435,8 @@ class Simulator:
             v.send(BUILDERS["GLOBAL_POSITION_INT"](v, snapshot))
 
     def close(self) -> None:
-        if getattr(self, "selector", None) is not None:
-            self.selector.close()
+        if getattr(self, "inbox", None) is not None:
+            self.inbox.close()
         for sock in self.sockets:
             sock.close()
         if getattr(self, "truth_feed", None) is not None:

@@ -1,103 +1,17 @@
-"""Telemetry streams of a simulated vehicle: which messages, how often, and how each is built.
-
-Rates count wall-clock seconds (at a 50x speedup a 10 Hz position stream is one message per 5 s
-of simulated flight): a ground station or daemon receives at a wall-clock rate, and receiving is
-its bottleneck. Defaults are below; MAV_CMD_SET_MESSAGE_INTERVAL and REQUEST_DATA_STREAM change
-them per vehicle, as on ArduPilot (whose SRx_ stream groups are mapped in :data:`DATA_STREAMS`).
+"""How each telemetry message of a simulated vehicle is built (:data:`BUILDERS`, by name), from
+the vehicle and the frame's :class:`~sim_gateway.telemetry_streams.FleetSnapshot`. Which
+messages are due and how often is ``sim_gateway/telemetry_streams.py``.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sim_gateway import flight_modes as modes
-
-if TYPE_CHECKING:
-    from sim_gateway.vehicle import Vehicle
-
-#: Default rates in Hz (wall clock). HEARTBEAT is always 1 Hz.
-DEFAULT_RATES_HZ = {
-    "HEARTBEAT": 1.0,
-    "SYS_STATUS": 1.0,
-    "GLOBAL_POSITION_INT": 10.0,
-    "ATTITUDE": 10.0,
-    "VFR_HUD": 4.0,
-    "GPS_RAW_INT": 2.0,
-    "EXTENDED_SYS_STATE": 1.0,
-    "MISSION_CURRENT": 1.0,
-    "HOME_POSITION": 0.2,
-    "SYSTEM_TIME": 0.5,
-}
-MAX_RATE_HZ = 50.0
-
-#: REQUEST_DATA_STREAM groups -> messages (ArduPilot's stream groups, restricted to ours).
-DATA_STREAMS = {
-    mavlink.MAV_DATA_STREAM_EXTENDED_STATUS: ("SYS_STATUS", "GPS_RAW_INT", "MISSION_CURRENT"),
-    mavlink.MAV_DATA_STREAM_POSITION: ("GLOBAL_POSITION_INT",),
-    mavlink.MAV_DATA_STREAM_EXTRA1: ("ATTITUDE",),
-    mavlink.MAV_DATA_STREAM_EXTRA2: ("VFR_HUD",),
-    mavlink.MAV_DATA_STREAM_EXTRA3: ("EXTENDED_SYS_STATE", "SYSTEM_TIME"),
-}
-DATA_STREAMS[mavlink.MAV_DATA_STREAM_ALL] = tuple(
-    m for group in DATA_STREAMS.values() for m in group
-)
-
-MESSAGE_IDS = {name: getattr(mavlink, f"MAVLINK_MSG_ID_{name}") for name in DEFAULT_RATES_HZ}
-NAMES_BY_ID = {v: k for k, v in MESSAGE_IDS.items()}
-
-
-@dataclass
-class StreamSchedule:
-    """Interval (s) and next due wall time of each stream of one vehicle."""
-
-    interval_s: dict[str, float | None] = field(
-        default_factory=lambda: {k: 1.0 / v for k, v in DEFAULT_RATES_HZ.items()}
-    )
-    next_due_s: dict[str, float] = field(default_factory=dict)
-
-    def set_rate_hz(self, name: str, rate_hz: float | None) -> None:
-        """Set a stream's rate; None or <= 0 stops it."""
-        if rate_hz is None or rate_hz <= 0:
-            self.interval_s[name] = None
-        else:
-            self.interval_s[name] = 1.0 / min(rate_hz, MAX_RATE_HZ)
-        self.next_due_s.pop(name, None)
-
-    def reset_default(self, name: str) -> None:
-        self.set_rate_hz(name, DEFAULT_RATES_HZ[name])
-
-    def due(self, now_s: float) -> list[str]:
-        """Streams due at ``now_s``, each rescheduled one interval on (no burst after a stall)."""
-        out = []
-        for name, interval in self.interval_s.items():
-            if interval is None:
-                continue
-            nxt = self.next_due_s.get(name)
-            if nxt is None or now_s >= nxt:
-                out.append(name)
-                base = now_s if nxt is None or now_s - nxt > interval else nxt
-                self.next_due_s[name] = base + interval
-        return out
-
-
-@dataclass
-class FleetSnapshot:
-    """Per-vehicle values computed once per telemetry frame for the whole fleet."""
-
-    lat_e7: list[int]
-    lon_e7: list[int]
-    home_lat_e7: list[int]
-    home_lon_e7: list[int]
-    time_boot_ms: int
-    time_unix_us: int
-    range_remaining_pct: list[int]
-
-
-# ---------------------------------------------------------------------- builders
+from sim_gateway.auto_mission import mission_current
+from sim_gateway.telemetry_streams import FleetSnapshot
+from sim_gateway.vehicle import Vehicle
 
 
 def _ground_speed_mps(v: Vehicle) -> float:
@@ -260,23 +174,8 @@ def build_home_position(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message
     )
 
 
-def mission_current(v: Vehicle) -> mavlink.MAVLink_message:
-    """MISSION_CURRENT, streamed and sent whenever the current item changes."""
-    total = max(len(v.missions.mission()) - 1, 0)
-    return mavlink.MAVLink_mission_current_message(
-        v.missions.current_seq,
-        total=total,
-        mission_state=mavlink.MISSION_STATE_NO_MISSION
-        if total == 0
-        else mavlink.MISSION_STATE_ACTIVE
-        if v.mode == modes.AUTO
-        else mavlink.MISSION_STATE_NOT_STARTED,
-        mission_mode=int(v.mode == modes.AUTO),
-    )
-
-
 def build_mission_current(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:
-    return mission_current(v)
+    return mission_current(v.missions, v.mode)
 
 
 def build_system_time(v: Vehicle, s: FleetSnapshot) -> mavlink.MAVLink_message:

@@ -1,8 +1,9 @@
 """One simulated ArduPlane: its state (armed, mode, home, boot phase, guided target, mission
-progress) and its autopilot logic (mode changes, take-off, AUTO missions, RTL, failsafe and
-fence actions). Its motion lives in the fleet's :class:`~sim_gateway.fixed_wing.FleetKinematics`
-(row ``index``); what it says and hears over MAVLink lives in ``message_handlers``,
-``commands``, ``mission_protocol``, ``parameter_protocol`` and ``telemetry``.
+progress) and its autopilot logic (mode changes, take-off, RTL, failsafe and fence actions;
+flying AUTO missions is :class:`~sim_gateway.auto_mission.AutoMission`). Its motion lives in
+the fleet's :class:`~sim_gateway.fixed_wing.FleetKinematics` (row ``index``); what it says and
+hears over MAVLink lives in ``message_handlers``, ``commands``, ``mission_protocol``,
+``parameter_protocol`` and ``telemetry``.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from planner.engagement import EngagementOutcome
 from planner.scenario import Origin
 from sim_gateway import flight_modes as modes
+from sim_gateway.auto_mission import AutoMission, MissionHost
 from sim_gateway.camera import EngagementLog
 from sim_gateway.failsafe import FailsafeEvent, GcsFailsafe, long_failsafe_mode
 from sim_gateway.fixed_wing import FleetKinematics
@@ -28,30 +30,27 @@ from sim_gateway.mavlink_endpoint import (
     LinkStats,
     VehicleSocket,
 )
-from sim_gateway.mission_store import FENCE, MissionItem, MissionStore
+from sim_gateway.mission_store import FENCE, MissionStore
 from sim_gateway.parameters import ParameterSet, default_specs
-from sim_gateway.telemetry import FleetSnapshot, StreamSchedule, mission_current
+from sim_gateway.telemetry_streams import FleetSnapshot, StreamSchedule
 
 BOOT_STATE_S = 1.0  # MAV_STATE_BOOT this long, then CALIBRATING until the boot phase ends
 
 
-class VehicleHost(Protocol):
+class VehicleHost(MissionHost, Protocol):
     """What a vehicle needs from the simulator that runs it."""
 
     stats: LinkStats
     origin: Origin
-    sim_time_s: float
     decision_step: int
     boot_s: float
 
     def wall_s(self) -> float: ...
     def local_to_geodetic(self, x_m: float, y_m: float) -> tuple[float, float]: ...
-    def geodetic_to_local(self, lat_deg: float, lon_deg: float) -> tuple[float, float]: ...
     def engage(self, index: int) -> EngagementOutcome: ...
     def set_fence(self, index: int, circles: np.ndarray) -> None: ...
     def fence_circles(self, index: int) -> np.ndarray: ...
     def snapshot(self) -> FleetSnapshot: ...
-    def home_amsl_m(self) -> float: ...
 
 
 @dataclass
@@ -62,7 +61,7 @@ class GuidedTarget:
     radius_m: float  # signed: < 0 counter-clockwise
 
 
-class Vehicle:
+class Vehicle(AutoMission):
     """State and autopilot behaviour of the plane in row ``index`` of the fleet."""
 
     def __init__(
@@ -300,165 +299,6 @@ class Vehicle:
         self.fleet.fly_to(i, g.x_m, g.y_m, self.params["WP_RADIUS"], g.radius_m)
         if self.airborne:
             self.fleet.target_alt_m[i] = g.alt_m
-
-    # ------------------------------------------------------------------ AUTO missions
-
-    def current_item_command(self) -> int | None:
-        items = self.missions.mission()
-        seq = self.missions.current_seq
-        return items[seq].command if 0 <= seq < len(items) else None
-
-    def item_relative_alt(self, item: MissionItem) -> float:
-        return item.z if item.is_relative_alt() else item.z - self.host.home_amsl_m()
-
-    def start_mission_item(self, seq: int) -> None:
-        """Make item ``seq`` current and start flying it (DO items run at once)."""
-        items = self.missions.mission()
-        for _ in range(len(items) + 1):  # bounded: DO items and jumps cannot loop forever
-            if seq >= len(items):
-                self.finish_mission()
-                return
-            self.missions.current_seq = seq
-            self.item_wait_until_s = None
-            self.item_arrived = False
-            item = items[seq]
-            self.send_mission_current()
-            next_seq = self.begin_item(item)
-            if next_seq is None:
-                return
-            seq = next_seq
-        self.finish_mission()
-
-    def begin_item(self, item: MissionItem) -> int | None:
-        """Start one item; returns the next seq when the item completes at once (DO items)."""
-        i, fleet, p = self.index, self.fleet, self.params
-        cmd = item.command
-        if cmd == mavlink.MAV_CMD_DO_CHANGE_SPEED:
-            if p["AIRSPEED_MIN"] <= item.param2 <= p["AIRSPEED_MAX"]:
-                fleet.set_airspeed(i, item.param2)
-            return item.seq + 1
-        if cmd == mavlink.MAV_CMD_DO_JUMP:
-            target, repeat = int(item.param1), int(item.param2)
-            left = self.jumps_left.setdefault(item.seq, repeat)
-            if left == 0 or not 1 <= target < len(self.missions.mission()):
-                return item.seq + 1
-            if left > 0:
-                self.jumps_left[item.seq] = left - 1
-            return target
-        if cmd not in (
-            mavlink.MAV_CMD_NAV_TAKEOFF,
-            mavlink.MAV_CMD_NAV_WAYPOINT,
-            mavlink.MAV_CMD_NAV_LOITER_UNLIM,
-            mavlink.MAV_CMD_NAV_LOITER_TIME,
-            mavlink.MAV_CMD_NAV_LOITER_TURNS,
-            mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH,
-            mavlink.MAV_CMD_NAV_LAND,
-        ):
-            return item.seq + 1  # other DO commands: nothing to fly (never a payload release)
-        if cmd == mavlink.MAV_CMD_NAV_TAKEOFF:
-            alt = self.item_relative_alt(item)
-            if self.airborne:
-                fleet.target_alt_m[i] = max(alt, float(fleet.alt_m[i]))
-                if fleet.alt_m[i] >= alt - 1.0:
-                    self.mission_item_reached(item.seq)
-                    return item.seq + 1
-            else:
-                self.start_takeoff_if_due()
-            return None
-        if cmd == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
-            self.return_to_launch()
-            return None
-        x_m, y_m = self.host.geodetic_to_local(item.lat_deg, item.lon_deg)
-        if item.x == 0 and item.y == 0:  # "here" (as ArduPilot reads a 0,0 location)
-            x_m, y_m = float(fleet.x_m[i]), float(fleet.y_m[i])
-        if self.airborne and cmd != mavlink.MAV_CMD_NAV_LAND:
-            alt = self.item_relative_alt(item)
-            if alt > 0:
-                fleet.target_alt_m[i] = alt
-        if cmd == mavlink.MAV_CMD_NAV_WAYPOINT:
-            fleet.fly_to(i, x_m, y_m, p["WP_RADIUS"], None)
-        else:
-            radius = (
-                item.param3 if math.isfinite(item.param3) and item.param3 else p["WP_LOITER_RAD"]
-            )
-            fleet.fly_to(i, x_m, y_m, p["WP_RADIUS"], radius)
-        return None
-
-    def on_arrived(self) -> None:
-        """The kinematics reached the PURSUIT point of this vehicle."""
-        if self.mode != modes.AUTO:
-            return
-        items = self.missions.mission()
-        seq = self.missions.current_seq
-        if not 0 <= seq < len(items):
-            return
-        item = items[seq]
-        cmd = item.command
-        self.item_arrived = True
-        if cmd in (mavlink.MAV_CMD_NAV_WAYPOINT, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH):
-            self.advance_mission(seq)
-        elif cmd == mavlink.MAV_CMD_NAV_LOITER_TIME:
-            self.item_wait_until_s = self.host.sim_time_s + max(item.param1, 0.0)
-        elif cmd == mavlink.MAV_CMD_NAV_LOITER_TURNS:
-            radius = float(self.fleet.effective_orbit_radius_m()[self.index])
-            lap_s = 2 * math.pi * radius / max(float(self.fleet.airspeed_mps[self.index]), 1.0)
-            self.item_wait_until_s = self.host.sim_time_s + max(item.param1, 0.0) * lap_s
-        elif cmd == mavlink.MAV_CMD_NAV_LAND:
-            self.fleet.target_alt_m[self.index] = 0.0
-
-    def on_climbed(self) -> None:
-        """The kinematics reached this vehicle's altitude target."""
-        i = self.index
-        if self.mode == modes.TAKEOFF:
-            self.fleet.orbit(
-                i, float(self.fleet.x_m[i]), float(self.fleet.y_m[i]), self.params["WP_LOITER_RAD"]
-            )
-        elif self.mode == modes.AUTO:
-            cmd = self.current_item_command()
-            if cmd == mavlink.MAV_CMD_NAV_TAKEOFF:
-                self.advance_mission(self.missions.current_seq)
-            elif (
-                cmd == mavlink.MAV_CMD_NAV_LAND and self.item_arrived and self.fleet.alt_m[i] <= 1.0
-            ):
-                self.land_now()
-                self.armed = False
-                self.statustext("Landed, disarmed")
-                self.advance_mission(self.missions.current_seq)
-
-    def on_timer(self) -> None:
-        """Called when a pending AUTO deadline may have passed."""
-        if self.item_wait_until_s is not None and self.host.sim_time_s >= self.item_wait_until_s:
-            self.item_wait_until_s = None
-            if self.mode == modes.AUTO:
-                self.advance_mission(self.missions.current_seq)
-
-    def advance_mission(self, seq: int) -> None:
-        self.mission_item_reached(seq)
-        if self.mode == modes.AUTO and self.armed:
-            self.start_mission_item(seq + 1)
-
-    def mission_item_reached(self, seq: int) -> None:
-        self.send(mavlink.MAVLink_mission_item_reached_message(seq))
-
-    def finish_mission(self) -> None:
-        self.missions.current_seq = max(len(self.missions.mission()) - 1, 0)
-        self.statustext("Mission complete, changing mode to RTL")
-        self.set_mode(modes.RTL)
-
-    def send_mission_current(self) -> None:
-        self.send(mission_current(self))
-
-    def set_current_item(self, seq: int) -> bool:
-        """MISSION_SET_CURRENT / MAV_CMD_DO_SET_MISSION_CURRENT: False when there is no item
-        ``seq``. In AUTO the vehicle flies to it at once (item 0, home, counts as item 1)."""
-        if not 0 <= seq < len(self.missions.mission()):
-            return False
-        if self.mode == modes.AUTO:
-            self.start_mission_item(max(seq, 1))
-        else:
-            self.missions.current_seq = seq
-            self.send_mission_current()
-        return True
 
     # ------------------------------------------------------------------ fence, range, link
 

@@ -23,8 +23,8 @@ PAPER = ("paper-2uav", "paper-10uav", "paper-20uav")
 ROOT = Path(__file__).resolve().parent.parent
 OFFLINE = [(name, seed) for name in PAPER for seed in (1, 2, 3)]
 DEMO = [("paper-10uav", seed) for seed in (1, 2, 3)]
-#: fields that depend on the machine, the ports or the folder, not on what was decided (and
-#: ``signing``: counts of signed frames, which the demo signs by default; a count, not a decision)
+#: fields that depend on the machine, the ports or the folder, not on what was decided (the
+#: demo signs by default: its signing counts are frame counts, as frames_received is)
 MACHINE = {"wall_time_s", "endpoints", "tlog", "frames_received", "signing"}
 
 

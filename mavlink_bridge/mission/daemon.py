@@ -54,7 +54,8 @@ from mavlink_bridge.results.mission_result import (
 from mavlink_bridge.safety.track_audit import TrackAudit, position_listener
 from mavlink_bridge.vehicles.swarm_link import SwarmLink
 from mavlink_bridge.vehicles.telemetry_plausibility import PlausibilityFilter, PlausibilityLimits
-from mavlink_bridge.vehicles.vehicle_loss import LossWatch, SwarmPauses
+from mavlink_bridge.vehicles.vehicle_loss import GONE, LossWatch, SwarmPauses
+from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_bridge.way_home.flight_home import FlightHomePhase
 from mavlink_wire.protocol import mavlink
 from mavlink_wire.tlog import TlogWriter
@@ -194,6 +195,7 @@ class MissionDaemon:
             accept_system_id=lambda s: s in expected,
             signing_key=options.signing_key,
             plausibility=PlausibilityFilter(limits),
+            may_move=self.gone,
         )
         if options.lockstep:
             ctx.clock = LockstepClock(link, ctx.scenario.config.step_s)
@@ -205,10 +207,20 @@ class MissionDaemon:
     def watch_links(self, step: int) -> None:
         """Loss and return (``vehicle_loss.LossWatch``), at every pump of the loop; and the
         lines the plausibility filter has to say (a clock restarted, an address moved)."""
+        self.say_notices()
+        self.loss.watch(step)
+
+    def gone(self, v: VehicleState) -> bool:
+        """Vehicle ``v`` counts as gone (lost to silence or a closed link; a whole-swarm pause
+        of a lockstep simulator is no one's silence): only then may its address move."""
+        return self.loss.reasons.get(v.system_id - 1, "").startswith(GONE)
+
+    def say_notices(self) -> None:
+        """Say, once each, the lines the plausibility filter has to say (a clock restarted, an
+        address moved, a second address refused)."""
         notices = self.ctx.require_link().plausibility.notices
         while notices:
             self.ctx.say(f"warning: {notices.pop(0)}")
-        self.loss.watch(step)
 
     # ------------------------------------------------------------------ the mission
 
@@ -264,7 +276,7 @@ class MissionDaemon:
         self.started = time.monotonic()
         self.prepare()
         try:
-            run_launch(self.launching, self.launch, self.enter)
+            run_launch(self.launching, self.launch, self.enter, self.say_notices)
             self.enter("decisions")
             self.audit.set_phase("mission")
             self.loop.run(

@@ -242,9 +242,18 @@ def launch_phases() -> list[LaunchPhase]:
     ]
 
 
-def run_launch(launch: Launch, phases: list[LaunchPhase], enter: Callable[[str], None]) -> None:
+def run_launch(
+    launch: Launch,
+    phases: list[LaunchPhase],
+    enter: Callable[[str], None],
+    said: Callable[[], None] = lambda: None,
+) -> None:
     """Run ``phases`` in order, telling ``enter`` the name of each as it starts (the daemon
-    notes the phase it is in, for its exit report)."""
+    notes the phase it is in, for its exit report), and ``said`` as each ends, however it
+    ends (the daemon says what the link has to say)."""
     for phase in phases:
         enter(phase.name)
-        phase.run(launch)
+        try:
+            phase.run(launch)
+        finally:
+            said()  # e.g. a second address refused while the vehicles were found

@@ -2,12 +2,14 @@
 
 ``SwarmLink.pump(timeout)`` waits for datagrams on every endpoint, parses them, logs every frame
 to the .tlog, routes each message to the ``VehicleState`` of its system id (a new vehicle is
-registered by its autopilot's HEARTBEAT), and sends the daemon's own GCS heartbeat at 1 Hz.
+registered, and bound to its address, by its autopilot's HEARTBEAT that carries a vehicle type:
+``claims_vehicle``), and sends the daemon's own GCS heartbeat at 1 Hz.
 
 Only what is authentic or plausible changes a vehicle's state (``_dispatch``): with signing on,
 an unsigned frame (RADIO_STATUS / RADIO, which pass the signature check unsigned) changes
-nothing; every other frame must come from the address its vehicle component is bound to and
-pass the plausibility rules (``telemetry_plausibility.py``). What fails is logged and counted.
+nothing and binds nothing; every other frame must come from the address its vehicle component
+is bound to and pass the plausibility rules (``telemetry_plausibility.py``). What fails is
+logged and counted.
 """
 
 from __future__ import annotations
@@ -23,14 +25,41 @@ from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, mavlink
 from mavlink_wire.signing import SignatureCheck, is_signed, sign_outgoing
 from mavlink_wire.tlog import TlogWriter
 
-#: Vehicle kinds that are not vehicles (ground stations, cameras, gimbals...).
-_NOT_VEHICLES = {
-    mavlink.MAV_TYPE_GCS,
-    mavlink.MAV_TYPE_CAMERA,
-    mavlink.MAV_TYPE_GIMBAL,
-    mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
-    mavlink.MAV_TYPE_ADSB,
-}
+#: MAV_TYPEs of vehicles (what an autopilot's HEARTBEAT says it flies or drives). Not: generic,
+#: ground stations, companion computers, gimbals, cameras, ADS-B, trackers and other parts.
+_VEHICLE_TYPE_NAMES = [
+    "FIXED_WING", "QUADROTOR", "COAXIAL", "HELICOPTER", "AIRSHIP", "FREE_BALLOON", "ROCKET",
+    "GROUND_ROVER", "SURFACE_BOAT", "SUBMARINE", "HEXAROTOR", "OCTOROTOR", "TRICOPTER",
+    "FLAPPING_WING", "KITE", "VTOL_DUOROTOR", "VTOL_QUADROTOR", "VTOL_TILTROTOR",
+    "VTOL_RESERVED2", "VTOL_RESERVED3", "VTOL_RESERVED4", "VTOL_RESERVED5", "PARAFOIL",
+    "DODECAROTOR", "DECAROTOR", "GENERIC_MULTIROTOR", "VTOL_GYRODYNE",
+]  # fmt: skip
+VEHICLE_TYPES = frozenset(
+    getattr(mavlink, f"MAV_TYPE_{name}")
+    for name in _VEHICLE_TYPE_NAMES
+    if hasattr(mavlink, f"MAV_TYPE_{name}")  # (newer ones are missing in older pymavlink)
+)
+#: MAV_AUTOPILOTs of a real autopilot (all named ones but INVALID, what non-autopilots send)
+AUTOPILOTS = frozenset(
+    value
+    for value, entry in mavlink.enums["MAV_AUTOPILOT"].items()
+    if value != mavlink.MAV_AUTOPILOT_INVALID and not entry.name.endswith("ENUM_END")
+)
+#: HEARTBEAT ``mavlink_version``: 3 for MAVLink 1 and 2 alike (set by the protocol, not the user)
+_MAVLINK_VERSION = 3
+
+
+def claims_vehicle(msg: mavlink.MAVLink_message) -> bool:
+    """An autopilot's HEARTBEAT that says it is a vehicle: component 1 (MAV_COMP_ID_AUTOPILOT1),
+    a vehicle type, a real autopilot, the protocol's version byte. Only such a frame makes (or
+    moves) a vehicle; a ground station's, a companion's or a fuzzed HEARTBEAT does not."""
+    return (
+        msg.get_type() == "HEARTBEAT"
+        and msg.get_srcComponent() == AUTOPILOT_COMPONENT_ID
+        and msg.type in VEHICLE_TYPES
+        and msg.autopilot in AUTOPILOTS
+        and msg.mavlink_version == _MAVLINK_VERSION
+    )
 
 
 class SwarmLink:
@@ -44,8 +73,12 @@ class SwarmLink:
         accept_system_id: Callable[[int], bool] | None = None,
         signing_key: bytes | None = None,
         plausibility: PlausibilityFilter | None = None,
+        may_move: Callable[[VehicleState], bool] | None = None,
     ) -> None:
         self.endpoints = endpoints
+        #: whether a vehicle's binding may move to a new address (the daemon: only a vehicle
+        #: it counts as gone); without it, the bound address's silence alone decides
+        self.may_move = may_move or (lambda vehicle: True)
         self.plausibility = plausibility or PlausibilityFilter()
         # MAVLink 2 signing: every frame we send is signed, every frame we hear is checked
         self.signing_key = signing_key
@@ -154,17 +187,22 @@ class SwarmLink:
             trust.counts.unsigned_ignored += 1  # authentic frames are signed: believe nothing
             return
         sysid, compid = msg.get_srcSystem(), msg.get_srcComponent()
+        where = (id(endpoint), address)
         vehicle = self.vehicles.get(sysid)
         if vehicle is None:
-            if not self._is_new_vehicle(msg) or not trust.admit(sysid, msg, now):
+            if not (claims_vehicle(msg) and self.accept_system_id(sysid)):
+                trust.unbound(sysid, where)  # nothing binds but a vehicle's HEARTBEAT (rule 2)
+                return
+            if not trust.admit(sysid, msg, now):
                 return
             link = self._secure(VehicleLink(sysid, endpoint, address, self.tlog))
             vehicle = VehicleState(sysid, link)
             self.vehicles[sysid] = vehicle
-            trust.admit_address(sysid, compid, (id(endpoint), address), now)
+            trust.admit_address(sysid, compid, where, now, announces=True)
         else:
-            verdict = trust.admit_address(sysid, compid, (id(endpoint), address), now)
-            if verdict == "refused" or not trust.admit(sysid, msg, now):
+            announces, may_move = self._announces(vehicle, msg), self.may_move(vehicle)
+            verdict = trust.admit_address(sysid, compid, where, now, announces, may_move)
+            if verdict in ("refused", "unbound") or not trust.admit(sysid, msg, now):
                 return
             if compid != AUTOPILOT_COMPONENT_ID:
                 self._route_component(vehicle, compid, endpoint, address)
@@ -200,13 +238,13 @@ class SwarmLink:
             sign_outgoing(link.mav, self.signing_key, link.system_id)
         return link
 
-    def _is_new_vehicle(self, msg: mavlink.MAVLink_message) -> bool:
-        return (
-            msg.get_type() == "HEARTBEAT"
-            and msg.get_srcComponent() == AUTOPILOT_COMPONENT_ID
-            and msg.type not in _NOT_VEHICLES
-            and self.accept_system_id(msg.get_srcSystem())
-        )
+    @staticmethod
+    def _announces(vehicle: VehicleState, msg: mavlink.MAVLink_message) -> bool:
+        """``msg`` is a HEARTBEAT that may bind (or move) its component of ``vehicle``: the
+        autopilot's as a vehicle of the type it registered with; another component's own."""
+        if msg.get_srcComponent() == AUTOPILOT_COMPONENT_ID:
+            return claims_vehicle(msg) and msg.type == vehicle.vehicle_type
+        return msg.get_type() == "HEARTBEAT" and msg.type != mavlink.MAV_TYPE_GCS
 
     # ------------------------------------------------------------------ send
 

@@ -9,11 +9,22 @@ authentic"):
 1. **Signing on**: an unsigned frame (RADIO_STATUS / RADIO pass the signature check unsigned,
    as ArduPilot accepts them from radios) changes nothing: it goes to the .tlog and is counted
    as ``unsigned_ignored``. Signed frames are authentic (signature and replay checked before).
-2. **One address per vehicle component**: a (system, component) is bound to the address (and
-   endpoint) it was first heard from. A frame of it from another address while the bound one
-   is alive is ``second_address``. It moves only after the bound address has been silent for
-   ``move_after_s`` wall seconds *and* the new one was heard ``rebase_frames`` times since (a
-   reboot, a new socket, a TCP reconnect); the move is counted (``address_moves``).
+2. **One address per vehicle component**: a vehicle exists once its autopilot (component 1)
+   announces it: a HEARTBEAT that carries a vehicle type (``swarm_link.claims_vehicle``); it is
+   bound to the address (and endpoint) of that HEARTBEAT. Another component is bound by its own
+   HEARTBEAT, or by a frame from the autopilot's address (routed through it; this one wins over
+   a HEARTBEAT heard elsewhere first, which may have been a stranger's). Any other
+   frame of a (system, component) bound to nothing binds nothing and is dropped (``unbound``:
+   the frames of senders that never became the vehicle; a vehicle's own frames before its
+   first HEARTBEAT are taken back from it when it binds).
+   A frame of it from another address is ``second_address``; each such address is said once in
+   a line and counted once (``address_conflicts``), and nothing is sent to it. A binding moves
+   only when the bound address has been silent for ``move_after_s`` wall seconds, the daemon
+   counts the vehicle as gone (lost to silence or a closed link, ``vehicle_loss.py``: never in
+   a whole-swarm pause of a lockstep simulator, when every bound address is silent and a
+   stranger could step in), *and* the new address announces the component again (for the
+   autopilot: the vehicle type it registered with): a reboot, a new socket; the move is
+   counted (``address_moves``) and said.
 3. **Fields in range**: positions on Earth, altitude within ``altitude_range_m``, velocities
    below ``max_ground_speed_mps``, heading 0..359.99 deg or unknown, HEARTBEAT enums in range and
    the vehicle type it registered with (``out_of_range``). Before a vehicle's first believed
@@ -45,7 +56,7 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from mavlink_wire.protocol import mavlink
+from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, mavlink
 
 #: the largest MAV_STATE (system_status) and MAV_RESULT values a vehicle can send
 _MAX_MAV_STATE = mavlink.MAV_STATE_FLIGHT_TERMINATION
@@ -94,6 +105,8 @@ class PlausibilityCounts:
     no_position: int = 0
     address_moves: int = 0
     clock_rebases: int = 0
+    unbound: int = 0
+    address_conflicts: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -101,6 +114,12 @@ class PlausibilityCounts:
 
 #: latitude and longitude (1e-7 deg) both within this of 0: no position yet (~100 m)
 _NO_POSITION_E7 = 10_000
+#: second addresses remembered (each counted once in ``address_conflicts``), and said in a line
+_CONFLICTS_REMEMBERED = 1024
+#: (system id, address) pairs whose unbound frames are remembered (a vehicle's own, before its
+#: first HEARTBEAT, are taken back when it binds); beyond, a new sender's frames just count
+_SENDERS_REMEMBERED = 4096
+_CONFLICTS_SAID = 10
 
 
 @dataclass
@@ -115,12 +134,16 @@ class _Fix:
 
 @dataclass
 class _Binding:
-    """Where one (system, component) is heard from, and a candidate new address."""
+    """Where one (system, component) is heard from, and when it was last heard there."""
 
     where: tuple[int, Any]  # (id(endpoint), address)
     heard_s: float
-    candidate: tuple[int, Any] | None = None
-    candidate_frames: int = 0
+
+
+def _place(where: tuple[int, Any]) -> str:
+    """An address as said in a line: ``host:port``, or a connection (TCP, udpout)."""
+    address = where[1]
+    return f"{address[0]}:{address[1]}" if address is not None else "its connection"
 
 
 @dataclass
@@ -180,35 +203,96 @@ class PlausibilityFilter:
         self.granted_ms: int | None = None
         #: lines worth saying (a clock rebase, an address move), taken by the daemon
         self.notices: list[str] = []
+        #: (system, component, where) of every second address refused so far
+        self._conflicts: set[tuple[int, int, tuple[int, Any]]] = set()
+        #: frames of (system, where) dropped while nothing was bound (``unbound``)
+        self._unbound: dict[tuple[int, tuple[int, Any]], int] = {}
 
     # ------------------------------------------------------------------ address
 
-    def admit_address(self, sysid: int, compid: int, where: tuple[int, Any], now_s: float) -> str:
-        """``"bound"`` (the component's own address), ``"moved"`` (it moves here now) or
-        ``"refused"`` (a second address: the frame is dropped)."""
+    def admit_address(
+        self,
+        sysid: int,
+        compid: int,
+        where: tuple[int, Any],
+        now_s: float,
+        announces: bool,
+        may_move: bool = True,
+    ) -> str:
+        """Where a frame of (``sysid``, ``compid``) heard at ``where`` stands (rule 2):
+        ``"bound"`` (its own address; a first frame that ``announces`` the component, its
+        HEARTBEAT, binds it), ``"moved"`` (it moves here now; only if ``may_move``: the daemon
+        says so of a vehicle it counts as gone), ``"refused"`` (a second address) or
+        ``"unbound"`` (the component is bound nowhere and this frame cannot bind it)."""
         trust = self._trust(sysid)
         binding = trust.bindings.get(compid)
+        autopilot = trust.bindings.get(AUTOPILOT_COMPONENT_ID)
+        via_autopilot = compid != AUTOPILOT_COMPONENT_ID and (
+            autopilot is not None and autopilot.where == where
+        )
         if binding is None:
-            trust.bindings[compid] = _Binding(where, now_s)
-            return "bound"
+            if announces or via_autopilot:
+                self._bind(trust, compid, where, now_s)
+                return "bound"
+            self.unbound(sysid, where)
+            return "unbound"
         if binding.where == where:
             binding.heard_s = now_s
-            binding.candidate, binding.candidate_frames = None, 0
             return "bound"
-        if binding.candidate != where:
-            binding.candidate, binding.candidate_frames = where, 0
-        binding.candidate_frames += 1
-        quiet = now_s - binding.heard_s >= self.limits.move_after_s
-        if quiet and binding.candidate_frames >= self.limits.rebase_frames:
-            trust.bindings[compid] = _Binding(where, now_s)
+        silent_s = now_s - binding.heard_s
+        # a component heard through its autopilot is there, whoever claimed it elsewhere first
+        if via_autopilot or (announces and may_move and silent_s >= self.limits.move_after_s):
+            self._bind(trust, compid, where, now_s)
             self.counts.address_moves += 1
+            why = (
+                "heard through its autopilot"
+                if via_autopilot
+                else f"its old address silent {silent_s:.1f} s"
+            )
             self.notices.append(
-                f"vehicle {sysid} component {compid} moved to {where[1] or 'a new connection'} "
-                f"(its old address silent {now_s - binding.heard_s:.1f} s)"
+                f"vehicle {sysid} component {compid} moved to {_place(where)} "
+                f"from {_place(binding.where)} ({why})"
             )
             return "moved"
         self.counts.second_address += 1
+        self._refused(sysid, compid, binding, where)
         return "refused"
+
+    def _refused(self, sysid: int, compid: int, binding: _Binding, where: tuple[int, Any]) -> None:
+        """Count a second address of a bound component once, and say it in one line (the
+        first ``_CONFLICTS_SAID`` of them; a spoofer changing ports cannot flood the log)."""
+        key = (sysid, compid, where)
+        if key in self._conflicts or len(self._conflicts) >= _CONFLICTS_REMEMBERED:
+            return
+        self._conflicts.add(key)
+        self.counts.address_conflicts += 1
+        if self.counts.address_conflicts <= _CONFLICTS_SAID:
+            part = "" if compid == AUTOPILOT_COMPONENT_ID else f" component {compid}"
+            who = f"vehicle {sysid}{part}"
+            self.notices.append(
+                f"{who}: refused {_place(where)}, a second sender with its system id (the "
+                f"vehicle is bound to {_place(binding.where)}); nothing is sent there: find that "
+                f"sender, or sign the link"
+            )
+        elif self.counts.address_conflicts == _CONFLICTS_SAID + 1:
+            self.notices.append(
+                "more addresses claim bound system ids: refused and counted "
+                "(address_conflicts), not said"
+            )
+
+    def unbound(self, sysid: int, where: tuple[int, Any]) -> None:
+        """A frame of (``sysid``, bound to nothing) from ``where``: dropped, and counted while
+        ``where`` is not bound to ``sysid`` (``_bind`` takes back the count of a vehicle's own
+        frames before its first HEARTBEAT: ``unbound`` is what senders that never became a
+        vehicle sent)."""
+        self.counts.unbound += 1
+        key = (sysid, where)
+        if key in self._unbound or len(self._unbound) < _SENDERS_REMEMBERED:
+            self._unbound[key] = self._unbound.get(key, 0) + 1
+
+    def _bind(self, trust: VehicleTrust, compid: int, where: tuple[int, Any], now_s: float) -> None:
+        trust.bindings[compid] = _Binding(where, now_s)
+        self.counts.unbound -= self._unbound.pop((trust.system_id, where), 0)
 
     def _trust(self, sysid: int) -> VehicleTrust:
         trust = self.vehicles.get(sysid)

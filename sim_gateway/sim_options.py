@@ -1,0 +1,101 @@
+"""How the simulator runs and where its vehicles talk (:class:`SimOptions`, the settings of
+``swarmplan sim``), checked before anything opens: a setting it cannot run with is a
+:class:`SimulatorError` that says what to change.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import socket
+from dataclasses import dataclass
+
+from planner.errors import UserError
+from planner.scenario import Scenario
+
+MAX_VEHICLES = 200  # system ids 201-255 are left to ground stations (MAVSDK 245, MAVProxy 255)
+
+
+class SimulatorError(UserError):
+    """The simulator cannot start with these settings; the message says what to change."""
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """How the simulator runs and where its vehicles talk."""
+
+    seed: int = 0
+    vehicles: int | None = None  # None: the scenario's UAV count
+    speedup: float = 1.0
+    fast: bool = False
+    tick_s: float = 0.1
+    gcs_host: str = "127.0.0.1"
+    gcs_port: int = 14550
+    per_vehicle_port_base: int | None = None  # vehicle i sends to base + i instead of gcs_port
+    bind_host: str = "127.0.0.1"
+    bind_port_base: int = 0  # vehicle i binds base + i; 0: any free port
+    boot_s: float = 20.0
+    airborne: bool = False
+    position_rate_hz: float = 10.0
+    signing_key: bytes | None = None  # MAVLink 2 signing (sim_gateway/signing.py); None: off
+    lockstep: bool = False  # hold at the horizon the ground station grants (SYSTEM_TIME)
+    lockstep_timeout_s: float = 10.0  # wall s of ground-station silence that end the lock
+    truth_port: int | None = None  # send the true targets to 127.0.0.1:PORT (truth_feed.py)
+
+    def validate(self) -> None:
+        if self.fast and self.lockstep:
+            raise SimulatorError(
+                "--fast and --lockstep exclude each other: lockstep already runs as fast as the "
+                "ground station allows; drop one"
+            )
+        if not (math.isfinite(self.lockstep_timeout_s) and self.lockstep_timeout_s > 0):
+            raise SimulatorError(
+                f"--lockstep-timeout must be a positive number of seconds, got "
+                f"{self.lockstep_timeout_s}"
+            )
+        if not (math.isfinite(self.speedup) and self.speedup > 0):
+            raise SimulatorError(
+                f"--speedup must be a positive number, got {self.speedup}; e.g. --speedup 50"
+            )
+        if not (math.isfinite(self.tick_s) and 0.001 <= self.tick_s <= 1.0):
+            raise SimulatorError(
+                f"--tick-s must be in [0.001, 1] s, got {self.tick_s}; 0.1 is the default"
+            )
+        if not (math.isfinite(self.boot_s) and 0 <= self.boot_s <= 600):
+            raise SimulatorError(f"--boot-s must be in [0, 600] s, got {self.boot_s}")
+        if not (math.isfinite(self.position_rate_hz) and 0 < self.position_rate_hz <= 50):
+            raise SimulatorError(f"--telemetry-hz must be in (0, 50], got {self.position_rate_hz}")
+        if self.vehicles is not None and not 1 <= self.vehicles <= MAX_VEHICLES:
+            raise SimulatorError(f"--vehicles must be in 1..{MAX_VEHICLES}, got {self.vehicles}")
+        for name, port, low in (
+            ("--gcs-port", self.gcs_port, 1),
+            ("--per-vehicle-ports", self.per_vehicle_port_base, 1),
+            ("--bind-base-port", self.bind_port_base, 0),
+            ("--truth-port", self.truth_port, 1),
+        ):
+            if port is not None and not low <= port <= 65535:
+                raise SimulatorError(f"{name} must be a UDP port in {low}..65535, got {port}")
+
+
+def resolve_gcs_host(host: str) -> str:
+    """The IPv4 address of ``--gcs-host`` (looked up once: the vehicles' ground station is
+    bound to it, sim_gateway/lockstep.py)."""
+    try:
+        return socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_DGRAM)[0][4][0]
+    except (OSError, UnicodeError) as exc:
+        raise SimulatorError(
+            f"--gcs-host {host!r} is not an IPv4 address or a name this machine can resolve "
+            f"({exc}); e.g. --gcs-host 127.0.0.1"
+        ) from None
+
+
+def with_vehicle_count(scenario: Scenario, count: int | None) -> Scenario:
+    """The scenario with ``count`` UAVs (random starts only: fixed starts fix the count)."""
+    if count is None or count == scenario.uav_count:
+        return scenario
+    if scenario.uav_starts is not None:
+        raise SimulatorError(
+            f"scenario {scenario.name!r} fixes {scenario.uav_count} UAV starts; drop --vehicles "
+            "or use a scenario with random starts"
+        )
+    return dataclasses.replace(scenario, uav_count=count)
