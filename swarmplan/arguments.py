@@ -1,7 +1,7 @@
 """What every ``swarmplan`` subcommand shares on its command line: usage errors as one line, the
-value types (whole numbers, seeds, finite numbers, ports), the one default seed, and the output
-folder checked before any work starts. The option groups that several commands offer (the
-scenario, the output, signing, the live view...) are written once, in
+value types (whole numbers, seeds, finite numbers, ports, planner names), the one default seed,
+and the output folder checked before any work starts. The option groups that several commands
+offer (the scenario, the output, signing, the live view...) are written once, in
 ``swarmplan/option_groups.py``.
 
 An input error is one line naming the problem and the fix, exit status 2 (README), argparse's
@@ -43,23 +43,28 @@ class OneLineParser(argparse.ArgumentParser):
 
 
 def _whole_number(
-    text: str, minimum: int, bound: str, maximum: int | None = None, kind: str = "whole number"
+    text: str,
+    minimum: int,
+    out_of_range: str,
+    maximum: int | None = None,
+    kind: str = "whole number",
 ) -> int:
+    """``text`` as an int in ``minimum..maximum``; ``out_of_range`` ends the message otherwise."""
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a {kind}") from None
     if value < minimum or (maximum is not None and value > maximum):
-        raise argparse.ArgumentTypeError(f"{text!r} must be {bound}")
+        raise argparse.ArgumentTypeError(f"{text!r} {out_of_range}")
     return value
 
 
 def positive_int(text: str) -> int:
-    return _whole_number(text, 1, "at least 1")
+    return _whole_number(text, 1, "must be at least 1")
 
 
 def seed_int(text: str) -> int:
-    return _whole_number(text, 0, "0 or more")
+    return _whole_number(text, 0, "must be 0 or more")
 
 
 def finite_float(text: str) -> float:
@@ -89,7 +94,9 @@ def non_negative_float(text: str) -> float:
 
 def port_number(text: str) -> int:
     """A UDP or TCP port (0: a free one, where a command takes that)."""
-    return _whole_number(text, 0, "0..65535", maximum=65535, kind="port number")
+    return _whole_number(
+        text, 0, "is not a port number (0..65535)", maximum=65535, kind="port number"
+    )
 
 
 def planner_name(text: str) -> str:
