@@ -3,7 +3,6 @@ replay file in the result folder and, for a live view, the server (see docs/view
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,42 +18,12 @@ from planner.scenario import Scenario
 
 @dataclass(frozen=True)
 class ViewOptions:
-    """``--no-view``, ``--view-host``, ``--view-port`` of ``daemon`` and ``demo``."""
+    """Whether and where a live view is served (``swarmplan daemon`` and ``demo`` take them
+    from ``--no-view``, ``--view-host`` and ``--view-port``)."""
 
     serve: bool = True
     host: str = "127.0.0.1"
     port: int = 0  # 0: a free port, printed at start
-
-
-def add_view_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--no-view", action="store_true", help="do not serve the live view in the browser"
-    )
-    parser.add_argument(
-        "--view-host",
-        default="127.0.0.1",
-        help="address the live view listens on (default 127.0.0.1: this machine only)",
-    )
-    parser.add_argument(
-        "--view-port",
-        type=port_number,
-        default=0,
-        help="port of the live view (default 0: a free one; the URL is printed at start)",
-    )
-
-
-def view_options(args: argparse.Namespace) -> ViewOptions:
-    return ViewOptions(not args.no_view, args.view_host, args.view_port)
-
-
-def port_number(text: str) -> int:
-    try:
-        port = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 0 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number (0..65535)")
-    return port
 
 
 class ViewSession:

@@ -1,6 +1,8 @@
 """What every ``swarmplan`` subcommand shares on its command line: usage errors as one line, the
-value types (whole numbers, seeds, finite numbers), the one default seed, and the output folder
-checked before any work starts.
+value types (whole numbers, seeds, finite numbers, ports, planner names), the one default seed,
+and the output folder checked before any work starts. The option groups that several commands
+offer (the scenario, the output, signing, the live view...) are written once, in
+``swarmplan/option_groups.py``.
 
 An input error is one line naming the problem and the fix, exit status 2 (README), argparse's
 included: :class:`OneLineParser` replaces its usage block with a pointer to ``--help``.
@@ -16,6 +18,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from planner.errors import UserError
+from planner.registry import planner_factory
 
 #: The seed of every command that takes one (run, demo, sim, daemon), so that ``swarmplan sim``
 #: and ``swarmplan daemon`` in two shells fly the same mission as ``swarmplan demo``.
@@ -39,22 +42,29 @@ class OneLineParser(argparse.ArgumentParser):
         return namespace, extras
 
 
-def _whole_number(text: str, minimum: int, bound: str) -> int:
+def _whole_number(
+    text: str,
+    minimum: int,
+    out_of_range: str,
+    maximum: int | None = None,
+    kind: str = "whole number",
+) -> int:
+    """``text`` as an int in ``minimum..maximum``; ``out_of_range`` ends the message otherwise."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < minimum:
-        raise argparse.ArgumentTypeError(f"{text!r} must be {bound}")
+        raise argparse.ArgumentTypeError(f"{text!r} is not a {kind}") from None
+    if value < minimum or (maximum is not None and value > maximum):
+        raise argparse.ArgumentTypeError(f"{text!r} {out_of_range}")
     return value
 
 
 def positive_int(text: str) -> int:
-    return _whole_number(text, 1, "at least 1")
+    return _whole_number(text, 1, "must be at least 1")
 
 
 def seed_int(text: str) -> int:
-    return _whole_number(text, 0, "0 or more")
+    return _whole_number(text, 0, "must be 0 or more")
 
 
 def finite_float(text: str) -> float:
@@ -82,11 +92,20 @@ def non_negative_float(text: str) -> float:
     return value
 
 
-def add_seed_argument(parser: argparse.ArgumentParser, what: str) -> None:
-    """``--seed S`` (default :data:`DEFAULT_SEED`); ``what`` says what it seeds."""
-    parser.add_argument(
-        "--seed", type=seed_int, default=DEFAULT_SEED, help=f"{what} (default {DEFAULT_SEED})"
+def port_number(text: str) -> int:
+    """A UDP or TCP port (0: a free one, where a command takes that)."""
+    return _whole_number(
+        text, 0, "is not a port number (0..65535)", maximum=65535, kind="port number"
     )
+
+
+def planner_name(text: str) -> str:
+    """The name of a planner that can be built (built in, or registered by a plug-in)."""
+    try:
+        planner_factory(text)
+    except UserError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
 
 
 def writable_folder(out: Path, option: str = "--out") -> Path:

@@ -1,8 +1,10 @@
 """``swarmplan``: the one command-line entry point. It only composes the packages' commands.
 
-Each subcommand lives in the package it belongs to, as a module with ``HELP`` (one line),
-``add_arguments(parser)`` and ``main(args) -> int``. A command that fails because of the user's
-input raises ``planner.errors.UserError``; it is printed here as one line, exit status 2.
+Each subcommand is a module of this package with ``HELP`` (one line), ``add_arguments(parser)``
+and ``main(args) -> int``; the options several commands share are written once, in
+``swarmplan/option_groups.py``. The packages below never parse a command line. A command that
+fails because of the user's input raises ``planner.errors.UserError``; it is printed here as one
+line, exit status 2.
 """
 
 from __future__ import annotations

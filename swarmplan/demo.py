@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from mavlink_bridge.mission.daemon import (
@@ -29,30 +30,19 @@ from mavlink_bridge.mission.daemon import (
     StepStatus,
 )
 from mavlink_bridge.mission.view_feed import DaemonViewFeed
-from mavlink_bridge.results.mission_result import lost_vehicle_lines
+from mavlink_bridge.results.mission_result import MissionReport, lost_vehicle_lines
 from mavlink_bridge.vehicles.discovery import DiscoveryError
 from mavlink_bridge.vehicles.vehicle_loss import paced_lost_after_s
-from mavlink_wire.signing import (
-    KEY_ENV,
-    key_environment,
-    load_signing_key,
-    mission_key,
-    unsigned_warning,
-)
+from mavlink_wire.signing import key_environment, load_signing_key, mission_key, unsigned_warning
 from mission_view.replay_file import replay_path
 from mission_view.truth_receiver import TruthReceiver
-from mission_view.view_session import ViewSession, add_view_arguments, view_options
+from mission_view.view_session import ViewOptions, ViewSession
 from planner.errors import UserError
 from planner.metrics import format_summary
-from planner.scenario import BUILTIN_SCENARIOS, load_scenario
+from planner.scenario import Scenario, load_scenario
 from sim_gateway.target_account import account_of_ground_station, format_account
-from swarmplan.arguments import (
-    add_seed_argument,
-    positive_float,
-    positive_int,
-    writable_folder,
-)
-from swarmplan.daemon_arguments import add_leg_timing_arguments
+from swarmplan import option_groups
+from swarmplan.arguments import positive_float, writable_folder
 from swarmplan.daemon_command import write_mission_outputs
 from swarmplan.interrupts import MissionSignals
 from swarmplan.run_command import progress_bar, written_line
@@ -67,16 +57,9 @@ RELEASED_SPEEDUP = 100.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "scenario",
-        nargs="?",
-        default="paper-10uav",
-        help=f"built-in ({', '.join(BUILTIN_SCENARIOS)}) or a TOML file (default paper-10uav)",
-    )
-    add_seed_argument(parser, "seed of the world and the planner")
-    parser.add_argument(
-        "--steps", type=positive_int, default=None, help="decision steps (default: the scenario's)"
-    )
+    option_groups.add_scenario_argument(parser, "paper-10uav", positional=True)
+    option_groups.add_seed_argument(parser, "seed of the world and the planner")
+    option_groups.add_steps_option(parser)
     parser.add_argument(
         "--speedup",
         type=positive_float,
@@ -84,13 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="pace the simulator at this many simulated seconds per wall second instead of "
         "lockstep (default: lockstep, as fast as possible and repeatable for a seed)",
     )
-    parser.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help="output folder (default runs/<scenario>-seed<S>-demo)",
-    )
-    add_leg_timing_arguments(parser)
+    option_groups.add_out_option(parser, "runs/<scenario>-seed<S>-demo")
+    option_groups.add_leg_timing_option(parser)
     signing = parser.add_mutually_exclusive_group()
     signing.add_argument(
         "--no-signing",
@@ -98,14 +76,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="fly without MAVLink 2 signing (default: the simulator and the daemon sign with a "
         "key made for this mission, kept in memory only)",
     )
-    signing.add_argument(
-        "--signing-key-file",
-        type=Path,
-        metavar="PATH",
-        help=f"sign with this key (64 hex characters or 32 bytes) instead; ${KEY_ENV} if set",
+    option_groups.add_signing_key_option(
+        signing,
+        "the simulator and the daemon sign with it",
+        otherwise="a key made for this mission",
     )
-    add_view_arguments(parser)
-    parser.add_argument("--json", action="store_true", help="print only the result JSON on stdout")
+    option_groups.add_view_options(parser)
+    option_groups.add_json_option(parser)
 
 
 def demo_key(args: argparse.Namespace) -> bytes | None:
@@ -199,31 +176,66 @@ def simulator_summary(path: Path) -> dict | None:
     return None
 
 
-def main(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario)
-    steps = args.steps or scenario.steps
-    out = writable_folder(args.out or Path("runs") / f"{scenario.name}-seed{args.seed}-demo")
-    quiet = args.json
-    bar = progress_bar(steps, f"{scenario.name} over MAVLink", quiet)
+class DemoDisplay:
+    """What a person sees of a demo: the progress bar and the lines said on stderr, and the
+    live view (fed by the daemon, with the simulator's true targets)."""
 
-    def on_step(status: StepStatus) -> None:
+    def __init__(self, steps: int, title: str, quiet: bool) -> None:
+        self.quiet = quiet
+        self.bar = progress_bar(steps, title, quiet)
+        self.feeds: list[DaemonViewFeed] = []
+        self.view: ViewSession | None = None
+        self.truth: TruthReceiver | None = None
+
+    def on_step(self, status: StepStatus) -> None:
         if status.step > 0:  # step 0 is the start: the bar counts decision steps
-            bar.update(1)
-        bar.set_postfix_str(
+            self.bar.update(1)
+        self.bar.set_postfix_str(
             f"coverage {status.coverage * 100:.1f}% engaged {status.engaged} active {status.active}"
         )
 
-    feeds: list[DaemonViewFeed] = []
-
-    def say(text: str) -> None:
-        if not quiet:
-            bar.write(f"demo: {text}", file=sys.stderr)
-        for feed in feeds:
+    def say(self, text: str) -> None:
+        """A progress line (not with --json), and to the live view."""
+        if not self.quiet:
+            self.bar.write(f"demo: {text}", file=sys.stderr)
+        for feed in self.feeds:
             feed.progress(text)
 
+    def warn(self, text: str) -> None:
+        """A line on stderr even with --json (which prints only the result on stdout)."""
+        self.bar.write(f"demo: {text}", file=sys.stderr)
+
+    def open_view(
+        self, scenario: Scenario, seed: int, steps: int, out: Path, options: ViewOptions,
+        daemon: MissionDaemon,
+    ) -> None:  # fmt: skip
+        """The mission view (replay in ``out``, served unless ``--no-view``) fed by ``daemon``
+        and by the simulator's true targets (a UDP port of this process)."""
+        self.view = ViewSession(
+            scenario, seed=seed, steps=steps, uav_count=scenario.uav_count, source="mavlink",
+            truth=True, out_dir=out, options=options,
+        )  # fmt: skip
+        self.truth = TruthReceiver()  # the simulator's true targets, for the view only
+        feed = DaemonViewFeed(daemon, self.view, self.truth.latest)
+        self.feeds.append(feed)
+        daemon.options.step_listeners.append(feed.listener)
+
+    def close_view(self) -> None:
+        if self.view is not None:
+            self.view.close()
+            self.view.stop()
+        if self.truth is not None:
+            self.truth.close()
+
+
+def demo_options(
+    args: argparse.Namespace, steps: int, out: Path, signing_key: bytes | None,
+    display: DemoDisplay,
+) -> DaemonOptions:  # fmt: skip
+    """The daemon's options in a demo: one loopback port for the simulator, lockstep unless
+    ``--speedup``, progress to ``display``."""
     lockstep = args.speedup is None
-    signing_key = demo_key(args)
-    options = DaemonOptions(
+    return DaemonOptions(
         connect=["udpin:127.0.0.1:0"],
         seed=args.seed,
         steps=steps,
@@ -236,41 +248,44 @@ def main(args: argparse.Namespace) -> int:
         leg_timing=args.leg_timing,
         signing_key=signing_key,
         tlog_path=out / "mission.tlog",
-        progress=say,
-        on_step=on_step,
+        progress=display.say,
+        on_step=display.on_step,
     )
-    daemon = MissionDaemon(scenario, options)
-    daemon.refuse_unkeepable_time_scale()  # paced: a speedup it cannot keep, before the sim
-    view = ViewSession(
-        scenario, seed=args.seed, steps=steps, uav_count=scenario.uav_count, source="mavlink",
-        truth=True, out_dir=out, options=view_options(args),
-    )  # fmt: skip
-    truth = TruthReceiver()  # the simulator's true targets, for the view only
-    feeds.append(DaemonViewFeed(daemon, view, truth.latest))
-    options.step_listeners.append(feeds[0].listener)
-    if signing_key is None:  # said even with --json (on stderr), like the view's address
-        fix = "drop --no-signing to sign with a key made for the mission"
-        bar.write(f"demo: warning: {unsigned_warning(fix)}", file=sys.stderr)
-    if view.url is not None:  # printed even with --json (on stderr): the way to open it
-        bar.write(f"demo: live view at {view.url}", file=sys.stderr)
+
+
+@dataclass
+class DemoFlight:
+    """A flown demo: the daemon's report, the signals that came, the simulator's files."""
+
+    report: MissionReport
+    signals: MissionSignals
+    sim_log: Path
+    truth_path: Path
+    started: float  # time.monotonic() when the simulator was started
+
+
+def fly_with_simulator(
+    args: argparse.Namespace, scenario: Scenario, daemon: MissionDaemon, display: DemoDisplay,
+    out: Path, signing_key: bytes | None,
+) -> DemoFlight:  # fmt: skip
+    """Start the simulator sending to the daemon's port, fly, and stop it on every way out
+    (an interrupted flight returns what was flown)."""
     try:
         link = daemon.connect()
     except BaseException:
-        view.close()
-        view.stop()
-        truth.close()
+        display.close_view()
         raise
     port = link.endpoints[0].port
     sim_log = out / "sim.log"
     truth_path = out / "target_truth.json"
     truth_path.unlink(missing_ok=True)  # a file from an earlier run must not be joined
     sim = start_simulator(
-        args.scenario, args.seed, args.speedup, port, sim_log, truth_path, truth.port,
-        signing_key,
+        args.scenario, args.seed, args.speedup, port, sim_log, truth_path,
+        display.truth.port if display.truth is not None else None, signing_key,
     )  # fmt: skip
-    say(
-        f"simulator started (pid {sim.pid}, {scenario.uav_count} vehicles, "
-        f"{'lockstep' if lockstep else f'{args.speedup:g}x'}, "
+    pace = "lockstep" if args.speedup is None else f"{args.speedup:g}x"
+    display.say(
+        f"simulator started (pid {sim.pid}, {scenario.uav_count} vehicles, {pace}, "
         f"{'unsigned' if signing_key is None else 'signed'}) -> udp {port}"
     )
     started = time.monotonic()
@@ -283,41 +298,54 @@ def main(args: argparse.Namespace) -> int:
             raise
         report = daemon.report
     except UserError as exc:
-        if sim.poll() is not None:
-            raise UserError(
-                f"the simulator exited (status {sim.returncode}): "
-                f"{last_line(sim_log) or 'no output'}"
-            ) from None
         heard = len(link.vehicles)
-        if isinstance(exc, DiscoveryError) and heard < scenario.uav_count:
-            # the daemon's advice (start them, check where they send to) is not the demo's
-            raise UserError(
-                f"the demo's simulator (pid {sim.pid}) was not heard within "
-                f"{options.discovery_timeout_s:g} s of its start ({heard} of "
-                f"{scenario.uav_count} vehicles): the machine is too busy to start it in time, "
-                f"or the process is stopped; run the demo again on a less loaded machine (the "
-                f"simulator's log: {sim_log})"
-            ) from None
-        raise
+        explained = simulator_failure(exc, sim, sim_log, heard, scenario, daemon.options)
+        if explained is None:
+            raise
+        raise explained from None
     finally:
-        bar.close()
+        display.bar.close()
         stop_simulator(sim)
-        view.close()
-        view.stop()
-        truth.close()
-    result = report.result
-    result["wall_time_s"] = time.monotonic() - started
-    join_target_account(result, truth_path, scenario.config.step_s, say)
-    summary = simulator_summary(sim_log)
+        display.close_view()
+    return DemoFlight(report, signals, sim_log, truth_path, started)
+
+
+def simulator_failure(
+    exc: UserError, sim: subprocess.Popen, sim_log: Path, heard: int, scenario: Scenario,
+    options: DaemonOptions,
+) -> UserError | None:  # fmt: skip
+    """The demo's own account of a failed flight when its simulator is the cause (it exited,
+    or was not heard in time); None when the daemon's error says it best."""
+    if sim.poll() is not None:
+        return UserError(
+            f"the simulator exited (status {sim.returncode}): {last_line(sim_log) or 'no output'}"
+        )
+    if isinstance(exc, DiscoveryError) and heard < scenario.uav_count:
+        # the daemon's advice (start them, check where they send to) is not the demo's
+        return UserError(
+            f"the demo's simulator (pid {sim.pid}) was not heard within "
+            f"{options.discovery_timeout_s:g} s of its start ({heard} of "
+            f"{scenario.uav_count} vehicles): the machine is too busy to start it in time, "
+            f"or the process is stopped; run the demo again on a less loaded machine (the "
+            f"simulator's log: {sim_log})"
+        )
+    return None
+
+
+def demo_result(flight: DemoFlight, scenario: Scenario, say: Callable[[str], None]) -> dict:
+    """The daemon's result with the demo's additions: the wall time, the per-target account
+    (joined with the simulator's truth) and what really flew, by the simulator's count."""
+    result = flight.report.result
+    result["wall_time_s"] = time.monotonic() - flight.started
+    join_target_account(result, flight.truth_path, scenario.config.step_s, say)
+    summary = simulator_summary(flight.sim_log)
     if summary is not None and "safety" in summary:
         result["simulator_truth"] = summary["safety"]  # what really flew, every physics tick
-    written = write_mission_outputs(result, out)
-    status = signals.exit_status if signals.received else 0
-    if quiet:
-        print(json.dumps(result))
-        return status
-    if signals.received:
-        print(f"demo: interrupted ({signals.received}); what was flown is written", file=sys.stderr)
+    return result
+
+
+def print_demo_summary(result: dict, out: Path, written: list[Path], flight: DemoFlight) -> None:
+    """The metrics, the per-target account, the lost vehicles and the files written."""
     if result.get("steps"):
         print(format_summary(result))
     if result.get("target_account"):
@@ -325,7 +353,37 @@ def main(args: argparse.Namespace) -> int:
     for line in lost_vehicle_lines(result):
         print(line)
     others = [
-        p for p in (out / "mission.tlog", sim_log, truth_path, replay_path(out)) if p.exists()
+        p
+        for p in (out / "mission.tlog", flight.sim_log, flight.truth_path, replay_path(out))
+        if p.exists()
     ]
     print(written_line(out, [*written, *others]))
+
+
+def main(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario)
+    steps = args.steps or scenario.steps
+    out = writable_folder(args.out or Path("runs") / f"{scenario.name}-seed{args.seed}-demo")
+    display = DemoDisplay(steps, f"{scenario.name} over MAVLink", quiet=args.json)
+    signing_key = demo_key(args)
+    daemon = MissionDaemon(scenario, demo_options(args, steps, out, signing_key, display))
+    daemon.refuse_unkeepable_time_scale()  # paced: a speedup it cannot keep, before the sim
+    display.open_view(scenario, args.seed, steps, out, option_groups.view_options(args), daemon)
+    if signing_key is None:  # said even with --json (on stderr), like the view's address
+        display.warn(unsigned_warning("drop --no-signing to sign with a key made for the mission"))
+    if display.view is not None and display.view.url is not None:
+        display.warn(f"live view at {display.view.url}")  # the way to open it, even with --json
+    flight = fly_with_simulator(args, scenario, daemon, display, out, signing_key)
+    result = demo_result(flight, scenario, display.say)
+    written = write_mission_outputs(result, out)
+    status = flight.signals.exit_status if flight.signals.received else 0
+    if args.json:
+        print(json.dumps(result))
+        return status
+    if flight.signals.received:
+        print(
+            f"demo: interrupted ({flight.signals.received}); what was flown is written",
+            file=sys.stderr,
+        )
+    print_demo_summary(result, out, written, flight)
     return status

@@ -17,7 +17,8 @@ from pathlib import Path
 
 from planner.errors import UserError
 from planner.registry import planner_factory
-from swarmplan.arguments import writable_folder
+from swarmplan import option_groups
+from swarmplan.arguments import positive_int, seed_int, writable_folder
 from swarmplan.experiment_runner import ALGORITHMS, EXPERIMENTS, RunTask, execute, plan_tasks
 
 HELP = "reproduce an experiment of the paper (all algorithms, many seeds): CSV, figures, report"
@@ -31,13 +32,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "experiment", help=f"which experiment: {' or '.join(EXPERIMENTS)} (paper sections 4.2, 4.3)"
     )
     parser.add_argument(
-        "--runs", default="30", help="seeds per algorithm and scenario (default 30)"
+        "--runs",
+        type=positive_int,
+        default=30,
+        help="seeds per algorithm and scenario (default 30)",
     )
+    option_groups.add_out_option(parser, "runs/experiment-EXPERIMENT")
     parser.add_argument(
-        "--out", default=None, help="results folder (default runs/experiment-EXPERIMENT)"
-    )
-    parser.add_argument(
-        "--jobs", default=None, help="local worker processes (default: one per CPU)"
+        "--jobs",
+        type=positive_int,
+        default=None,
+        help="local worker processes (default: one per CPU)",
     )
     parser.add_argument(
         "--dask",
@@ -46,29 +51,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="run on this Dask distributed scheduler instead of local processes",
     )
     parser.add_argument(
-        "--seed-base", default="1", help="first seed; runs use seeds S .. S+runs-1 (default 1)"
+        "--seed-base",
+        type=seed_int,
+        default=1,
+        help="first seed; runs use seeds S .. S+runs-1 (default 1)",
     )
     parser.add_argument(
-        "--steps", default=None, help="decision steps per run (default: the scenario's, 250)"
+        "--steps",
+        type=positive_int,
+        default=None,
+        help="decision steps per run (default: the scenario's, 250)",
     )
     parser.add_argument(
         "--algorithms",
         default=",".join(ALGORITHMS),
         help=f"comma-separated subset of {','.join(ALGORITHMS)} (default all)",
     )
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
-
-
-def _whole(text: str, option: str, minimum: int) -> int:
-    try:
-        value = int(str(text).strip())
-    except ValueError:
-        raise UserError(
-            f"{option} {text!r} is not a whole number; give e.g. {option} {max(minimum, 1)}"
-        ) from None
-    if value < minimum:
-        raise UserError(f"{option} must be at least {minimum}, got {value}")
-    return value
+    option_groups.add_quiet_option(parser, "progress bar")
 
 
 def parse_options(args: argparse.Namespace) -> dict:
@@ -88,15 +87,15 @@ def parse_options(args: argparse.Namespace) -> dict:
         raise UserError("give either --jobs (local processes) or --dask (a cluster), not both")
     if args.dask is not None and not DASK_ADDRESS.match(args.dask):
         raise UserError(f"--dask {args.dask!r} is not a scheduler address; give tcp://HOST:PORT")
-    out = Path(args.out) if args.out else Path("runs") / f"experiment-{args.experiment}"
+    out = args.out or Path("runs") / f"experiment-{args.experiment}"
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} is a file, not a folder; choose another --out")
     return {
         "experiment": args.experiment,
-        "runs": _whole(args.runs, "--runs", 1),
-        "jobs": _whole(args.jobs, "--jobs", 1) if args.jobs is not None else (os.cpu_count() or 1),
-        "seed_base": _whole(args.seed_base, "--seed-base", 0),
-        "steps": _whole(args.steps, "--steps", 1) if args.steps is not None else None,
+        "runs": args.runs,
+        "jobs": args.jobs or os.cpu_count() or 1,
+        "seed_base": args.seed_base,
+        "steps": args.steps,
         "algorithms": algorithms,
         "dask": args.dask,
         "out": out,

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from mavlink_bridge.export.waypoint_export import FORMATS, export
 from planner.errors import UserError
+from swarmplan import option_groups
 
 HELP = "write waypoint files (QGC WPL, QGroundControl .plan) and maps (GeoJSON, KML) of a result"
 
@@ -23,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=FORMATS,
         help="format to write (repeatable; default all)",
     )
-    parser.add_argument("--out", type=Path, help="output folder (default: the result folder)")
+    option_groups.add_out_option(parser, "the result folder")
 
 
 def load_result(path: Path) -> dict:

@@ -15,21 +15,15 @@ import argparse
 import json
 import os
 import signal
-import sys
 import threading
 import time
-from pathlib import Path
 
 os.environ.setdefault("MAVLINK20", "1")
 
 from planner.errors import UserError  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
-from swarmplan.arguments import (  # noqa: E402
-    OneLineParser,
-    add_seed_argument,
-    positive_float,
-    positive_int,
-)
+from swarmplan import option_groups  # noqa: E402
+from swarmplan.arguments import positive_float  # noqa: E402
 
 HELP = (
     "simulate only the world and each vehicle's camera (component 100) for external autopilots "
@@ -49,15 +43,8 @@ def _endpoint(text: str) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--scenario", default="arduplane-3uav", help="built-in scenario name or TOML file"
-    )
-    add_seed_argument(parser, "seed of the world (sensor noise, target motion)")
-    parser.add_argument(
-        "--vehicles",
-        type=positive_int,
-        default=None,
-        help="number of vehicles (default: the scenario's)",
+    option_groups.add_world_arguments(
+        parser, "arduplane-3uav", "seed of the world (sensor noise, target motion)"
     )
     parser.add_argument(
         "--connect",
@@ -76,15 +63,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="M",
         help="a vehicle looks only when armed and at least this far above home (default 10 m)",
     )
-    parser.add_argument(
-        "--duration-s", type=positive_float, default=None, help="stop after this many wall s"
-    )
-    parser.add_argument("--quiet", action="store_true", help="no progress lines")
-    parser.add_argument(
-        "--target-account", type=Path, default=None, metavar="PATH",
-        help="on exit, write the ground-truth half of the per-target account as JSON; "
-        "swarmplan account joins it to the daemon's result.json (docs/experiments.md)",
-    )  # fmt: skip
+    option_groups.add_duration_option(parser, "wall")
+    option_groups.add_quiet_option(parser)
+    option_groups.add_target_account_option(parser)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -126,19 +107,3 @@ def main(args: argparse.Namespace) -> int:
 
             write_target_truth(payload.target_account, args.target_account)
     return 0
-
-
-def run_standalone(argv: list[str] | None = None) -> int:
-    """``python -m swarmplan.payload_command`` without the swarmplan wrapper."""
-    parser = OneLineParser(prog="payload", description=HELP)
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        return main(args)
-    except UserError as exc:
-        print(f"payload: error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(run_standalone())

@@ -12,39 +12,35 @@ from tqdm import tqdm
 from mission_view.replay_file import replay_path
 from planner.errors import UserError
 from planner.metrics import format_summary
-from planner.registry import planner_factory, planner_names
-from planner.scenario import BUILTIN_SCENARIOS, load_scenario
+from planner.registry import planner_names
+from planner.scenario import load_scenario
 from sim_gateway.offline_runner import run_offline
 from sim_gateway.target_account import format_account
-from swarmplan.arguments import add_seed_argument, positive_int, writable_folder
+from swarmplan import option_groups
+from swarmplan.arguments import planner_name, writable_folder
 
 HELP = "fly a scenario offline (no MAVLink) and write result.json and figures"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "scenario", help=f"a built-in scenario ({', '.join(BUILTIN_SCENARIOS)}) or a TOML file"
-    )
-    add_seed_argument(parser, "random seed of the run")
-    parser.add_argument(
-        "--steps", type=positive_int, default=None, help="decision steps (default: the scenario's)"
-    )
+    option_groups.add_scenario_argument(parser, positional=True)
+    option_groups.add_seed_argument(parser, "random seed of the run")
+    option_groups.add_steps_option(parser)
     parser.add_argument(
         "--algorithm",
+        type=planner_name,
         default="hapf-aco",
         help=f"planner to fly: {', '.join(planner_names())} (default hapf-aco; "
         "docs/architecture.md says how to register one of your own)",
     )
-    parser.add_argument(
-        "--out", type=Path, default=None, help="output folder (default runs/<scenario>-seed<S>)"
-    )
+    option_groups.add_out_option(parser, "runs/<scenario>-seed<S>")
     parser.add_argument(
         "--as-flown",
         action="store_true",
         help="plan with the margins the daemon flies the simulator's planes with (separation, "
         "threat clearance, home reserve: the offline run a 'swarmplan demo' is measured against)",
     )
-    parser.add_argument("--json", action="store_true", help="print only the result JSON on stdout")
+    option_groups.add_json_option(parser)
 
 
 def write_outputs(result: dict, out_dir: Path) -> list[Path]:
@@ -126,7 +122,6 @@ def written_line(out: Path, files: list[Path]) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
-    planner_factory(args.algorithm)  # an unknown or broken planner: one line, before any work
     scenario = load_scenario(args.scenario)
     steps = args.steps or scenario.steps
     planning = None

@@ -12,7 +12,6 @@ import contextlib
 import json
 import os
 import signal
-import sys
 import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -22,12 +21,11 @@ os.environ.setdefault("MAVLINK20", "1")
 from planner.errors import UserError  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 from sim_gateway.signing import load_or_create_key_file, load_signing_key  # noqa: E402
+from swarmplan import option_groups  # noqa: E402
 from swarmplan.arguments import (  # noqa: E402
-    OneLineParser,
-    add_seed_argument,
     non_negative_float,
+    port_number,
     positive_float,
-    positive_int,
 )
 
 if TYPE_CHECKING:
@@ -39,27 +37,28 @@ HELP = (
 )
 
 
-def _port(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"{value} is not a UDP port (0..65535)")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--scenario", default="paper-10uav", help="built-in scenario name or TOML file"
+    option_groups.add_world_arguments(
+        parser, "paper-10uav", "seed of the world and the random starts"
     )
-    add_seed_argument(parser, "seed of the world and the random starts")
-    parser.add_argument(
-        "--vehicles",
-        type=positive_int,
-        default=None,
-        help="number of vehicles (default: the scenario's)",
+    _add_pace_arguments(parser)
+    _add_address_arguments(parser)
+    _add_vehicle_start_arguments(parser)
+    option_groups.add_duration_option(parser, "simulated")
+    _add_lockstep_arguments(parser)
+    option_groups.add_signing_key_option(
+        parser,
+        "sign everything, refuse unsigned or wrongly signed commands; a file that does not "
+        "exist is created with a new key for this mission (mode 0600): give the daemon the same "
+        "--signing-key-file",
+        otherwise="unsigned",
     )
+    option_groups.add_target_account_option(parser)
+    option_groups.add_quiet_option(parser)
+
+
+def _add_pace_arguments(parser: argparse.ArgumentParser) -> None:
+    """How fast simulated time runs against the wall clock, and its physics tick."""
     parser.add_argument(
         "--speedup", type=positive_float, default=1.0, help="simulated seconds per wall second"
     )
@@ -69,22 +68,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--tick-s", type=positive_float, default=0.1, help="physics tick, simulated s"
     )
+
+
+def _add_address_arguments(parser: argparse.ArgumentParser) -> None:
+    """Where the vehicles send to and receive on."""
     parser.add_argument(
         "--gcs-host", default="127.0.0.1", help="where vehicles send (ground station / daemon)"
     )
     parser.add_argument(
-        "--gcs-port", type=_port, default=14550, help="UDP port all vehicles send to"
+        "--gcs-port", type=port_number, default=14550, help="UDP port all vehicles send to"
     )
     parser.add_argument(
         "--truth-port",
-        type=_port,
+        type=port_number,
         default=None,
         help="send the true targets, one JSON datagram per decision period, to 127.0.0.1:PORT "
         "(for a display: swarmplan demo's live view; never to the planner)",
     )
     parser.add_argument(
         "--per-vehicle-ports",
-        type=_port,
+        type=port_number,
         default=None,
         metavar="BASE",
         help="vehicle i sends to BASE+i instead of --gcs-port (e.g. 14540, PX4 style)",
@@ -94,11 +97,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--bind-base-port",
-        type=_port,
+        type=port_number,
         default=0,
         metavar="BASE",
         help="vehicle i receives on BASE+i (default 0: any free port)",
     )
+
+
+def _add_vehicle_start_arguments(parser: argparse.ArgumentParser) -> None:
+    """How the vehicles start: their boot, in the air or not, their telemetry rate."""
     parser.add_argument(
         "--boot-s", type=non_negative_float, default=20.0, help="simulated boot (pre-arm) phase, s"
     )
@@ -106,9 +113,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--telemetry-hz", type=positive_float, default=10.0, help="position/attitude rate (wall)"
     )
-    parser.add_argument(
-        "--duration-s", type=positive_float, default=None, help="stop after this simulated time"
-    )
+
+
+def _add_lockstep_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--lockstep",
         action="store_true",
@@ -121,23 +128,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=10.0,
         help="wall s of ground-station silence after which lockstep is released (default 10)",
     )
-    parser.add_argument(
-        "--signing-key-file",
-        type=Path,
-        metavar="PATH",
-        help="MAVLink 2 signing key (64 hex characters or 32 bytes): sign everything, refuse "
-        "unsigned or wrongly signed commands; a file that does not exist is created with a new "
-        "key for this mission (mode 0600): give the daemon the same --signing-key-file; "
-        "default $SWARMPLAN_SIGNING_KEY if set, else unsigned",
-    )
-    parser.add_argument(
-        "--target-account",
-        type=Path,
-        metavar="PATH",
-        help="on exit, write the ground-truth half of the per-target account (JSON, "
-        "sim_gateway/target_account.py) here; swarmplan demo joins it into result.json",
-    )
-    parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -235,19 +225,3 @@ def write_target_truth(account: TargetAccount, path: Path) -> None:
 def _interrupt(signum: int, frame: object) -> None:
     """SIGTERM ends the run like Ctrl-C: sockets closed, summary printed."""
     raise KeyboardInterrupt
-
-
-def run_standalone(argv: list[str] | None = None) -> int:
-    """``python -m swarmplan.sim_command``: the same command without the swarmplan wrapper."""
-    parser = OneLineParser(prog="sim_gateway", description=HELP)
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        return main(args)
-    except UserError as exc:
-        print(f"sim: error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(run_standalone())

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from mission_view.replay_file import load_replay
 from mission_view.server import ViewServer
-from mission_view.view_session import port_number
+from swarmplan.arguments import port_number
 
 HELP = "replay a finished mission in the browser (time slider, beliefs as heat layers)"
 
