@@ -19,23 +19,19 @@ planner plans with"):
   planner's picture of where its UAVs were went wrong after each;
 * **home**: a few steps more kept back for the way home (``home_reserve_extra_steps``).
 
-``swarmplan run --as-flown`` (swarmplan/as_flown.py) asks a daemon with its default options,
-flying the airframe the simulator reports, for the same scenario: the offline run a flown one
-is measured against (benchmarks/bench_end_to_end.py). The recorder of either judges the
-scenario's own limits.
+``swarmplan run --as-flown`` (swarmplan/as_flown.py) plans the same scenario from the same plain
+inputs (a daemon's default options, the airframe the simulator reports: no daemon): the offline
+run a flown one is measured against (benchmarks/bench_end_to_end.py). The recorder of either
+judges the scenario's own limits.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel
 from planner.scenario import Scenario
-
-if TYPE_CHECKING:
-    from mavlink_bridge.mission.daemon import DaemonOptions
 
 #: the most two UAVs close in one decision step, in cells: a diagonal move each, head-on
 CLOSING_CELLS = 2 * math.sqrt(2)
@@ -55,18 +51,23 @@ def flight_margin_km(
 
 
 def planning_scenario(
-    scenario: Scenario, steps: int, options: DaemonOptions, flight_margin: float
+    scenario: Scenario,
+    steps: int,
+    separation_margin_km: float,
+    home_reserve_extra_steps: int,
+    flight_margin: float,
 ) -> Scenario:
     """``scenario`` as the daemon's planner plans it for ``steps`` decision steps (its last
-    step is the mission's: ``home_by_end`` plans to be home by then), with ``options``'
-    separation margin and home reserve and the threat clearance ``flight_margin`` (km)."""
+    step is the mission's: ``home_by_end`` plans to be home by then), with the separation
+    margin on top of d_min, ``home_reserve_extra_steps`` more kept back for the way home, and
+    the threat clearance ``flight_margin`` (km)."""
     cfg = scenario.config
-    separation = cfg.min_separation_km + options.separation_margin_km
+    separation = cfg.min_separation_km + separation_margin_km
     planning = scenario.with_config(
         min_separation_km=separation,
         separation_sense_km=max(cfg.separation_sense_km, separation + CLOSING_CELLS * cfg.cell_km),
         threat_margin_km=max(cfg.threat_margin_km, flight_margin),
         home_path_margin_km=max(cfg.home_path_margin_km, flight_margin),
-        home_reserve_steps=cfg.home_reserve_steps + options.home_reserve_extra_steps,
+        home_reserve_steps=cfg.home_reserve_steps + home_reserve_extra_steps,
     )
     return replace(planning, steps=steps)

@@ -11,10 +11,10 @@ circle. Two guards:
   A time scale whose decision period, times the share a step may use
   (``pacing.STEP_DEADLINE_SHARE``), is shorter than ``CALIBRATION_HEADROOM`` times that is
   refused in one line naming the largest time scale that fits, and lockstep.
-* **In flight** (:class:`HoldWhenLate`): each step's lateness is measured on the vehicles' own
-  clock, as the step's commands are about to go out: how far the vehicles' newest reports are
-  past the positions the step was planned from, and how far this decision instant is past one
-  period after the last one (a stall: a whole decision passed without one). Beyond
+* **In flight** (:class:`HoldWhenLate`): each step's lateness, as the pacing measures it on the
+  vehicles' own clock as the step's commands are about to go out (``pacing.Lateness``): how far
+  the vehicles had flown past the step's decision instant, or how far this decision instant is
+  past one period after the last one (a stall: a whole decision passed without one). Beyond
   ``bound_s`` (one decision period by default) the step's new targets are not sent: every
   plane keeps flying to, and circling, the last guided target it accepted, which the flight
   envelope proved clear of every threat, loiter circle included. The daemon says so once per
@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,7 +36,6 @@ import numpy as np
 from mavlink_bridge.mission.pacing import STEP_DEADLINE_SHARE
 from mavlink_bridge.safety.flight_envelope import FlightEnvelope
 from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
-from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_bridge.way_home.kept_apart import ReturnSeparation
 from planner.errors import UserError
 from planner.grid import Grid
@@ -117,46 +116,24 @@ def refuse_unkeepable_time_scale(time_scale: float, step_s: float, step_wall_s: 
 
 @dataclass
 class HoldWhenLate:
-    """Paced time: hold the planes at their last safe targets while the daemon is late."""
+    """Paced time: hold the planes at their last safe targets while the daemon is late (by the
+    pacing's measure of each step's lateness: ``pacing.Lateness``)."""
 
-    step_s: float
     bound_s: float  # vehicle seconds of lateness beyond which a step holds
     say: Callable[[str], None] = lambda text: None
     held_steps: int = 0
     holding: bool = False
     max_lateness_s: float = 0.0
-    _previous_instant_ms: float | None = None
 
-    def lateness_s(
-        self, positions_ms: np.ndarray, vehicles: Sequence[VehicleState], active: np.ndarray
-    ) -> float:
-        """How late this step's commands are, in the vehicles' seconds: their newest reports
-        past the positions it was planned from, and this decision instant past one period
-        after the last (a stall)."""
-        idx = [i for i in range(len(vehicles)) if active[i] and vehicles[i].has_position]
-        if not idx:
-            return 0.0
-        behind = max((vehicles[i].time_boot_ms - positions_ms[i]) / 1e3 for i in idx)
-        instant_ms = max(float(positions_ms[i]) for i in idx)
-        previous, self._previous_instant_ms = self._previous_instant_ms, instant_ms
-        stall = 0.0 if previous is None else (instant_ms - previous) / 1e3 - self.step_s
-        return max(0.0, behind, stall)
-
-    def hold(
-        self,
-        step: int,
-        positions_ms: np.ndarray,
-        vehicles: Sequence[VehicleState],
-        active: np.ndarray,
-    ) -> bool:
-        """Should this step hold (send nothing new)? Says when a hold starts and ends."""
-        late = self.lateness_s(positions_ms, vehicles, active)
-        self.max_lateness_s = max(self.max_lateness_s, late)
-        if late > self.bound_s:
+    def hold(self, step: int, late_s: float) -> bool:
+        """Should this step, ``late_s`` of the vehicles' seconds late, hold (send nothing
+        new)? Says when a hold starts and ends."""
+        self.max_lateness_s = max(self.max_lateness_s, late_s)
+        if late_s > self.bound_s:
             self.held_steps += 1
             if not self.holding:
                 self.say(
-                    f"warning: holding at step {step}: the step is {late:.1f} s late on the "
+                    f"warning: holding at step {step}: the step is {late_s:.1f} s late on the "
                     f"vehicles' clock (bound {self.bound_s:g} s); every plane circles the last "
                     f"target it accepted (clear of every threat) until the daemon catches up; "
                     f"lower the vehicles' speedup (--time-scale) or use lockstep"
@@ -164,7 +141,7 @@ class HoldWhenLate:
             self.holding = True
             return True
         if self.holding:
-            self.say(f"caught up at step {step} ({late:.1f} s behind): flying the plan again")
+            self.say(f"caught up at step {step} ({late_s:.1f} s behind): flying the plan again")
         self.holding = False
         return False
 

@@ -3,19 +3,20 @@
 Each phase is a named unit (:class:`LaunchPhase`) run in order by :func:`run_launch`; a phase
 that cannot complete raises a ``UserError`` naming the vehicle and the fix. A new phase (e.g.
 reading each airframe's limits before take-off) is one more entry in :func:`launch_phases`, not
-an edit of the others. The phases talk to the vehicles through the daemon's link and its
-``send`` (acknowledged, retried commands) and ``wait_sim`` (pumps; in lockstep it grants
-simulated time meanwhile).
+an edit of the others. Each phase takes the launch (:class:`Launch`: what it works with and
+what it leaves) and talks to the vehicles through the mission context's link and its ``send``
+(acknowledged, retried commands) and ``wait_sim`` (pumps; in lockstep it grants simulated time
+meanwhile).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from mavlink_bridge.mission.resume_takeback import flying, judge_fleet, send_home
+from mavlink_bridge.mission.resume_takeback import TakeBack, flying, judge_fleet, send_home
 from mavlink_bridge.vehicles.airframe import read_airframes, scenario_warnings
 from mavlink_bridge.vehicles.discovery import wait_for_vehicles, wait_until_ready
 from mavlink_bridge.vehicles.fence_upload import FenceCircle, upload_fence
@@ -31,7 +32,24 @@ from planner.errors import UserError
 from planner.geodesy import local_km_to_geodetic
 
 if TYPE_CHECKING:
-    from mavlink_bridge.mission.daemon import MissionDaemon
+    from mavlink_bridge.mission.context import MissionContext
+    from mavlink_bridge.results.checkpoint import Checkpoint
+    from mavlink_bridge.vehicles.vehicle_loss import LossWatch
+    from mavlink_bridge.way_home.flight_home import FlightHomePhase
+
+
+@dataclass
+class Launch:
+    """What the launch works with and what it leaves: the mission context, the flight home
+    (a resumed daemon sends planes home on it), the loss watch (a plane sent home is retired
+    from the mission), the checkpoint resumed from (None: a fresh launch), and the take back's
+    decision for each plane (``resume_takeback.py``)."""
+
+    ctx: MissionContext
+    home: FlightHomePhase
+    loss: LossWatch
+    resume_from: Checkpoint | None = None
+    take_back: list[TakeBack] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -39,35 +57,38 @@ class LaunchPhase:
     """One phase of the launch: its name (said and listed) and what it does."""
 
     name: str
-    run: Callable[[MissionDaemon], None]
+    run: Callable[[Launch], None]
 
 
-def discover(daemon: MissionDaemon) -> None:
+def discover(launch: Launch) -> None:
     """A heartbeat of every expected system id (``discovery.wait_for_vehicles``)."""
-    link = daemon.require_link()
-    daemon.say(f"listening on {link.describe()} for {daemon.n} vehicles")
-    wait_for_vehicles(link, daemon.system_ids, daemon.options.discovery_timeout_s, daemon.say)
-    daemon.say(f"all {daemon.n} vehicles heard; waiting for them to finish initialising")
+    ctx = launch.ctx
+    link = ctx.require_link()
+    ctx.say(f"listening on {link.describe()} for {ctx.n} vehicles")
+    wait_for_vehicles(link, ctx.system_ids, ctx.options.discovery_timeout_s, ctx.say)
+    ctx.say(f"all {ctx.n} vehicles heard; waiting for them to finish initialising")
 
 
-def ready(daemon: MissionDaemon) -> None:
+def ready(launch: Launch) -> None:
     """Every autopilot past its initialisation (STANDBY). A resumed daemon does not wait for a
     plane in the air, whatever it reports (a failsafe's CRITICAL): it takes it back
     (``take_back``)."""
-    link = daemon.require_link()
-    ids = daemon.system_ids
-    if daemon.resume_from is not None:
-        vehicles = daemon.vehicles()
+    ctx = launch.ctx
+    link = ctx.require_link()
+    ids = ctx.system_ids
+    if launch.resume_from is not None:
+        vehicles = ctx.vehicles()
         link.pump_until(lambda: all(v.has_position for v in vehicles if v.armed), 2.0)
-        ids = [v.system_id for v in vehicles if not flying(v, climb_m(daemon))]
-    wait_until_ready(link, ids, daemon.options.ready_timeout_s, wait=daemon.wait_sim)
+        ids = [v.system_id for v in vehicles if not flying(v, climb_m(ctx))]
+    wait_until_ready(link, ids, ctx.options.ready_timeout_s, wait=ctx.wait_sim)
 
 
-def fence(daemon: MissionDaemon) -> None:
+def fence(launch: Launch) -> None:
     """Every threat zone as a fence exclusion circle, to every vehicle."""
-    threats = daemon.scenario.threats
+    ctx = launch.ctx
+    threats = ctx.scenario.threats
     lat, lon = local_km_to_geodetic(
-        [t.x_km for t in threats], [t.y_km for t in threats], daemon.scenario.origin
+        [t.x_km for t in threats], [t.y_km for t in threats], ctx.scenario.origin
     )
     circles = (
         [
@@ -77,70 +98,73 @@ def fence(daemon: MissionDaemon) -> None:
         if threats
         else []
     )
-    upload_fence(daemon.require_link(), daemon.vehicles(), circles)
-    daemon.say(f"fence uploaded: {len(circles)} exclusion circles to each vehicle")
+    upload_fence(ctx.require_link(), ctx.vehicles(), circles)
+    ctx.say(f"fence uploaded: {len(circles)} exclusion circles to each vehicle")
 
 
-def failsafe(daemon: MissionDaemon) -> None:
+def failsafe(launch: Launch) -> None:
     """Every vehicle's GCS failsafe: fly on to the last guided target (``gcs_failsafe.py``)."""
+    ctx = launch.ctx
     settings = MISSION_FAILSAFE
-    set_gcs_failsafe(daemon.require_link(), daemon.vehicles(), settings)
-    daemon.say(
+    set_gcs_failsafe(ctx.require_link(), ctx.vehicles(), settings)
+    ctx.say(
         f"GCS failsafe set: FS_GCS_ENABL {settings.enable}, FS_LONG_ACTN {settings.long_action} "
         f"(continue: circle the last guided target), FS_LONG_TIMEOUT {settings.long_timeout_s:g} s"
     )
 
 
-def airframe(daemon: MissionDaemon) -> None:
+def airframe(launch: Launch) -> None:
     """Each vehicle's flight limits (``airframe.read_airframes``): the plane model of the flight
     prediction and leg timing follows them; a scenario the airframes cannot fly is said now."""
+    ctx = launch.ctx
     # the answers are waited for on the wall clock, never by granting a lockstep simulator time:
     # how long they take must not change when the vehicles arm (a seed flies one mission)
-    frames = read_airframes(
-        daemon.vehicles(), daemon.scenario.config, daemon.require_link().pump_until
-    )
-    daemon.use_airframes(frames)
+    frames = read_airframes(ctx.vehicles(), ctx.scenario.config, ctx.require_link().pump_until)
+    ctx.use_airframes(frames)
     for frame in frames:
-        daemon.say(f"airframe {frame.describe()}")
-    margin = daemon.envelope.threat_margin_km
-    source = "given" if daemon.options.threat_margin_km is not None else "from the airframe"
-    daemon.say(f"safety envelope: legs kept {margin:.2f} km clear of the threat zones ({source})")
-    for line in scenario_warnings(frames, daemon.scenario.config):
-        daemon.say(f"warning: {line}")
+        ctx.say(f"airframe {frame.describe()}")
+    margin = ctx.envelope.threat_margin_km
+    source = "given" if ctx.options.threat_margin_km is not None else "from the airframe"
+    ctx.say(f"safety envelope: legs kept {margin:.2f} km clear of the threat zones ({source})")
+    for line in scenario_warnings(frames, ctx.scenario.config):
+        ctx.say(f"warning: {line}")
 
 
-def arm(daemon: MissionDaemon) -> None:
+def arm(launch: Launch) -> None:
     """Arm every vehicle once it is ready to (``readiness.arm_when_ready``: pre-arm checks, GPS
     fix, home), refusals retried within the readiness window, with progress lines. The line
     that ends it says how long it took, and when on the vehicles' own clocks (s since boot)."""
+    ctx = launch.ctx
     started = time.monotonic()
     arm_when_ready(
-        daemon.vehicles(),
-        daemon.options.ready_timeout_s,
-        send=lambda commands, tries: daemon.send(commands, tries),
-        wait=daemon.wait_sim,
-        progress=daemon.say,
-        arm_attempts=daemon.options.launch_command_attempts,
-        listen=daemon.require_link().pump_until,
+        ctx.vehicles(),
+        ctx.options.ready_timeout_s,
+        send=lambda commands, tries: ctx.send(commands, tries),
+        wait=ctx.wait_sim,
+        progress=ctx.say,
+        arm_attempts=ctx.options.launch_command_attempts,
+        listen=ctx.require_link().pump_until,
     )
-    clocks = [v.clock_ms / 1000.0 for v in daemon.vehicles()]
-    daemon.say(
-        f"armed {daemon.n} vehicles after {time.monotonic() - started:.1f} s (vehicle clocks "
+    clocks = [v.clock_ms / 1000.0 for v in ctx.vehicles()]
+    ctx.say(
+        f"armed {ctx.n} vehicles after {time.monotonic() - started:.1f} s (vehicle clocks "
         f"{min(clocks):.1f}..{max(clocks):.1f} s since boot)"
     )
 
 
-def take_off(daemon: MissionDaemon) -> None:
+def take_off(launch: Launch) -> None:
     """TAKEOFF mode, then GUIDED for each plane as soon as it has climbed: in TAKEOFF a plane
     flies straight on along its launch heading (ArduPlane until TKOFF_ALT, the simulator too),
     so one kept waiting for a slower one flew on towards whatever lies ahead (at 30 % loss,
     20x, a plane waited 2 s of wall time, 40 s of flight, for another's take-off, and entered
     a threat 4.3 km ahead of its start)."""
-    link = daemon.require_link()
-    options = daemon.options
+    ctx = launch.ctx
+    link = ctx.require_link()
+    options = ctx.options
     # (a plane a resumed daemon sent home flies home: ``take_back``)
-    vehicles = [v for v in daemon.vehicles() if v.system_id not in daemon.flight_home.sent_home]
-    climb = climb_m(daemon)
+    sent_home = launch.home.sent_home()
+    vehicles = [v for v in ctx.vehicles() if v.system_id not in sent_home]
+    climb = climb_m(ctx)
     attempts = options.launch_command_attempts
     if not vehicles:
         return
@@ -148,11 +172,11 @@ def take_off(daemon: MissionDaemon) -> None:
     link.pump_until(lambda: all(v.has_position for v in vehicles), 2.0)
     on_ground = [v for v in vehicles if not flying(v, climb)]
     require_accepted(
-        daemon.send([set_mode_command(v, PLANE_MODE_TAKEOFF) for v in on_ground], attempts)
+        ctx.send([set_mode_command(v, PLANE_MODE_TAKEOFF) for v in on_ground], attempts)
     )
     guided: set[int] = set()
     while len(guided) < len(vehicles):
-        if not daemon.wait_sim(
+        if not ctx.wait_sim(
             lambda: any(v.relative_alt_m >= climb for v in vehicles if v.system_id not in guided),
             options.takeoff_timeout_s,
         ):
@@ -162,45 +186,44 @@ def take_off(daemon: MissionDaemon) -> None:
                 f"{options.takeoff_timeout_s:g} s of TAKEOFF; check its takeoff setup"
             )
         up = [v for v in vehicles if v.system_id not in guided and v.relative_alt_m >= climb]
-        require_accepted(
-            daemon.send([set_mode_command(v, PLANE_MODE_GUIDED) for v in up], attempts)
-        )
+        require_accepted(ctx.send([set_mode_command(v, PLANE_MODE_GUIDED) for v in up], attempts))
         guided.update(v.system_id for v in up)
-    daemon.launched = True
-    daemon.say("airborne, GUIDED")
+    ctx.say("airborne, GUIDED")
 
 
-def climb_m(daemon: MissionDaemon) -> float:
+def climb_m(ctx: MissionContext) -> float:
     """The climb (above home) that ends the TAKEOFF phase; a plane armed and above it is
     flying (``resume_takeback.flying``)."""
-    return min(daemon.options.takeoff_altitude_m, daemon.scenario.altitude_m)
+    return min(ctx.options.takeoff_altitude_m, ctx.scenario.altitude_m)
 
 
-def take_back(daemon: MissionDaemon) -> None:
+def take_back(launch: Launch) -> None:
     """A resumed daemon (nothing at a fresh launch): every plane in the air taken back
     whatever its status and mode, judged from where it is: those that can continue the
     mission go on (GUIDED at take-off, next), the others are sent home; one line per plane
     says which and why (``resume_takeback.py``)."""
-    if daemon.resume_from is None:
+    ctx = launch.ctx
+    if launch.resume_from is None:
         return
-    vehicles = daemon.vehicles()
-    daemon.require_link().pump_until(lambda: all(v.has_position for v in vehicles), 2.0)
-    request_homes(daemon)  # the way home of a plane sent home is judged to its own
-    decisions = judge_fleet(daemon, climb_m(daemon))
-    daemon.take_back = decisions
+    vehicles = ctx.vehicles()
+    ctx.require_link().pump_until(lambda: all(v.has_position for v in vehicles), 2.0)
+    request_homes(launch)  # the way home of a plane sent home is judged to its own
+    decisions = judge_fleet(ctx, launch.home.home_routes(), launch.resume_from, climb_m(ctx))
+    launch.take_back = decisions
     for t in decisions:
-        daemon.say(t.line())
-    send_home(daemon, decisions)
+        ctx.say(t.line())
+    send_home(ctx, launch.home, launch.loss, decisions)
 
 
-def request_homes(daemon: MissionDaemon) -> None:
+def request_homes(launch: Launch) -> None:
     """Ask every vehicle whose home is not known yet for HOME_POSITION (REQUEST_MESSAGE): the
     launch point is each UAV's start and return point, and ArduPilot streams it rarely."""
-    link = daemon.require_link()
-    missing = [v for v in daemon.vehicles() if v.home is None]
+    ctx = launch.ctx
+    link = ctx.require_link()
+    missing = [v for v in ctx.vehicles() if v.home is None]
     if missing:
         home = mavlink.MAVLINK_MSG_ID_HOME_POSITION
-        daemon.send([request_message_command(v, home) for v in missing])
+        ctx.send([request_message_command(v, home) for v in missing])
         link.pump_until(lambda: all(v.home is not None for v in missing), 1.0)
 
 
@@ -219,11 +242,18 @@ def launch_phases() -> list[LaunchPhase]:
     ]
 
 
-def run_launch(daemon: MissionDaemon, phases: list[LaunchPhase]) -> None:
-    """Run ``phases`` in order; the daemon notes the phase it is in (for its exit report)."""
+def run_launch(
+    launch: Launch,
+    phases: list[LaunchPhase],
+    enter: Callable[[str], None],
+    said: Callable[[], None] = lambda: None,
+) -> None:
+    """Run ``phases`` in order, telling ``enter`` the name of each as it starts (the daemon
+    notes the phase it is in, for its exit report), and ``said`` as each ends, however it
+    ends (the daemon says what the link has to say)."""
     for phase in phases:
-        daemon.phase = phase.name
+        enter(phase.name)
         try:
-            phase.run(daemon)
+            phase.run(launch)
         finally:
-            daemon.say_notices()  # e.g. a second address refused while the vehicles were found
+            said()  # e.g. a second address refused while the vehicles were found

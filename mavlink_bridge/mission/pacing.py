@@ -17,9 +17,9 @@ The last two hand over to :class:`LookPacing` as soon as a look arrives.
 
 Every pacing answers the same three questions (:class:`Pacing`): wait for the next decision
 instant (and return the looks of it), by when must this step's commands be out (``deadline``),
-and was this step late (``late``, counted in ``late_steps`` and said once). A behaviour such as
-"hold when late" plugs in here: it reads :meth:`Pacing.late` (and :class:`DecisionInstant`)
-rather than the loop's branches.
+and how late is this step (``lateness``: measured once, here, as a :class:`Lateness`; a late
+step is counted in ``late_steps`` and the first one said). A behaviour such as "hold when
+late" (``keeping_up.HoldWhenLate``) reads that measure rather than measuring its own.
 """
 
 from __future__ import annotations
@@ -47,6 +47,33 @@ class DecisionInstant:
     looks: dict[int, Look]  # UAV index -> its newest look (the ones new since the last step)
     deadline: float | None = None  # monotonic instant by which the commands must be out
     source: str = ""  # the pacing that produced it
+
+
+@dataclass(frozen=True)
+class Lateness:
+    """How late a step's commands go out, in the vehicles' seconds: how far they had flown
+    past the step's decision instant (``behind_s``), and the time since the previous decision
+    instant (``gap_s``; None: the first one, or the first on another time base)."""
+
+    step_s: float
+    behind_s: float = 0.0
+    gap_s: float | None = None
+
+    @property
+    def stalled(self) -> bool:
+        """A whole decision instant passed without a decision (more than 1.5 periods)."""
+        return self.gap_s is not None and self.gap_s > 1.5 * self.step_s
+
+    @property
+    def late(self) -> bool:
+        """Planned from positions long gone (more than half a period behind), or stalled."""
+        return self.behind_s > 0.5 * self.step_s or self.stalled
+
+    @property
+    def seconds(self) -> float:
+        """The lateness in one number: behind, or the gap beyond one period (0: on time)."""
+        stall = 0.0 if self.gap_s is None else self.gap_s - self.step_s
+        return max(0.0, self.behind_s, stall)
 
 
 @dataclass
@@ -112,9 +139,9 @@ class Pacing(Protocol):
         """Pump until the decision instant of ``step``; its looks (``consumed`` updated). None:
         this source does not apply any more (hand over to the next choice)."""
 
-    def late(self, instant: DecisionInstant) -> bool:
-        """Called as the step's commands go out: is the daemon behind the vehicles' clock?
-        Counts and says it (the first time)."""
+    def lateness(self, instant: DecisionInstant) -> Lateness:
+        """Called as the step's commands go out: how far is the daemon behind the vehicles'
+        clock? A late step is counted and said (the first time)."""
 
 
 class LockstepPacing:
@@ -133,8 +160,8 @@ class LockstepPacing:
             step, consume(self.ctx.new_looks(consumed), consumed), None, self.name
         )
 
-    def late(self, instant: DecisionInstant) -> bool:
-        return False  # simulated time waits for the daemon
+    def lateness(self, instant: DecisionInstant) -> Lateness:
+        return Lateness(self.ctx.step_s)  # simulated time waits for the daemon
 
 
 class LookPacing:
@@ -174,7 +201,7 @@ class LookPacing:
         """60 % of a decision period (wall seconds at ``time_scale``) from now."""
         return time.monotonic() + STEP_DEADLINE_SHARE * self.ctx.period_wall_s
 
-    def late(self, instant: DecisionInstant) -> bool:
+    def lateness(self, instant: DecisionInstant) -> Lateness:
         """A step is late when its commands go out more than half a decision period (of the
         vehicles' clock) after its decision instant (the newest look), so its targets were
         planned from positions long gone, or when a whole decision instant passed without a
@@ -182,7 +209,7 @@ class LookPacing:
         the daemon stalled, and the planes flew two legs on one command)."""
         looks = instant.looks
         if not looks:
-            return False
+            return Lateness(self.ctx.step_s)
         vehicles = self.ctx.vehicles()
         instant_ms = max(look.time_boot_ms for look in looks.values())
         behind_ms = max(vehicles[i].time_boot_ms - looks[i].time_boot_ms for i in looks)
@@ -225,7 +252,7 @@ class WallClockPacing:
             step, {}, time.monotonic() + STEP_DEADLINE_SHARE * ctx.period_wall_s, self.name
         )
 
-    def late(self, instant: DecisionInstant) -> bool:
+    def lateness(self, instant: DecisionInstant) -> Lateness:
         """Late when the commands go out more than half a period after the instant, or an
         instant was skipped; whole periods passed are skipped (the schedule keeps its phase)."""
         ctx = self.ctx
@@ -314,12 +341,12 @@ class VehicleClockPacing:
             self.rates.append((clock - self._mark[1]) / 1e3 / (now - self._mark[0]))
         self._mark = (now, clock)
 
-    def late(self, instant: DecisionInstant) -> bool:
+    def lateness(self, instant: DecisionInstant) -> Lateness:
         """Late when the vehicles flew more than half a step past their instant before the
         commands went out, or when an instant was skipped; a skipped instant moves the vehicle's
         next instant on to the step it is in (the schedule keeps the vehicle's clock)."""
         if not self.due_ms:
-            return False
+            return Lateness(self.ctx.step_s)
         step_ms = round(1e3 * self.ctx.step_s)
         vehicles = self.ctx.vehicles()
         behind = {i: vehicles[i].clock_ms - due for i, due in self.due_ms.items()}
@@ -329,28 +356,29 @@ class VehicleClockPacing:
         return note_late(self.ctx, instant.step, max(self.due_ms.values()), max(behind.values()))
 
 
-def note_late(ctx: PacingContext, step: int, instant_ms: int, behind_ms: int) -> bool:
-    """Count a late step (``late_steps``) and say the first one with what to do about it."""
-    step_ms = 1e3 * ctx.step_s
+def note_late(ctx: PacingContext, step: int, instant_ms: int, behind_ms: int) -> Lateness:
+    """The lateness of a step whose decision instant was ``instant_ms`` and whose vehicles were
+    ``behind_ms`` past it; a late step is counted (``late_steps``) and the first one said with
+    what to do about it."""
     previous_ms, ctx.decision_instant_ms = ctx.decision_instant_ms, instant_ms
-    stalled = previous_ms is not None and instant_ms - previous_ms > 1.5 * step_ms
-    if behind_ms <= 0.5 * step_ms and not stalled:
-        return False
+    gap_s = None if previous_ms is None else (instant_ms - previous_ms) / 1e3
+    lateness = Lateness(ctx.step_s, behind_ms / 1e3, gap_s)
+    if not lateness.late:
+        return lateness
     ctx.account.late_steps += 1
     if ctx.account.late_steps == 1:
-        assert previous_ms is not None or not stalled
         what = (
-            f"{(instant_ms - previous_ms) / 1e3:.0f} s passed between two decisions"
-            if stalled and previous_ms is not None
+            f"{gap_s:.0f} s passed between two decisions"
+            if lateness.stalled and gap_s is not None
             else f"they had flown {behind_ms / 1e3:.1f} s past the decision instant as its "
             "commands went out"
         )
         ctx.say(
             f"warning: the daemon is behind the vehicles' clock at step {step}: {what} (a "
-            f"step is {step_ms / 1e3:g} s); lower the vehicles' speedup (--time-scale "
+            f"step is {ctx.step_s:g} s); lower the vehicles' speedup (--time-scale "
             f"{ctx.time_scale:g}) or use lockstep"
         )
-    return True
+    return lateness
 
 
 class PacingChoice:

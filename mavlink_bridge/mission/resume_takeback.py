@@ -47,12 +47,14 @@ import numpy as np
 
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_bridge.way_home.around_threats import HomeRoutes
-from mavlink_bridge.way_home.flight_home import home_routes, homeward_commands
 from mavlink_wire.protocol import enum_name, mode_name
 
 if TYPE_CHECKING:
-    from mavlink_bridge.mission.daemon import MissionDaemon
-    from mavlink_bridge.mission.decision_step import LoopState
+    from mavlink_bridge.mission.context import MissionContext
+    from mavlink_bridge.mission.loop_state import LoopState
+    from mavlink_bridge.results.checkpoint import Checkpoint
+    from mavlink_bridge.vehicles.vehicle_loss import LossWatch
+    from mavlink_bridge.way_home.flight_home import FlightHomePhase
 
 CONTINUE, HOME, LAUNCH = "continue", "home", "launch"
 _VERBS = {
@@ -247,22 +249,25 @@ def account_outage(state: LoopState, decisions: list[TakeBack]) -> None:
                 distance[i] += t.outage_extra_km
 
 
-def judge_fleet(daemon: MissionDaemon, climb_m: float) -> list[TakeBack]:
-    """Every expected plane's decision at the resume (module docstring): a plane flying is
-    judged from where it is, one on the ground is launched again."""
-    assert daemon.resume_from is not None and daemon.options.checkpoint_path is not None
-    loop = daemon.resume_from.loop
-    cfg = daemon.scenario.config
+def judge_fleet(
+    ctx: MissionContext, routes: HomeRoutes, resume_from: Checkpoint | None, climb_m: float
+) -> list[TakeBack]:
+    """Every expected plane's decision at the resume from ``resume_from`` (module docstring):
+    a plane flying is judged from where it is (``routes``: the safe ways home), one on the
+    ground is launched again."""
+    assert resume_from is not None and ctx.options.checkpoint_path is not None
+    loop = resume_from.loop
+    cfg = ctx.scenario.config
     judge = TakeBackJudge(
-        home_routes(daemon),
+        routes,
         cfg.area_km,
-        float(daemon.plane.loiter_reach_km()),
+        float(ctx.plane.loiter_reach_km()),
         cfg.max_range_km,
         cfg.return_reserve_km,
     )
-    seconds = outage_s(daemon.options.checkpoint_path, daemon.time_scale)
+    seconds = outage_s(ctx.options.checkpoint_path, ctx.time_scale)
     decisions = []
-    for i, v in enumerate(daemon.vehicles()):
+    for i, v in enumerate(ctx.vehicles()):
         mode, status = mode_name(v.custom_mode), state_name(v.system_status)
         if not flying(v, climb_m):
             where = (
@@ -274,14 +279,14 @@ def judge_fleet(daemon: MissionDaemon, climb_m: float) -> list[TakeBack]:
             why = f"{where}: readied, armed and taken off as at a fresh launch"
             decisions.append(TakeBack(v.system_id, LAUNCH, why, mode, status))
             continue
-        xy = daemon.local_km(v.lat_deg, v.lon_deg)
+        xy = ctx.local_km(v.lat_deg, v.lon_deg)
         home = (
-            daemon.local_km(v.home[0], v.home[1])
+            ctx.local_km(v.home[0], v.home[1])
             if v.home is not None
             else np.asarray(loop["home_km"][i], float)
         )
         flown = range_account(
-            v, float(loop["flown_km"][i]), seconds, daemon.plane.speed_mps, cfg.max_range_km
+            v, float(loop["flown_km"][i]), seconds, ctx.plane.speed_mps, cfg.max_range_km
         )
         verdict = judge.judge(v, xy, home, flown)
         chord = float(np.hypot(*(xy - np.asarray(loop["positions"][i], float))))
@@ -290,18 +295,20 @@ def judge_fleet(daemon: MissionDaemon, climb_m: float) -> list[TakeBack]:
     return decisions
 
 
-def send_home(daemon: MissionDaemon, decisions: list[TakeBack]) -> None:
+def send_home(
+    ctx: MissionContext, flight_home: FlightHomePhase, loss: LossWatch, decisions: list[TakeBack]
+) -> None:
     """The planes judged HOME: out of the mission for good (lost to the planner, with why)
     and on the daemon's safe flight home (RTL where the line home is clear, else guided
     around the threats; re-judged at every step by ``flight_home.guide_sent_home``)."""
     home = [t for t in decisions if t.decision == HOME]
     if not home:
         return
-    by_id = {v.system_id: v for v in daemon.vehicles()}
+    by_id = {v.system_id: v for v in ctx.vehicles()}
     for t in home:
-        daemon.flight_home.sent_home[t.system_id] = t.why
-        daemon.loss.retire(t.system_id - 1, "sent home at the resume")
+        flight_home.send_home(t.system_id, t.why)
+        loss.retire(t.system_id - 1, "sent home at the resume")
     planes = [by_id[t.system_id] for t in home]
-    for c in daemon.send(homeward_commands(daemon, planes, announce=True)):
+    for c in ctx.send(flight_home.homeward_commands(planes, announce=True)):
         if not c.accepted:
-            daemon.say(f"warning: {c.describe_failure()}")
+            ctx.say(f"warning: {c.describe_failure()}")

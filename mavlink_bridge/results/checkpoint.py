@@ -37,6 +37,7 @@ vehicle count, steps), and then every part against the state this daemon builds 
 before any of it reaches the planner. Every failure is one :class:`CheckpointError` line saying
 what is wrong and what to do.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -80,7 +81,7 @@ _TAGGED = 32
 MAX_STATE_BYTES = 1 << 30
 _HINT = "delete it to start the mission afresh, or give another --checkpoint"
 
-#: The decision loop's variables a checkpoint holds (see MissionDaemon._decision_loop).
+#: The decision loop's variables a checkpoint holds (``mission.decision_loop``).
 LOOP_STATE = (
     "planner",
     "recorder",
@@ -104,7 +105,9 @@ LOOP_STATE = (
     "previous_centres",
 )
 
-#: The daemon's own counters carried across a restart.
+#: The mission's counters carried across a restart: attributes of its
+#: ``mission_result.MissionAccount``, saved from it and restored into it by these names (under
+#: ``daemon`` in the file).
 DAEMON_STATE = ("overrides", "refused_commands", "looks_missed", "late_steps", "events")
 
 
@@ -256,11 +259,13 @@ class CheckpointWriter:
                 f"cannot create the folder of checkpoint {self.path} ({exc.strerror})"
             ) from None
 
-    def save(self, step: int, daemon: Any, loop: dict[str, Any], wall_time_s: float) -> None:
+    def save(self, step: int, counters: Any, loop: dict[str, Any], wall_time_s: float) -> None:
+        """Write the checkpoint of ``step``: the mission's ``counters`` (a ``MissionAccount``,
+        :data:`DAEMON_STATE`) and the loop's variables (``loop``, :data:`LOOP_STATE`)."""
         missing = [name for name in LOOP_STATE if name not in loop]
         if missing:
             raise ValueError(f"checkpoint of step {step} lacks {', '.join(missing)}")
-        state = {name: getattr(daemon, name) for name in DAEMON_STATE}
+        state = {name: getattr(counters, name) for name in DAEMON_STATE}
         loop = {name: loop[name] for name in LOOP_STATE}
         checkpoint = Checkpoint(self.fingerprint, step, loop, state, wall_time_s, time.time())
         encoded = encode_checkpoint(checkpoint)  # now: the state changes at the next step
@@ -341,8 +346,7 @@ def _verified_payload(path: Path, data: bytes, key: bytes | None) -> bytes:
         )
     if version != VERSION:
         raise CheckpointError(
-            f"checkpoint {path} has format version {version}, this daemon reads {VERSION}; "
-            f"{_HINT}"
+            f"checkpoint {path} has format version {version}, this daemon reads {VERSION}; {_HINT}"
         )
     payload = data[_HEADER.size :]
     if len(payload) != length:
@@ -467,25 +471,18 @@ def with_derived(restored: Any, fresh: Any) -> None:
             setattr(dst, name, getattr(src, name))
 
 
-def restore_daemon_state(daemon: Any, checkpoint: Checkpoint) -> dict[str, Any]:
-    """Put the daemon's counters back; returns the loop variables (by LOOP_STATE name)."""
-    for name in DAEMON_STATE:
-        setattr(daemon, name, checkpoint.daemon[name])
-    return checkpoint.loop
-
-
-def resume_loop_state(daemon: Any, checkpoint: Checkpoint, fresh_planner: Any) -> dict[str, Any]:
-    """The decision loop's variables from ``checkpoint``, with the daemon's counters restored.
+def resume_loop_state(account: Any, checkpoint: Checkpoint, fresh_planner: Any) -> dict[str, Any]:
+    """The decision loop's variables from ``checkpoint``, with the mission's counters restored
+    into ``account``.
 
     ``checkpoint``: from :func:`load_for_mission` (checked against the mission);
     ``fresh_planner``: the planner this code builds for the mission, whose :data:`DERIVED`
     parts the restored one takes."""
     with_derived(checkpoint.loop["planner"], fresh_planner)
     break_measured_legs(checkpoint.loop["recorder"])
-    daemon.say(
-        f"resuming from the checkpoint of step {checkpoint.step} ({daemon.options.checkpoint_path})"
-    )
-    return restore_daemon_state(daemon, checkpoint)
+    for name in DAEMON_STATE:
+        setattr(account, name, checkpoint.daemon[name])
+    return checkpoint.loop
 
 
 def break_measured_legs(recorder: Any) -> None:

@@ -254,9 +254,7 @@ def _decode_object(body: Any, arrays: Any, path: str) -> Any:
     if cls is None:
         raise StateError(path, f"is a {str(name)[:40]!r}, which is not part of a checkpoint")
     obj = cls.__new__(cls)  # object.__new__: none of the class's own code runs
-    obj.__dict__.update(
-        {str(k): decode(v, arrays, f"{path}.{k}") for k, v in attrs.items()}
-    )
+    obj.__dict__.update({str(k): decode(v, arrays, f"{path}.{k}") for k, v in attrs.items()})
     return obj
 
 

@@ -30,13 +30,40 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from mavlink_bridge.mission.lockstep_clock import SwarmPauses
 from mavlink_bridge.results.mission_result import LinkEvent, MissionAccount
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_wire.protocol import PLANE_MODE_GUIDED, mode_name
 
 #: the reasons a vehicle went away (rather than being in the wrong state)
 GONE = ("link ", "silent ")
+
+#: lockstep: no vehicle heard for this long (wall s) is a pause of the whole simulator, not loss
+PAUSE_AFTER_S = 0.5
+
+
+@dataclass
+class SwarmPauses:
+    """Wall-clock intervals in which no vehicle at all was heard (lockstep: the simulator, or the
+    machine, paused; simulated time stood still). A vehicle's silence does not count them."""
+
+    intervals: list[list[float]] = field(default_factory=list)  # [start, end], the last open
+    open: bool = False
+
+    def note(self, now: float, newest_heard: float) -> None:
+        """Called as the link is watched: ``newest_heard`` is when any vehicle was last heard."""
+        if self.open and newest_heard > self.intervals[-1][0]:
+            self.intervals[-1][1] = newest_heard  # heard again: the pause is over
+            self.open = False
+        if not self.open and now - newest_heard > PAUSE_AFTER_S:
+            self.intervals.append([newest_heard, now])
+            self.open = True
+        elif self.open:
+            self.intervals[-1][1] = now
+        self.intervals = [iv for iv in self.intervals if iv[1] > now - 300.0]
+
+    def within(self, start: float, end: float) -> float:
+        """Wall seconds of pauses between ``start`` and ``end``."""
+        return sum(max(0.0, min(b, end) - max(a, start)) for a, b in self.intervals)
 
 
 def paced_lost_after_s(speedup: float) -> float:

@@ -2,24 +2,29 @@
 the threats (RTL's straight line where it is clear, else guided around them: around_threats.py),
 kept d_min from the other planes' ways (a plane circles a safe hold point until its way is
 clear: kept_apart.py), and the watch of the flight home, so that it is in the
-continuous safety account (return_home.HomeWatch). The daemon's exit path (``finish``) calls
+continuous safety account (return_home.HomeWatch). :class:`FlightHomePhase` does it over a
+narrow mission context (:class:`HomeContext`); the daemon's exit path (``finish``) calls its
 ``return_to_launch`` and, after a completed mission, ``watch_rtl``; what happened is kept in
-the daemon's :class:`FlightHome`.
+its :class:`FlightHome`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import numpy as np
 
+from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
+from mavlink_bridge.vehicles.flight_prediction import PlaneModel
 from mavlink_bridge.vehicles.guided_commands import (
     Command,
     change_speed_command,
     reposition_command,
     set_mode_command,
 )
+from mavlink_bridge.vehicles.swarm_link import SwarmLink
 from mavlink_bridge.vehicles.vehicle_loss import link_down
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_bridge.way_home.around_threats import HomeRoutes
@@ -28,9 +33,8 @@ from mavlink_bridge.way_home.kept_apart import ReturnPlan, ReturnSeparation
 from mavlink_bridge.way_home.rtl_at_exit import HomeWatch, rtl_line, rtl_recipients
 from mavlink_wire.protocol import PLANE_MODE_RTL, mavlink
 from planner.geodesy import local_km_to_geodetic
-
-if TYPE_CHECKING:
-    from mavlink_bridge.mission.daemon import MissionDaemon
+from planner.grid import Grid
+from planner.scenario import Scenario
 
 
 @dataclass
@@ -58,347 +62,428 @@ class FlightHome:
     sent_home: dict[int, str] = field(default_factory=dict)
 
 
-def home_routes(daemon: MissionDaemon) -> HomeRoutes:
-    """The way home around threats (RTL flies straight) for the plane model and threat
-    margin in force (both set from the airframe at launch); the turn onto it with the full
-    margin: a plane may fly faster (leg timing) and turn wider than the model (0.25 km let
-    an RTL 0.19 km into a threat)."""
-    flight = daemon.flight_home
-    env, routes = daemon.envelope, flight.routes
-    if (
-        routes is None
-        or routes.plane is not daemon.plane
-        or routes.margin_km != (env.threat_margin_km)
-    ):
-        routes = HomeRoutes(
-            daemon.grid, env.threat_xy_km, env.threat_radius_km, daemon.plane,
-            margin_km=env.threat_margin_km, turn_margin_km=env.threat_margin_km,
-        )  # fmt: skip
-        flight.routes = routes
-    return routes
+class HomeOptions(Protocol):
+    """The options the flight home reads (``DaemonOptions`` has them)."""
+
+    lost_after_s: float
+    leg_timing: bool
+    rtl_watch_s: float | None
 
 
-def return_separation(daemon: MissionDaemon) -> ReturnSeparation:
-    """The flight home kept d_min apart, judged with the way home's threat margin and the
-    plane model in force; a plane may stray its loiter radius from its line on the way."""
-    routes = home_routes(daemon)
-    return ReturnSeparation(
-        routes,
-        daemon.scenario.config.min_separation_km,
-        slack_km=float(daemon.plane.loiter_radius_km()),
-        speeds_mps=daemon.flight_home.circles.speeds_mps,
-    )
+class HomeContext(Protocol):
+    """What the flight home works with (``mission.context.MissionContext`` is one): the
+    scenario and grid, the airframe in force and the cell-level envelope (its threat margin),
+    the link and, in lockstep, the clock, and the ways to talk to the vehicles."""
+
+    scenario: Scenario
+    grid: Grid
+    plane: PlaneModel
+    envelope: SafetyEnvelope
+    link: SwarmLink | None
+    clock: object | None  # lockstep: the clock that grants the vehicles' time
+    options: HomeOptions
+
+    @property
+    def time_scale(self) -> float: ...
+
+    def say(self, text: str) -> None: ...
+
+    def send(
+        self, commands: list[Command], attempts: int | None = None, deadline: float | None = None
+    ) -> list[Command]: ...
+
+    def wait_sim(self, done: Callable[[], bool], timeout_s: float) -> bool: ...
+
+    def require_link(self) -> SwarmLink: ...
+
+    def vehicles(self) -> list[VehicleState]: ...
+
+    def local_km(self, lat: float, lon: float) -> np.ndarray: ...
 
 
-def home_circles(daemon: MissionDaemon) -> HomeCircles:
-    """How fast each plane circles its home (``home_circle_speeds``, over every vehicle heard
-    with a home that is airborne or lost: a lost plane may be circling its home); says who
-    slows down and which homes are too close even then (kept in ``FlightHome.circles``)."""
-    heard = daemon.link.vehicles.values() if daemon.link is not None else []
-    homes = {
-        v.system_id: daemon.local_km(v.home[0], v.home[1])
-        for v in heard
-        if v.home is not None and (v.airborne or v.lost)
-    }
-    circles = home_circle_speeds(homes, daemon.plane, daemon.scenario.config.min_separation_km)
-    daemon.flight_home.circles = circles
-    by_speed: dict[float, list[int]] = {}
-    for sid, speed in sorted(circles.speeds_mps.items()):
-        by_speed.setdefault(round(speed), []).append(sid)
-    for speed, ids in by_speed.items():
-        daemon.say(
-            f"vehicle{'s' if len(ids) > 1 else ''} {', '.join(map(str, ids))} circle home at "
-            f"{speed} m/s: their homes are close to another's, and a circle at cruise would "
-            "come within d_min"
+class FlightHomePhase:
+    """The flight home over one mission's context, with its own state (:class:`FlightHome`):
+    RTL at the way out (``return_to_launch``) and its watch (``watch_rtl``), and during the
+    mission the planes whose autopilot or a resumed daemon sent home (``guide_stray_returns``,
+    ``guide_sent_home``)."""
+
+    def __init__(self, ctx: HomeContext, state: FlightHome | None = None) -> None:
+        self.ctx = ctx
+        self.state = FlightHome() if state is None else state
+
+    def send_home(self, system_id: int, why: str) -> None:
+        """A plane a resumed daemon sends home (``resume_takeback.py``): from now on it flies
+        the safe way home (``guide_sent_home``), never the mission."""
+        self.state.sent_home[system_id] = why
+
+    def sent_home(self) -> set[int]:
+        """The planes a resumed daemon sent home, by system id."""
+        return set(self.state.sent_home)
+
+    def result(self, sent_to: list[int], skipped: dict[int, str]) -> dict[str, Any]:
+        """The flight home in the mission's result: RTL sent to (``sent_to`` by
+        ``return_to_launch``, and every plane guided or held that got it during the watch),
+        guided around threats, held for separation, the home circles' speeds, and why RTL was
+        not sent (``skipped``)."""
+        flight = self.state
+        # a vehicle guided around threats got its RTL during the watch, once the way was clear
+        later = (flight.detoured | flight.held) - set(flight.homing) - set(flight.holding)
+        return {
+            "rtl_sent_to": sorted(set(sent_to) | later),
+            "guided_home_around_threats": sorted(flight.detoured),
+            "held_for_separation_home": sorted(flight.held),
+            "home_circle_speeds_mps": {
+                str(k): round(v, 1) for k, v in sorted(flight.circles.speeds_mps.items())
+            },
+            "rtl_not_sent": {str(k): why for k, why in sorted(skipped.items())},
+        }
+
+    def home_routes(self) -> HomeRoutes:
+        """The way home around threats (RTL flies straight) for the plane model and threat
+        margin in force (both set from the airframe at launch); the turn onto it with the full
+        margin: a plane may fly faster (leg timing) and turn wider than the model (0.25 km let
+        an RTL 0.19 km into a threat)."""
+        flight = self.state
+        env, routes = self.ctx.envelope, flight.routes
+        if (
+            routes is None
+            or routes.plane is not self.ctx.plane
+            or routes.margin_km != (env.threat_margin_km)
+        ):
+            routes = HomeRoutes(
+                self.ctx.grid, env.threat_xy_km, env.threat_radius_km, self.ctx.plane,
+                margin_km=env.threat_margin_km, turn_margin_km=env.threat_margin_km,
+            )  # fmt: skip
+            flight.routes = routes
+        return routes
+
+    def return_separation(self) -> ReturnSeparation:
+        """The flight home kept d_min apart, judged with the way home's threat margin and the
+        plane model in force; a plane may stray its loiter radius from its line on the way."""
+        routes = self.home_routes()
+        return ReturnSeparation(
+            routes,
+            self.ctx.scenario.config.min_separation_km,
+            slack_km=float(self.ctx.plane.loiter_radius_km()),
+            speeds_mps=self.state.circles.speeds_mps,
         )
-    for a, b, km in circles.too_close:
-        daemon.say(
-            f"warning: the homes of vehicles {a} and {b} are {km:.2f} km apart: circling them "
-            f"keeps d_min only for homes {daemon.scenario.config.min_separation_km:g} km and two "
-            "loiter circles apart at AIRSPEED_MIN; start them farther apart"
+
+    def home_circles(self) -> HomeCircles:
+        """How fast each plane circles its home (``home_circle_speeds``, over every vehicle heard
+        with a home that is airborne or lost: a lost plane may be circling its home); says who
+        slows down and which homes are too close even then (kept in ``FlightHome.circles``)."""
+        heard = self.ctx.link.vehicles.values() if self.ctx.link is not None else []
+        homes = {
+            v.system_id: self.ctx.local_km(v.home[0], v.home[1])
+            for v in heard
+            if v.home is not None and (v.airborne or v.lost)
+        }
+        circles = home_circle_speeds(
+            homes, self.ctx.plane, self.ctx.scenario.config.min_separation_km
         )
-    return circles
+        self.state.circles = circles
+        by_speed: dict[float, list[int]] = {}
+        for sid, speed in sorted(circles.speeds_mps.items()):
+            by_speed.setdefault(round(speed), []).append(sid)
+        for speed, ids in by_speed.items():
+            self.ctx.say(
+                f"vehicle{'s' if len(ids) > 1 else ''} {', '.join(map(str, ids))} circle home at "
+                f"{speed} m/s: their homes are close to another's, and a circle at cruise would "
+                "come within d_min"
+            )
+        for a, b, km in circles.too_close:
+            d_min = self.ctx.scenario.config.min_separation_km
+            self.ctx.say(
+                f"warning: the homes of vehicles {a} and {b} are {km:.2f} km apart: circling them "
+                f"keeps d_min only for homes {d_min:g} km and two "
+                "loiter circles apart at AIRSPEED_MIN; start them farther apart"
+            )
+        return circles
 
+    def slow_home_circles(self, sent: list[Command]) -> None:
+        """After RTL was accepted: the home circle's airspeed (DO_CHANGE_SPEED) to the planes
+        that fly home slower than cruise. Sent after the mode change, which resets a speed
+        commanded before it (ArduPlane)."""
+        speeds = self.state.circles.speeds_mps
+        slow = [
+            change_speed_command(c.vehicle, speeds[c.vehicle.system_id])
+            for c in sent
+            if c.command == mavlink.MAV_CMD_DO_SET_MODE
+            and c.accepted
+            and c.vehicle.system_id in speeds
+        ]
+        refused = [
+            c.vehicle.system_id for c in (self.ctx.send(slow) if slow else []) if not c.accepted
+        ]
+        if refused:
+            ids = ", ".join(map(str, refused))
+            self.ctx.say(
+                f"warning: vehicle(s) {ids} did not take the home circle's "
+                "airspeed (DO_CHANGE_SPEED): they circle home at cruise, within d_min of another's "
+                "home circle"
+            )
 
-def slow_home_circles(daemon: MissionDaemon, sent: list[Command]) -> None:
-    """After RTL was accepted: the home circle's airspeed (DO_CHANGE_SPEED) to the planes
-    that fly home slower than cruise. Sent after the mode change, which resets a speed
-    commanded before it (ArduPlane)."""
-    speeds = daemon.flight_home.circles.speeds_mps
-    slow = [
-        change_speed_command(c.vehicle, speeds[c.vehicle.system_id])
-        for c in sent
-        if c.command == mavlink.MAV_CMD_DO_SET_MODE and c.accepted and c.vehicle.system_id in speeds
-    ]
-    refused = [c.vehicle.system_id for c in (daemon.send(slow) if slow else []) if not c.accepted]
-    if refused:
-        daemon.say(
-            f"warning: vehicle(s) {', '.join(map(str, refused))} did not take the home circle's "
-            "airspeed (DO_CHANGE_SPEED): they circle home at cruise, within d_min of another's "
-            "home circle"
-        )
-
-
-def watch_rtl(daemon: MissionDaemon) -> None:
-    """Listen on (in lockstep: grant time) until every vehicle still heard circles its home
-    (``return_home.HomeWatch``), for the continuous account of the flight home
-    (``rtl_watch_s``)."""
-    flight = daemon.flight_home
-    vehicles = [v for v in daemon.vehicles() if not v.lost and v.home is not None]
-    if not vehicles:
-        return
-    near_km = float(daemon.plane.loiter_radius_km()) + 0.5
-    slowest = min(flight.circles.speeds_mps.values(), default=daemon.plane.speed_mps)
-    watch = HomeWatch(vehicles, near_km, slowest)
-    limit_s = watch.limit_s(daemon.options.rtl_watch_s)
-    if limit_s <= 0:
-        return
-    # planes flying a safe way home (around_threats.py) or holding for another's
-    # (kept_apart.py) are re-judged once per decision period; the time a plane holds
-    # is added to the watch (at most once more its length)
-    period_s = daemon.scenario.config.step_s
-    waited_s = extra_s = 0.0
-    while waited_s < limit_s + extra_s:
-        left_s = limit_s + extra_s - waited_s
-        guiding = bool(flight.homing or flight.holding)
-        chunk_s = min(period_s, left_s) if guiding else left_s
-        if daemon.clock is not None:
-            done = daemon.wait_sim(watch.home, chunk_s)
-        else:
-            done = daemon.require_link().pump_until(watch.home, chunk_s / daemon.time_scale)
-        waited_s += chunk_s
-        if flight.holding:
-            extra_s = min(limit_s, extra_s + chunk_s)
-        if done and not (flight.homing or flight.holding):
+    def watch_rtl(self) -> None:
+        """Listen on (in lockstep: grant time) until every vehicle still heard circles its home
+        (``return_home.HomeWatch``), for the continuous account of the flight home
+        (``rtl_watch_s``)."""
+        flight = self.state
+        vehicles = [v for v in self.ctx.vehicles() if not v.lost and v.home is not None]
+        if not vehicles:
             return
-        guided = flight.homing.keys() | flight.holding.keys()
-        flying = [v for v in vehicles if not v.lost and v.system_id in guided]
-        slow_home_circles(daemon, daemon.send(homeward_commands(daemon, flying, announce=False)))
-    still = [v for v in vehicles if not v.lost and v.system_id in flight.holding]
-    if still:
-        daemon.say(
-            "warning: the watch of the flight home ends with vehicle(s) "
-            f"{', '.join(str(v.system_id) for v in still)} still holding: RTL sent"
+        near_km = float(self.ctx.plane.loiter_radius_km()) + 0.5
+        slowest = min(flight.circles.speeds_mps.values(), default=self.ctx.plane.speed_mps)
+        watch = HomeWatch(vehicles, near_km, slowest)
+        limit_s = watch.limit_s(self.ctx.options.rtl_watch_s)
+        if limit_s <= 0:
+            return
+        # planes flying a safe way home (around_threats.py) or holding for another's
+        # (kept_apart.py) are re-judged once per decision period; the time a plane holds
+        # is added to the watch (at most once more its length)
+        period_s = self.ctx.scenario.config.step_s
+        waited_s = extra_s = 0.0
+        while waited_s < limit_s + extra_s:
+            left_s = limit_s + extra_s - waited_s
+            guiding = bool(flight.homing or flight.holding)
+            chunk_s = min(period_s, left_s) if guiding else left_s
+            if self.ctx.clock is not None:
+                done = self.ctx.wait_sim(watch.home, chunk_s)
+            else:
+                done = self.ctx.require_link().pump_until(watch.home, chunk_s / self.ctx.time_scale)
+            waited_s += chunk_s
+            if flight.holding:
+                extra_s = min(limit_s, extra_s + chunk_s)
+            if done and not (flight.homing or flight.holding):
+                return
+            guided = flight.homing.keys() | flight.holding.keys()
+            flying = [v for v in vehicles if not v.lost and v.system_id in guided]
+            self.slow_home_circles(self.ctx.send(self.homeward_commands(flying, announce=False)))
+        still = [v for v in vehicles if not v.lost and v.system_id in flight.holding]
+        if still:
+            self.ctx.say(
+                "warning: the watch of the flight home ends with vehicle(s) "
+                f"{', '.join(str(v.system_id) for v in still)} still holding: RTL sent"
+            )
+            for v in still:
+                flight.holding.pop(v.system_id)
+            self.slow_home_circles(
+                self.ctx.send([set_mode_command(v, PLANE_MODE_RTL) for v in still])
+            )
+
+    def guide_stray_returns(self) -> list[Command]:
+        """During the mission: a plane its autopilot switched to RTL (a fence breach: ArduPlane's
+        FENCE_ACTION 1, the simulator's default; a failsafe; a pilot) flies the straight line home,
+        through the zone the fence guards when home lies beyond it, and once its heartbeats show
+        it out of GUIDED it is lost to the planner (``vehicle_loss.py``) and gets no more targets
+        (issue 12: 0.27 km deep at 30 % loss, 20x). Every plane seen in RTL whose way home is not
+        clear (``HomeRoutes.rtl_clear``) is guided (DO_REPOSITION, which switches it to GUIDED) to
+        the next waypoint of the safe way home, one that gets no deeper into a zone it is in; in
+        GUIDED it is (or rejoins) the planner's again at the next step, and the flight envelope
+        guides it on. A plane whose line home is clear flies its RTL home. Said once per plane;
+        returns the commands to send (one per such plane at each decision step)."""
+        routes = self.home_routes()
+        commands: list[Command] = []
+        for v in self.ctx.vehicles():
+            if not (v.custom_mode == PLANE_MODE_RTL and v.armed and v.airborne):
+                continue
+            if v.system_id in self.state.sent_home:
+                continue  # its flight home is guide_sent_home's
+            if v.home is None or not v.has_position or v.link is None or link_down(v) is not None:
+                continue
+            waypoint = self.way_home(routes, v)[3]
+            if waypoint is None:  # RTL's line is clear (or no way is known)
+                continue
+            if v.system_id not in self.state.strays:
+                self.state.strays.add(v.system_id)
+                self.ctx.say(
+                    f"vehicle {v.system_id} is in RTL during the mission (a fence breach or a "
+                    f"failsafe) and its line home crosses a threat: guided out via "
+                    f"({waypoint[0]:.1f}, {waypoint[1]:.1f}) km"
+                )
+            commands.append(self.reposition_to(v, waypoint))
+        return commands
+
+    def guide_sent_home(self) -> list[Command]:
+        """During the mission: the planes a resumed daemon sent home (``FlightHome.sent_home``) on
+        their safe way home, re-judged at every decision step (``homeward_commands``: RTL once the
+        straight line is clear, else the next waypoint around the threats, sent when it changes).
+        Returns the commands to send."""
+        sent = self.state.sent_home
+        planes = [
+            v
+            for v in self.ctx.vehicles()
+            if v.system_id in sent and v.airborne and v.home is not None and link_down(v) is None
+        ]
+        return self.homeward_commands(planes, announce=False) if planes else []
+
+    def return_to_launch(
+        self,
+        end_leg_timing: Callable[[list[VehicleState]], object] | None = None,
+        separate: bool = False,
+    ) -> tuple[list[int], dict[int, str]]:
+        """RTL (at cruise speed) to every airborne vehicle still reachable whose way home is clear
+        of threats; one whose is not is guided around them (``homeward_commands``, re-judged by
+        ``watch_rtl``). Returns the system ids RTL was sent to and, for every vehicle not
+        reachable or not flying, why not; says both, and warns of every vehicle that did not
+        accept. ``end_leg_timing``: the decision loop's, once it ran; before it, cruise is asked
+        of every plane flying when leg timing is on. ``separate``: keep the ways home d_min
+        apart (only when the daemon stays to watch the flight home, ``watch_rtl``)."""
+        flight = self.state
+        flight.separate = separate
+        if self.ctx.link is None:
+            return [], {}
+        flying, skipped = rtl_recipients(
+            self.ctx.link.vehicles.values(), self.ctx.options.lost_after_s
         )
-        for v in still:
-            flight.holding.pop(v.system_id)
-        slow_home_circles(daemon, daemon.send([set_mode_command(v, PLANE_MODE_RTL) for v in still]))
+        if end_leg_timing is not None:
+            end_leg_timing(flying)  # home at cruise speed
+        elif self.ctx.options.leg_timing and flying:
+            cruise = self.ctx.plane.speed_mps
+            self.ctx.send([change_speed_command(v, cruise) for v in flying])
+        # RTL where the way home is clear, else guided around the threats (around_threats.py)
+        self.home_circles()
+        results = self.ctx.send(self.homeward_commands(flying, announce=True))
+        self.slow_home_circles(results)
+        for c in results:
+            if not c.accepted:
+                self.ctx.say(f"warning: {c.describe_failure()}")
+        rtl = [c for c in results if c.command == mavlink.MAV_CMD_DO_SET_MODE]
+        sent = [c.vehicle.system_id for c in rtl]
+        accepted = [c.vehicle.system_id for c in rtl if c.accepted]
+        line = rtl_line(sent, accepted, skipped)
+        if flight.homing:
+            around = ", ".join(str(i) for i in sorted(flight.homing))
+            line += f"; guided home around the threats: {around}"
+        if flight.holding:
+            holding = ", ".join(str(i) for i in sorted(flight.holding))
+            line += f"; holding for the others' way home: {holding}"
+        self.ctx.say(line)
+        return sent, skipped
 
+    def homeward_commands(self, vehicles: list[VehicleState], announce: bool) -> list[Command]:
+        """Per vehicle: RTL when its way home is clear (``HomeRoutes.rtl_clear``), else a
+        DO_REPOSITION to the next safe waypoint (sent again only when the waypoint changes);
+        when the daemon stays to watch the flight home, a vehicle whose way would come within
+        d_min of another's holds at a safe point until it is clear (``hold_for_separation``)."""
+        flight = self.state
+        routes = self.home_routes()
+        commands: list[Command] = []
+        ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]] = {}
+        for v in vehicles:
+            if v.home is not None and v.has_position:
+                ways[v.system_id] = self.way_home(routes, v)
+        plan = self.hold_for_separation(vehicles, ways) if flight.separate else ReturnPlan()
+        holds = plan.holds
+        deciding = {v.system_id for v in vehicles}
+        for sid, hold in holds.items():  # a plane in RTL held so that another leaves first
+            if sid not in deciding and self.ctx.link is not None and sid in self.ctx.link.vehicles:
+                flight.holding[sid] = hold
+                commands.append(self.reposition_to(self.ctx.link.vehicles[sid], hold))
+        for v in vehicles:
+            waypoint = ways[v.system_id][3] if v.system_id in ways else None
+            was_holding = flight.holding.pop(v.system_id, None)
+            hold = holds.get(v.system_id)
+            if hold is not None:
+                flight.holding[v.system_id] = hold
+                flight.homing.pop(v.system_id, None)
+                if was_holding is None or not np.allclose(was_holding, hold):
+                    commands.append(self.reposition_to(v, hold))
+                continue
+            before = flight.homing.get(v.system_id)
+            if waypoint is None:
+                flight.homing.pop(v.system_id, None)
+                if was_holding is not None and not announce and v.system_id not in plan.unresolved:
+                    self.ctx.say(f"vehicle {v.system_id}'s way home is clear: RTL sent")
+                if before is not None or was_holding is not None or announce:
+                    commands.append(set_mode_command(v, PLANE_MODE_RTL))
+                continue
+            flight.homing[v.system_id] = waypoint
+            flight.detoured.add(v.system_id)
+            if before is not None and np.allclose(before, waypoint):
+                continue
+            if before is None:
+                self.ctx.say(
+                    f"vehicle {v.system_id} flies home around the threats (RTL's straight line "
+                    f"would cross one): guided via ({waypoint[0]:.1f}, {waypoint[1]:.1f}) km"
+                )
+            commands.append(self.reposition_to(v, waypoint))
+        return commands
 
-def guide_stray_returns(daemon: MissionDaemon) -> list[Command]:
-    """During the mission: a plane its autopilot switched to RTL (a fence breach: ArduPlane's
-    FENCE_ACTION 1, the simulator's default; a failsafe; a pilot) flies the straight line home,
-    through the zone the fence guards when home lies beyond it, and once its heartbeats show
-    it out of GUIDED it is lost to the planner (``vehicle_loss.py``) and gets no more targets
-    (issue 12: 0.27 km deep at 30 % loss, 20x). Every plane seen in RTL whose way home is not
-    clear (``HomeRoutes.rtl_clear``) is guided (DO_REPOSITION, which switches it to GUIDED) to
-    the next waypoint of the safe way home, one that gets no deeper into a zone it is in; in
-    GUIDED it is (or rejoins) the planner's again at the next step, and the flight envelope
-    guides it on. A plane whose line home is clear flies its RTL home. Said once per plane;
-    returns the commands to send (one per such plane at each decision step)."""
-    routes = home_routes(daemon)
-    commands: list[Command] = []
-    for v in daemon.vehicles():
-        if not (v.custom_mode == PLANE_MODE_RTL and v.armed and v.airborne):
-            continue
-        if v.system_id in daemon.flight_home.sent_home:
-            continue  # its flight home is guide_sent_home's
-        if v.home is None or not v.has_position or v.link is None or link_down(v) is not None:
-            continue
-        waypoint = way_home(daemon, routes, v)[3]
-        if waypoint is None:  # RTL's line is clear (or no way is known)
-            continue
-        if v.system_id not in daemon.flight_home.strays:
-            daemon.flight_home.strays.add(v.system_id)
-            daemon.say(
-                f"vehicle {v.system_id} is in RTL during the mission (a fence breach or a "
-                f"failsafe) and its line home crosses a threat: guided out via "
-                f"({waypoint[0]:.1f}, {waypoint[1]:.1f}) km"
-            )
-        commands.append(reposition_to(daemon, v, waypoint))
-    return commands
+    def place_and_home(self, v: VehicleState) -> tuple[np.ndarray, np.ndarray]:
+        """Where ``v`` is and its home, in the mission frame (km)."""
+        assert v.home is not None
+        return self.ctx.local_km(v.lat_deg, v.lon_deg), self.ctx.local_km(v.home[0], v.home[1])
 
+    def way_home(
+        self, routes: HomeRoutes, v: VehicleState
+    ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
+        """Where ``v`` is, its home, its course (rad from east), and the next waypoint of its safe
+        way home: None when RTL's straight line (and the turn onto it) is clear, or no way is
+        known (``HomeRoutes.waypoint``, which judges ``rtl_clear`` first)."""
+        xy, home = self.place_and_home(v)
+        return xy, home, v.course_rad, routes.waypoint(xy, home, v.course_rad)
 
-def guide_sent_home(daemon: MissionDaemon) -> list[Command]:
-    """During the mission: the planes a resumed daemon sent home (``FlightHome.sent_home``) on
-    their safe way home, re-judged at every decision step (``homeward_commands``: RTL once the
-    straight line is clear, else the next waypoint around the threats, sent when it changes).
-    Returns the commands to send."""
-    sent = daemon.flight_home.sent_home
-    planes = [
-        v
-        for v in daemon.vehicles()
-        if v.system_id in sent and v.airborne and v.home is not None and link_down(v) is None
-    ]
-    return homeward_commands(daemon, planes, announce=False) if planes else []
+    def reposition_to(self, v: VehicleState, xy_km: np.ndarray) -> Command:
+        """DO_REPOSITION of ``v`` to ``xy_km`` (mission frame) at the scenario's altitude."""
+        lat, lon = local_km_to_geodetic(xy_km[:1], xy_km[1:], self.ctx.scenario.origin)
+        return reposition_command(v, float(lat[0]), float(lon[0]), self.ctx.scenario.altitude_m)
 
-
-def return_to_launch(daemon: MissionDaemon) -> tuple[list[int], dict[int, str]]:
-    """RTL (at cruise speed) to every airborne vehicle still reachable whose way home is clear
-    of threats; one whose is not is guided around them (``homeward_commands``, re-judged by
-    ``watch_rtl``). Returns the system ids RTL was sent to and, for every vehicle not
-    reachable or not flying, why not; says both, and warns of every vehicle that did not
-    accept."""
-    flight = daemon.flight_home
-    if daemon.link is None:
-        return [], {}
-    flying, skipped = rtl_recipients(daemon.link.vehicles.values(), daemon.options.lost_after_s)
-    if daemon.stages is not None:
-        daemon.stages.end_leg_timing(flying)  # home at cruise speed
-    elif daemon.options.leg_timing and flying:
-        cruise = daemon.plane.speed_mps
-        daemon.send([change_speed_command(v, cruise) for v in flying])
-    # RTL where the way home is clear, else guided around the threats (around_threats.py)
-    home_circles(daemon)
-    results = daemon.send(homeward_commands(daemon, flying, announce=True))
-    slow_home_circles(daemon, results)
-    for c in results:
-        if not c.accepted:
-            daemon.say(f"warning: {c.describe_failure()}")
-    rtl = [c for c in results if c.command == mavlink.MAV_CMD_DO_SET_MODE]
-    sent = [c.vehicle.system_id for c in rtl]
-    accepted = [c.vehicle.system_id for c in rtl if c.accepted]
-    line = rtl_line(sent, accepted, skipped)
-    if flight.homing:
-        around = ", ".join(str(i) for i in sorted(flight.homing))
-        line += f"; guided home around the threats: {around}"
-    if flight.holding:
-        holding = ", ".join(str(i) for i in sorted(flight.holding))
-        line += f"; holding for the others' way home: {holding}"
-    daemon.say(line)
-    return sent, skipped
-
-
-def homeward_commands(
-    daemon: MissionDaemon, vehicles: list[VehicleState], announce: bool
-) -> list[Command]:
-    """Per vehicle: RTL when its way home is clear (``HomeRoutes.rtl_clear``), else a
-    DO_REPOSITION to the next safe waypoint (sent again only when the waypoint changes);
-    when the daemon stays to watch the flight home, a vehicle whose way would come within
-    d_min of another's holds at a safe point until it is clear (``hold_for_separation``)."""
-    flight = daemon.flight_home
-    routes = home_routes(daemon)
-    commands: list[Command] = []
-    ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]] = {}
-    for v in vehicles:
-        if v.home is not None and v.has_position:
-            ways[v.system_id] = way_home(daemon, routes, v)
-    plan = hold_for_separation(daemon, vehicles, ways) if flight.separate else ReturnPlan()
-    holds = plan.holds
-    deciding = {v.system_id for v in vehicles}
-    for sid, hold in holds.items():  # a plane in RTL held so that another leaves first
-        if sid not in deciding and daemon.link is not None and sid in daemon.link.vehicles:
-            flight.holding[sid] = hold
-            commands.append(reposition_to(daemon, daemon.link.vehicles[sid], hold))
-    for v in vehicles:
-        waypoint = ways[v.system_id][3] if v.system_id in ways else None
-        was_holding = flight.holding.pop(v.system_id, None)
-        hold = holds.get(v.system_id)
-        if hold is not None:
-            flight.holding[v.system_id] = hold
-            flight.homing.pop(v.system_id, None)
-            if was_holding is None or not np.allclose(was_holding, hold):
-                commands.append(reposition_to(daemon, v, hold))
-            continue
-        before = flight.homing.get(v.system_id)
-        if waypoint is None:
-            flight.homing.pop(v.system_id, None)
-            if was_holding is not None and not announce and v.system_id not in plan.unresolved:
-                daemon.say(f"vehicle {v.system_id}'s way home is clear: RTL sent")
-            if before is not None or was_holding is not None or announce:
-                commands.append(set_mode_command(v, PLANE_MODE_RTL))
-            continue
-        flight.homing[v.system_id] = waypoint
-        flight.detoured.add(v.system_id)
-        if before is not None and np.allclose(before, waypoint):
-            continue
-        if before is None:
-            daemon.say(
-                f"vehicle {v.system_id} flies home around the threats (RTL's straight line "
-                f"would cross one): guided via ({waypoint[0]:.1f}, {waypoint[1]:.1f}) km"
-            )
-        commands.append(reposition_to(daemon, v, waypoint))
-    return commands
-
-
-def place_and_home(daemon: MissionDaemon, v: VehicleState) -> tuple[np.ndarray, np.ndarray]:
-    """Where ``v`` is and its home, in the mission frame (km)."""
-    assert v.home is not None
-    return daemon.local_km(v.lat_deg, v.lon_deg), daemon.local_km(v.home[0], v.home[1])
-
-
-def way_home(
-    daemon: MissionDaemon, routes: HomeRoutes, v: VehicleState
-) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
-    """Where ``v`` is, its home, its course (rad from east), and the next waypoint of its safe
-    way home: None when RTL's straight line (and the turn onto it) is clear, or no way is
-    known (``HomeRoutes.waypoint``, which judges ``rtl_clear`` first)."""
-    xy, home = place_and_home(daemon, v)
-    return xy, home, v.course_rad, routes.waypoint(xy, home, v.course_rad)
-
-
-def reposition_to(daemon: MissionDaemon, v: VehicleState, xy_km: np.ndarray) -> Command:
-    """DO_REPOSITION of ``v`` to ``xy_km`` (mission frame) at the scenario's altitude."""
-    lat, lon = local_km_to_geodetic(xy_km[:1], xy_km[1:], daemon.scenario.origin)
-    return reposition_command(v, float(lat[0]), float(lon[0]), daemon.scenario.altitude_m)
-
-
-def hold_for_separation(
-    daemon: MissionDaemon,
-    vehicles: list[VehicleState],
-    ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]],
-) -> ReturnPlan:
-    """Which vehicles must hold for another's way home, detour around it, or leave one after
-    another, and where (``ReturnSeparation.plan``, returned): every other airborne vehicle
-    heard flies RTL home, and may be held again only so that another leaves first; a vehicle
-    already holding keeps its point while it is still good. Says who holds or detours, and
-    who conflicts with no way found."""
-    flight = daemon.flight_home
-    separation = return_separation(daemon)
-    deciding = {v.system_id for v in vehicles}
-    # flights RTL straight home, as the plane model flies them: every other airborne vehicle
-    # heard (nobody holds it any more) and the deciding ones whose line home is clear
-    rtl: list[tuple[int, np.ndarray, np.ndarray, float, float]] = []
-    for o in daemon.vehicles():
-        if o.system_id in deciding or o.lost or not o.airborne or o.home is None:
-            continue
-        if o.has_position:
-            rtl.append((o.system_id, *place_and_home(daemon, o), o.course_rad, o.speed_mps))
-    set_count = len(rtl)
-    by_id = {v.system_id: v for v in vehicles}
-    for sid, (xy, home, course, waypoint) in ways.items():
-        if waypoint is None:
-            rtl.append((sid, xy, home, course, by_id[sid].speed_mps))
-    flights = {leg.system_id: leg for leg in separation.flights_home(rtl)}
-    set_legs = [flights[w[0]] for w in rtl[:set_count]]
-    waiting = []
-    for sid, (xy, _home, course, waypoint) in ways.items():
-        leg = flights[sid] if waypoint is None else separation.leg(sid, xy, waypoint, False)
-        waiting.append((leg, course))
-    # planes in RTL may be guided again to let another leave first (``stagger``)
-    movable = {w[0]: w[3] for w in rtl[:set_count]}
-    plan = separation.plan(
-        set_legs, waiting, keep=flight.holding, detouring=flight.detouring, movable=movable
-    )
-    flight.detouring = set(plan.detours)
-    for sid, point in plan.holds.items():
-        if sid in plan.staggered:
-            daemon.say(
-                f"vehicle {sid} holds at ({point[0]:.1f}, {point[1]:.1f}) km while vehicle "
-                f"{plan.staggered[sid]} leaves first: their ways home cross, and they are too "
-                "close for either to wait or go around the other alone"
-            )
-        elif sid not in flight.holding:
-            how = "flies home via" if sid in plan.detours else "holds at"
-            daemon.say(
-                f"vehicle {sid} {how} ({point[0]:.1f}, {point[1]:.1f}) km: its way home "
-                f"would come within d_min of another plane's"
-            )
-        flight.held.add(sid)
-    for sid in set(plan.unresolved) - flight.unresolved:
-        flight.unresolved.add(sid)
-        daemon.say(
-            f"warning: vehicle {sid}'s way home may come within d_min of another plane's "
-            "and no hold or detour clears it: it flies on"
+    def hold_for_separation(
+        self,
+        vehicles: list[VehicleState],
+        ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]],
+    ) -> ReturnPlan:
+        """Which vehicles must hold for another's way home, detour around it, or leave one after
+        another, and where (``ReturnSeparation.plan``, returned): every other airborne vehicle
+        heard flies RTL home, and may be held again only so that another leaves first; a vehicle
+        already holding keeps its point while it is still good. Says who holds or detours, and
+        who conflicts with no way found."""
+        flight = self.state
+        separation = self.return_separation()
+        deciding = {v.system_id for v in vehicles}
+        # flights RTL straight home, as the plane model flies them: every other airborne vehicle
+        # heard (nobody holds it any more) and the deciding ones whose line home is clear
+        rtl: list[tuple[int, np.ndarray, np.ndarray, float, float]] = []
+        for o in self.ctx.vehicles():
+            if o.system_id in deciding or o.lost or not o.airborne or o.home is None:
+                continue
+            if o.has_position:
+                rtl.append((o.system_id, *self.place_and_home(o), o.course_rad, o.speed_mps))
+        set_count = len(rtl)
+        by_id = {v.system_id: v for v in vehicles}
+        for sid, (xy, home, course, waypoint) in ways.items():
+            if waypoint is None:
+                rtl.append((sid, xy, home, course, by_id[sid].speed_mps))
+        flights = {leg.system_id: leg for leg in separation.flights_home(rtl)}
+        set_legs = [flights[w[0]] for w in rtl[:set_count]]
+        waiting = []
+        for sid, (xy, _home, course, waypoint) in ways.items():
+            leg = flights[sid] if waypoint is None else separation.leg(sid, xy, waypoint, False)
+            waiting.append((leg, course))
+        # planes in RTL may be guided again to let another leave first (``stagger``)
+        movable = {w[0]: w[3] for w in rtl[:set_count]}
+        plan = separation.plan(
+            set_legs, waiting, keep=flight.holding, detouring=flight.detouring, movable=movable
         )
-    return plan
+        flight.detouring = set(plan.detours)
+        for sid, point in plan.holds.items():
+            if sid in plan.staggered:
+                self.ctx.say(
+                    f"vehicle {sid} holds at ({point[0]:.1f}, {point[1]:.1f}) km while vehicle "
+                    f"{plan.staggered[sid]} leaves first: their ways home cross, and they are too "
+                    "close for either to wait or go around the other alone"
+                )
+            elif sid not in flight.holding:
+                how = "flies home via" if sid in plan.detours else "holds at"
+                self.ctx.say(
+                    f"vehicle {sid} {how} ({point[0]:.1f}, {point[1]:.1f}) km: its way home "
+                    f"would come within d_min of another plane's"
+                )
+            flight.held.add(sid)
+        for sid in set(plan.unresolved) - flight.unresolved:
+            flight.unresolved.add(sid)
+            self.ctx.say(
+                f"warning: vehicle {sid}'s way home may come within d_min of another plane's "
+                "and no hold or detour clears it: it flies on"
+            )
+        return plan

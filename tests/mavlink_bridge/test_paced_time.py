@@ -28,7 +28,7 @@ def test_a_stalled_step_is_counted_late_and_said_once(paper10, udp_port, fake_sw
 
     def on_step(status) -> None:
         if status.step == 4:
-            late_before_stall.append(daemon.late_steps)
+            late_before_stall.append(daemon.account.late_steps)
             time.sleep(0.8)  # the planner stalls for ~40 s of the vehicles' clock
 
     daemon.options.on_step = on_step
@@ -79,12 +79,12 @@ def test_a_step_s_commands_are_sent_several_times_before_its_deadline(
         swarm.vehicles[0].silent.set()  # hears nothing: no acknowledgement
         home = mavlink.MAVLINK_MSG_ID_HOME_POSITION
         started = time.monotonic()
-        (step,) = daemon.send([request_message_command(vehicle, home)], deadline=started + 0.3)
+        (step,) = daemon.ctx.send([request_message_command(vehicle, home)], deadline=started + 0.3)
         assert step.ack is None and step.attempts >= STEP_SENDS, step.attempts
         assert time.monotonic() - started < 0.3 + 0.2  # and no later than the deadline
         assert 0.3 / step.attempts >= MIN_RETRY_S / 2  # never faster than the floor
         started = time.monotonic()
-        (launch,) = daemon.send([request_message_command(vehicle, home)], attempts=2)
+        (launch,) = daemon.ctx.send([request_message_command(vehicle, home)], attempts=2)
         # two sends 0.3 s apart at 1x; at 20x one every 20 ms over the same 0.6 s
         assert launch.ack is None and launch.attempts == 2 * round(0.3 / MIN_RETRY_S)
         assert 0.4 < time.monotonic() - started < 1.5
@@ -141,14 +141,16 @@ def test_without_looks_steps_keep_the_vehicles_clock_and_lateness_is_counted(
     schedule = instants[0] + step_ms * np.arange(len(instants))
     assert (np.array(instants) >= schedule - 2500).all(), (instants, schedule)
     assert result["late_steps"] >= int((gaps > 1.5 * step_ms).sum()), (gaps, result["late_steps"])
-    assert daemon.pacing is not None and daemon.pacing.current.name == "vehicle clock"
+    assert daemon.loop.pacing is not None and daemon.loop.pacing.current.name == "vehicle clock"
 
 
 def test_without_any_vehicle_clock_steps_keep_a_wall_clock_schedule_and_a_stall_is_late(udp_port):
     """Vehicles that report no time at all (no position, no SYSTEM_TIME): a decision instant
     every period of the told time scale, never before it, on a schedule whatever a step takes;
     a step whose commands go out more than half a period after its instant is counted late and
-    said. (Paced this way, the daemon once said 0 late steps whatever happened.)"""
+    said. (Paced this way, the daemon once said 0 late steps whatever happened.) The hold when
+    late reads that same measure of the step's lateness."""
+    from mavlink_bridge.mission.keeping_up import HoldWhenLate
     from mavlink_bridge.mission.pacing import PacingChoice, PacingContext
     from mavlink_bridge.results.mission_result import MissionAccount
 
@@ -165,8 +167,11 @@ def test_without_any_vehicle_clock_steps_keep_a_wall_clock_schedule_and_a_stall_
         first = pacing.wait(1, [])
         assert pacing.current.name == "wall clock" and time.monotonic() >= before + period
         time.sleep(3 * period)  # this step stalls three periods before its commands go out
-        assert pacing.current.late(first)
+        lateness = pacing.current.lateness(first)  # measured once: counted, said, held
+        assert lateness.late and lateness.seconds >= 20.0  # ~30 s of the vehicles' clock
         assert account.late_steps == 1 and "behind the vehicles' clock at step 1" in said[0]
+        hold = HoldWhenLate(bound_s=10.0, say=said.append)
+        assert hold.hold(1, lateness.seconds) and "holding at step 1" in said[-1]
         pacing.wait(2, [])
         # the schedule kept its phase: instants at whole periods from the start, none skipped
         # twice

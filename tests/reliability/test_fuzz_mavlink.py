@@ -20,6 +20,7 @@ from mavlink_fuzz import Fuzzer, classes_named  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
 
 from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon  # noqa: E402
+from mavlink_bridge.mission.loop_state import course_heading  # noqa: E402
 from mavlink_bridge.vehicles.sensor_looks import look_report  # noqa: E402
 from mavlink_bridge.vehicles.swarm_link import SwarmLink  # noqa: E402
 from mavlink_wire.links import UdpInEndpoint  # noqa: E402
@@ -115,7 +116,7 @@ def test_fuzzing_the_daemon_intake(capsys):
     endpoint = UdpInEndpoint(spec="udpin:127.0.0.1:0", host="127.0.0.1", port=0).open()
     link = SwarmLink([endpoint])
     daemon = MissionDaemon(scenario, DaemonOptions(connect=[]))
-    daemon.link = link
+    daemon.ctx.link = link
     beat = ml.MAVLink_heartbeat_message(ml.MAV_TYPE_FIXED_WING, 3, 0, 0, 3, 3)
     for sysid in range(1, 11):
         mav = ml.MAVLink(None, sysid, 1)
@@ -131,21 +132,21 @@ def test_fuzzing_the_daemon_intake(capsys):
             for msg in endpoint.parse_datagram(fuzzer.datagram()):
                 link._dispatch(msg, endpoint, ("127.0.0.1", 40001), time.monotonic())
             if k % 400 == 0:  # what the decision loop does with what it heard
-                starts = daemon.starts_from_telemetry()
+                starts = daemon.loop.starts_from_telemetry()
                 assert len(starts) == 10
                 assert all(math.isfinite(s.x_km) and math.isfinite(s.y_km) for s in starts)
                 for i in range(10):
                     v = daemon.vehicle(i)
-                    xy = daemon.local_km(v.lat_deg, v.lon_deg)
+                    xy = daemon.ctx.local_km(v.lat_deg, v.lon_deg)
                     assert np.isfinite(xy).all()
-                    assert daemon.grid.inside(daemon.grid.cell_of(xy))
-                    daemon._course_heading(v)
+                    assert daemon.ctx.grid.inside(daemon.ctx.grid.cell_of(xy))
+                    course_heading(v)
                     if v.latest_look >= 0:
                         report = look_report(
-                            v.looks[v.latest_look], daemon.grid, scenario.origin,
+                            v.looks[v.latest_look], daemon.ctx.grid, scenario.origin,
                             cfg.detection_radius_km,
                         )  # fmt: skip
-                        assert daemon.grid.inside(report.cells).all()
+                        assert daemon.ctx.grid.inside(report.cells).all()
                         assert len(report.detected) == len(report.cells)
         elapsed = time.perf_counter() - started
         stats = endpoint.stats
