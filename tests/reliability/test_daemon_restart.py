@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
 import time
 from pathlib import Path
 
@@ -17,7 +16,7 @@ import numpy as np
 import pytest
 from loopback import env, free_udp_port, run_swarmplan, start_swarmplan, stop
 from pymavlink.dialects.v20 import ardupilotmega as ml
-from reliability_harness import KEY_HEX, last_json
+from reliability_harness import KEY_HEX, checkpoint_step, last_json, wait_until
 
 from mavlink_bridge.results.checkpoint import (
     MAGIC,
@@ -32,12 +31,6 @@ KILL_AFTER_STEP = 8
 # the launch's calibration refused that time scale on a loaded machine (keeping_up.py)
 SPEEDUP = 10
 
-
-def _checkpoint_step(path: Path) -> int:
-    try:
-        return read_checkpoint(path, bytes.fromhex(KEY_HEX)).step  # signed with the mission key
-    except CheckpointError:
-        return -1
 
 
 def _sent_commands(tlog: Path, offset: int) -> list[tuple[int, float]]:
@@ -54,16 +47,6 @@ def _sent_commands(tlog: Path, offset: int) -> list[tuple[int, float]]:
         k = frame_at + size
     return out
 
-
-def _wait(predicate, timeout_s: float, procs: list[subprocess.Popen]) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        if any(p.poll() is not None for p in procs):
-            return predicate()
-        time.sleep(0.02)
-    return False
 
 
 @pytest.mark.timeout(150)
@@ -89,19 +72,19 @@ def test_killed_daemon_resumes_from_its_checkpoint_and_finishes(tmp_path: Path):
     first = start_swarmplan(daemon_args, daemon_log)
     second = None
     try:
-        assert _wait(lambda: _checkpoint_step(ckpt) >= KILL_AFTER_STEP, 60, [first, sim]), (
+        assert wait_until(lambda: checkpoint_step(ckpt) >= KILL_AFTER_STEP, 60, [first, sim]), (
             daemon_log.read_text()[-2000:]
         )
         os.kill(first.pid, signal.SIGKILL)
         killed_at = time.monotonic()
         first.wait(5)
-        killed_step = _checkpoint_step(ckpt)
+        killed_step = checkpoint_step(ckpt)
         tlog = out / "mission.tlog"
         tlog_at_kill = tlog.stat().st_size  # the restarted daemon appends from here
         with open(daemon_log, "a") as f:
             f.write("\n--- killed, restarting ---\n")
         second = start_swarmplan([*daemon_args, "--resume"], daemon_log, stdout_pipe=True)
-        assert _wait(lambda: _checkpoint_step(ckpt) > killed_step, 30, [second]), (
+        assert wait_until(lambda: checkpoint_step(ckpt) > killed_step, 30, [second]), (
             daemon_log.read_text()[-2000:]
         )
         restart_s = time.monotonic() - killed_at

@@ -23,9 +23,8 @@ import numpy as np
 import pytest
 from loopback import env, free_udp_port, start_swarmplan, stop
 from pymavlink.dialects.v20 import ardupilotmega as ml
-from reliability_harness import KEY_HEX, last_json
+from reliability_harness import KEY_HEX, checkpoint_step, last_json, wait_until
 
-from mavlink_bridge.results.checkpoint import CheckpointError, read_checkpoint
 from mavlink_wire import signing as bridge_signing
 from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
 from planner.hapf_aco import HapfAcoPlanner  # noqa: F401 - a checkpoint's classes, read fast
@@ -91,22 +90,6 @@ def _scenario(tmp_path: Path, steps: int, starts: list[tuple], range_km: float |
     return path
 
 
-def _checkpoint_step(path: Path) -> int:
-    try:
-        return read_checkpoint(path, bytes.fromhex(KEY_HEX)).step  # signed with the mission key
-    except CheckpointError:
-        return -1
-
-
-def _wait(predicate, timeout_s: float, procs: list[subprocess.Popen]) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        if any(p.poll() is not None for p in procs):
-            return predicate()
-        time.sleep(0.02)
-    return False
 
 
 class _Pilot:
@@ -201,12 +184,12 @@ class _Mission:
     def kill_after_step(self, step: int) -> int:
         first = start_swarmplan(self.args, self.log)
         self.procs.append(first)
-        assert _wait(lambda: _checkpoint_step(self.ckpt) >= step, 40, [first, self.sim]), (
+        assert wait_until(lambda: checkpoint_step(self.ckpt) >= step, 40, [first, self.sim]), (
             self.log.read_text()[-2000:]
         )
         os.kill(first.pid, signal.SIGKILL)
         first.wait(5)
-        return _checkpoint_step(self.ckpt)
+        return checkpoint_step(self.ckpt)
 
     def resume(self) -> tuple[subprocess.Popen, float]:
         """The daemon restarted with --resume; the wall seconds to its first decision."""
@@ -216,7 +199,7 @@ class _Mission:
         second = start_swarmplan([*self.args, "--resume"], self.log)
         self.procs.append(second)
         # (its progress line: the first decision after the restart)
-        _wait(lambda: "\rstep " in self.resumed_log(), 40, [second])
+        wait_until(lambda: "\rstep " in self.resumed_log(), 40, [second])
         return second, time.monotonic() - started
 
     def result(self) -> dict:
@@ -262,7 +245,7 @@ def test_a_resumed_daemon_takes_back_planes_in_failsafe_rtl_or_a_threat(tmp_path
             pilot.pump(0.2)
             return pilot.mode.get(2) == CIRCLE and pilot.params.get((3, "FENCE_ENABLE")) == 0.0
 
-        assert _wait(switched, 4, [mission.sim]), (pilot.mode, pilot.params)
+        assert wait_until(switched, 4, [mission.sim]), (pilot.mode, pilot.params)
 
         def failsafe_took_them() -> bool:
             for sid in (1, 2, 3):
@@ -274,7 +257,7 @@ def test_a_resumed_daemon_takes_back_planes_in_failsafe_rtl_or_a_threat(tmp_path
             critical = all(pilot.status.get(s) == ml.MAV_STATE_CRITICAL for s in (1, 2, 3))
             return critical and pilot.mode.get(2) == RTL and bool(inside)
 
-        assert _wait(failsafe_took_them, 20, [mission.sim]), (
+        assert wait_until(failsafe_took_them, 20, [mission.sim]), (
             pilot.status, pilot.mode, pilot.xy_km.get(3),
         )  # fmt: skip
         pilot.close()
@@ -329,7 +312,7 @@ def test_a_plane_whose_range_is_spent_is_sent_home_not_waited_for(tmp_path: Path
             pilot.pump(0.3)
             return pilot.status.get(1) == ml.MAV_STATE_CRITICAL and pilot.mode.get(1) == RTL
 
-        assert _wait(range_spent, 25, [mission.sim]), (pilot.status, pilot.mode)
+        assert wait_until(range_spent, 25, [mission.sim]), (pilot.status, pilot.mode)
         # (FS_LONG_ACTN 0 keeps GUIDED in the GCS failsafe: RTL is the battery failsafe's)
         pilot.close()
         pilot = None
