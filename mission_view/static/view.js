@@ -262,9 +262,11 @@ function drawHeader() {
   const L_ = view.layout, s = view.steps[view.current];
   const newest = view.steps[view.steps.length - 1];
   const following = view.follow || !L_.live || view.ended;
-  $("phase").textContent = !s || (view.follow && !view.ended)
+  const phase = !s || (view.follow && !view.ended)
     ? (view.phases.length ? view.phases[view.phases.length - 1].text : "")
     : phaseAt(s.step);
+  $("phase").textContent = phase;
+  $("phase").title = `mission phase at the step shown: ${phase}`;
   if (!s) return;
   $("stepinfo").textContent = `step ${s.step} / ${L_.steps}`;
   const behind = newest.step - s.step;
