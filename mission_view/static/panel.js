@@ -22,7 +22,7 @@ function selectVehicle(i) {
   if (i === null) $("vp-follow").checked = false;
   window.dispatchEvent(new CustomEvent("swarm:select", { detail: { uav: i } }));
   if (view.current >= 0) render(view.current);
-  if (i !== null) $("vehicle-panel").scrollIntoView({ block: "nearest" });
+  if (i !== null) $("vehicle-panel").scrollIntoView({ block: "start" });
 }
 
 function latLonText(x, y) {

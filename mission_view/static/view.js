@@ -314,7 +314,7 @@ function drawTable() {
   const body = $("vehicles").tBodies[0], focused = document.activeElement;
   const refocus = focused && body.contains(focused) ? focused.dataset.uav : null;
   body.innerHTML = rows.join("");
-  if (refocus !== null) body.querySelector(`tr[data-uav="${refocus}"]`).focus();
+  if (refocus !== null) body.querySelector(`tr[data-uav="${refocus}"]`).focus({ preventScroll: true });
 }
 
 function drawEngaged(k) {
@@ -389,7 +389,7 @@ function drawTimeline() {
       `${e.uav === null || e.uav === undefined ? "" : `UAV ${e.uav + 1}: `}${escapeHtml(e.text)}</button></li>`).join("");
     if (focused !== null) {
       const again = list.querySelector(`button[data-n="${focused}"]`);
-      if (again) again.focus();
+      if (again) again.focus({ preventScroll: true });
     }
   }
   for (const li of list.children) li.classList.toggle("ahead", Number(li.value) > s.step);
