@@ -144,6 +144,8 @@ def _look_bytes(look: Look) -> bytes:
 def _records(report: SwarmReport) -> list[tuple[int, list[bytes]]]:
     """Each section kind with its records' bytes."""
     state = report.state
+    if state is not None and not 0 <= state.heading <= 7:
+        raise WireError(f"heading must be 0-7 (the grid's), got {state.heading}")
     states = (
         []
         if state is None

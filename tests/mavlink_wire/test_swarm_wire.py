@@ -1,7 +1,7 @@
 """The swarm link's wire format (mavlink_wire/swarm_wire.py): reports go through real UDP on
 127.0.0.1 as signed MAVLink TUNNEL frames, fragmented and put back together in any order; lost,
 inconsistent and hostile fragments are dropped and counted, never raised; the worst case of a
-paper scenario fits the radio budget of issue 27 (3.6 kB per UAV per step)."""
+paper scenario fits the radio budget of the swarm link (3.6 kB per UAV per step)."""
 
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ from mavlink_wire.swarm_wire import (  # noqa: E402
 from planner.grid import Grid  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 
-BUDGET_BYTES = 3600  # issue 27: 57.6 kbit/s shared by 20 UAVs at 10 s steps
+BUDGET_BYTES = 3600  # 57.6 kbit/s shared by 20 UAVs at 10 s steps
 
 
 def _report(uav: int = 3, looks: int = 12) -> SwarmReport:
@@ -220,6 +220,8 @@ def test_values_the_format_cannot_carry_are_refused_at_the_sender():
         encode_report(SwarmReport(1, 1, looks=(Look(1, 1, (1, 1), (True,) * 300),)))
     with pytest.raises(WireError):
         encode_report(SwarmReport(300, 1))
+    with pytest.raises(WireError):
+        encode_report(SwarmReport(1, 1, state=NodeState((1, 1), 8, 0.0, 0.0, 1.0)))
 
 
 @pytest.mark.parametrize("name", ["paper-10uav", "paper-20uav"])
