@@ -22,7 +22,6 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import stats
 
 from planner.constraints import segment_clearance
 from planner.grid import Grid
@@ -185,6 +184,8 @@ class MissionRecorder:
     def result(
         self, seed: int, algorithm: str, wall_time_s: float, extra: dict | None = None
     ) -> dict:
+        from scipy import stats  # here: scipy.stats takes most of a second to import
+
         curve = np.array(self.coverage_curve)
         first = curve[: min(50, len(curve))]
         slope = (

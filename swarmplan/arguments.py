@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import NoReturn
 
 from planner.errors import UserError
-from planner.registry import planner_factory
 
 #: The seed of every command that takes one (run, demo, sim, daemon), so that ``swarmplan sim``
 #: and ``swarmplan daemon`` in two shells fly the same mission as ``swarmplan demo``.
@@ -113,6 +112,8 @@ def tile_template(text: str) -> str:
 
 def planner_name(text: str) -> str:
     """The name of a planner that can be built (built in, or registered by a plug-in)."""
+    from planner.registry import planner_factory  # here: the planners import scipy.ndimage
+
     try:
         planner_factory(text)
     except UserError as exc:

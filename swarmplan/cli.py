@@ -34,13 +34,18 @@ SUBCOMMANDS = (
 )
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every subcommand, or with ``only`` of that one alone (a command run loads
+    its own module and not the others', which keeps a process's start short: the planner's,
+    the view server's and the statistics' imports are a second or more)."""
     parser = OneLineParser(
         prog="swarmplan",
         description="HAPF-ACO cooperative UAV-swarm search planner (offline, simulator, MAVLink).",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
     for name, module_name in SUBCOMMANDS:
+        if only is not None and name != only:
+            continue
         try:
             module = importlib.import_module(module_name)
         except ImportError as exc:  # a dependency of the command missing from this install
@@ -52,8 +57,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command_named(argv: list[str]) -> str | None:
+    """The subcommand ``argv`` runs (its first word, if that names one), else None."""
+    first = argv[0] if argv else None
+    return first if first in dict(SUBCOMMANDS) else None
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(_command_named(argv))
     args = parser.parse_args(argv)
     if not getattr(args, "handler", None):
         parser.print_help()
