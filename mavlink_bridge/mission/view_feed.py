@@ -18,7 +18,13 @@ from mission_view.view_session import ViewSession
 from planner.planner_interface import MODES
 
 #: progress lines that go to the timeline, by the kind of event they are
-LINE_KINDS = (("refused", "refusal"), ("warning", "warning"), ("lost", "link"), ("rejoin", "link"))
+LINE_KINDS = (
+    ("operator (", "operator"),  # an operator's action (operator_actions.py)
+    ("refused", "refusal"),
+    ("warning", "warning"),
+    ("lost", "link"),
+    ("rejoin", "link"),
+)
 
 
 class DaemonViewFeed:
