@@ -317,6 +317,7 @@ class MissionDaemon:
         completed = ended.startswith("completed")
         stages = self.loop.stages
         try:
+            self.operator.watched_home()  # the planes it sent home: watched like the others
             # an interrupted daemon does not stay to watch the flight home, so holds no plane
             sent_to, skipped = self.home.return_to_launch(
                 None if stages is None else stages.end_leg_timing, separate=completed

@@ -52,6 +52,9 @@ ACTIONS = {
     "mark": "mark a sighting",
 }
 
+#: why a plane the operator sent home is out of the mission (``LossWatch.retire``)
+SENT_HOME = "sent home by the operator"
+
 
 @dataclass(frozen=True)
 class OperatorRequest:
@@ -222,8 +225,7 @@ class OperatorActions:
         flying, skipped = rtl_recipients(fresh, self.ctx.options.lost_after_s)
         sent = send_planes_home(
             self.ctx, self.home, self.loss,
-            {v.system_id: "sent home by the operator" for v in flying},
-            "sent home by the operator",
+            {v.system_id: SENT_HOME for v in flying}, SENT_HOME,
         )  # fmt: skip
         parts = []
         rtl = [c for c in sent if c.command == mavlink.MAV_CMD_DO_SET_MODE]
@@ -252,6 +254,17 @@ class OperatorActions:
             f"sighting at cell ({cell[0]}, {cell[1]}) taken in by every UAV: existence "
             f"{float(before.mean()):.3f} -> {float(after.mean()):.3f}"
         )
+
+    def watched_home(self) -> None:
+        """At the mission's exit: the planes the operator sent home that are still reachable are
+        no longer lost, so that the watch of the flight home (``FlightHomePhase.watch_rtl``)
+        waits for them too, as for every other plane (they were lost to the planner only)."""
+        retired = {u for u, why in self.loss.retired.items() if why == SENT_HOME}
+        flying, _ = rtl_recipients(
+            [self.ctx.vehicle(u) for u in sorted(retired)], self.ctx.options.lost_after_s
+        )
+        for v in flying:
+            v.lost = False
 
     def say_refusals(self) -> None:
         """Said once: requests with a wrong or missing token were refused (all are counted)."""
