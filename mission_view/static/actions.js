@@ -204,6 +204,7 @@
   async function start() {
     if (!token) {
       disable("read-only: open the URL with ?token=... that the daemon printed to act");
+      hideInReplay(40);
       return;
     }
     const { status: code, answer } = await post({ action: "check" }).catch(() => ({ status: 0 }));
@@ -220,6 +221,12 @@
     state.reason = "";
     status.textContent = "actions on";
     refresh();
+  }
+
+  function hideInReplay(tries) {  // a replay has no actions at all: no buttons either
+    const layout = window.missionView && window.missionView.layout;
+    if (layout) { panel.hidden = layout.live === false; return; }
+    if (tries > 0) setTimeout(() => hideInReplay(tries - 1), 250);
   }
 
   uavMenu.addEventListener("change", refresh);
