@@ -212,7 +212,9 @@ class ViewServer:
         except ValueError as exc:
             return web.json_response({"error": str(exc)}, status=400)
         try:
-            answer = await asyncio.wait_for(asyncio.wrap_future(done), ACTION_WAIT_S)
+            # shielded: giving up waiting must not cancel the action the loop will carry out
+            waited = asyncio.shield(asyncio.wrap_future(done))
+            answer = await asyncio.wait_for(waited, ACTION_WAIT_S)
         except TimeoutError:
             return web.json_response(
                 {"applied": False, "result": "queued: carried out at the next decision step"},

@@ -280,8 +280,8 @@ class DecisionLoop:
         when they end the mission before this step (``ended_early`` says how)."""
         if self.operator is None:
             return False
-        self.operator.apply(step, state.planner)
-        self.watch(step)  # a plane the operator sent home is lost to the planner from now
+        if self.operator.apply(step, state.planner):
+            self.watch(step)  # a plane the operator sent home is lost to the planner from now
         if self.operator.ended is None:
             return False
         self.ended_early = self.operator.ended

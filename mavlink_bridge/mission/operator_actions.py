@@ -25,8 +25,9 @@ requests (a wrong or missing token, counted by the view's server) are counted
 
 from __future__ import annotations
 
+import contextlib
 import threading
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
@@ -161,7 +162,7 @@ class OperatorInbox:
             self.closed = why
             left, self._queue = self._queue, []
         for _, done in left:
-            done.set_result({"applied": False, "result": f"not applied: {why}"})
+            answer(done, {"applied": False, "result": f"not applied: {why}"})
 
 
 @dataclass
@@ -180,10 +181,12 @@ class OperatorActions:
     def __post_init__(self) -> None:
         self.inbox = OperatorInbox(self.ctx)
 
-    def apply(self, step: int, planner: Any) -> None:
-        """The requests queued since the last step, in order, at decision step ``step``."""
+    def apply(self, step: int, planner: Any) -> bool:
+        """The requests queued since the last step, in order, at decision step ``step``; True
+        when there were any."""
         self.say_refusals()
-        for request, done in self.inbox.take():
+        taken = self.inbox.take()
+        for request, done in taken:
             try:
                 result = self.carry_out(request, step, planner)
             except Exception as exc:  # noqa: BLE001 - one action's failure is said, not fatal
@@ -196,9 +199,10 @@ class OperatorActions:
                 }  # fmt: skip
             )
             self.ctx.say(f"operator ({request.who}): {ACTIONS[request.action]}: {result}")
-            done.set_result({"applied": True, "step": step, "result": result})
+            answer(done, {"applied": True, "step": step, "result": result})
         if self.ended is None and self.ctx.n and len(self.loss.retired) >= self.ctx.n:
             self.ended = f"completed early: every plane sent home by the operator (step {step})"
+        return bool(taken)
 
     def carry_out(self, request: OperatorRequest, step: int, planner: Any) -> str:
         action = request.action
@@ -285,3 +289,11 @@ class OperatorActions:
             "operator_refused": self.inbox.refused,
             "operator_held_steps": self.held_steps,
         }
+
+
+def answer(done: Future, result: dict[str, Any]) -> None:
+    """Resolve a request's future, unless its asker gave up on it (cancelled): the loop never
+    fails for an answer nobody waits for."""
+    if not done.done():
+        with contextlib.suppress(InvalidStateError):
+            done.set_result(result)

@@ -136,6 +136,9 @@ def test_actions_without_the_token_are_refused_and_counted(http_demo):
     assert status == 200 and answer["open"] and answer["uav_count"] == 2
     status, answer = http_demo.post({"token": http_demo.token, "action": "rtl", "uav": 7})
     assert status == 400 and "0..1" in answer["error"]
+    nowhere = {"token": http_demo.token, "action": "mark", "lat": 0.0, "lon": 0.0}
+    status, answer = http_demo.post(nowhere)
+    assert status == 400 and "outside the mission area" in answer["error"]
 
 
 @pytest.mark.timeout(180)
