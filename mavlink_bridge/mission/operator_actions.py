@@ -80,6 +80,7 @@ class OperatorInbox:
         self.refused = 0  # requests with a wrong or missing token
         self.refused_from: list[str] = []  # who, until said (once)
         self.refusal_said = False
+        self.step: int | None = None  # the decision step the loop is at (None: not yet)
 
     def submit(self, doc: dict[str, Any], who: str) -> Future:
         """Queue the action ``doc`` asks for (its token already checked). A bad request is a
@@ -110,6 +111,7 @@ class OperatorInbox:
             "applied": True,
             "open": self.closed is None,
             "reason": self.closed,
+            "step": self.step,
             "actions": ACTIONS,
             "uav_count": self.ctx.n,
             "grid": [grid.nx, grid.ny],
@@ -185,6 +187,7 @@ class OperatorActions:
         """The requests queued since the last step, in order, at decision step ``step``; True
         when there were any."""
         self.say_refusals()
+        self.inbox.step = step
         taken = self.inbox.take()
         for request, done in taken:
             try:

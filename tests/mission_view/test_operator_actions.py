@@ -4,7 +4,8 @@ demos of paper-2uav (simulator and daemon over loopback UDP): refused without th
 ended early, the normal way), and, clicked through the page in headless Chromium, mark a sighting,
 hold and resume (no guided target sent while held), RTL one UAV (its heartbeats in RTL, the
 other's not) and end the mission (result.json written early, with every action, who and when).
-Two demos of ~15-25 s each, each shared by its tests."""
+Two demos of ~15-25 s each, one per test (each test stands alone: under pytest-xdist the tests of
+one module may run on different workers)."""
 
 from __future__ import annotations
 
@@ -20,8 +21,6 @@ from browser import CHROMIUM_ARGS, chromium_or_skip
 from loopback import start_swarmplan, stop
 
 from mavlink_wire.protocol import PLANE_MODE_RTL
-
-pytestmark = pytest.mark.xdist_group("operator-actions")
 
 STEPS = 250  # the scenario's; every mission here is ended early by its operator
 
@@ -49,12 +48,12 @@ class Demo:
             time.sleep(0.05)
         raise AssertionError(f"no view URL with a token within {timeout_s} s")
 
-    def wait_airborne(self, timeout_s: float = 60) -> None:
-        """Until the launch is over (the decision loop runs from here)."""
+    def wait_step(self, step: int, timeout_s: float = 90) -> None:
+        """Until the mission's decision loop is at ``step`` (``check`` says where it is)."""
         deadline = time.monotonic() + timeout_s
-        while "airborne, GUIDED" not in self.log.read_text(errors="replace"):
+        while (self.post({"token": self.token, "action": "check"})[1]["step"] or 0) < step:
             assert time.monotonic() < deadline and self.proc.poll() is None
-            time.sleep(0.05)
+            time.sleep(0.1)
 
     def post(self, doc: dict) -> tuple[int, dict]:
         request = urllib.request.Request(
@@ -71,7 +70,7 @@ class Demo:
         return json.loads((self.out / "result.json").read_text())
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def http_demo(tmp_path_factory):
     demo = Demo(tmp_path_factory.mktemp("operator-http"))
     try:
@@ -80,7 +79,7 @@ def http_demo(tmp_path_factory):
         stop(demo.proc)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def page_demo(tmp_path_factory):
     path = chromium_or_skip()
     from playwright.sync_api import sync_playwright
@@ -127,9 +126,11 @@ def utc_s(stamp: str) -> float:
     return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
 
 
-@pytest.mark.timeout(120)
-def test_actions_without_the_token_are_refused_and_counted(http_demo):
-    """No token and a wrong one: 403, nothing done; the right one is taken."""
+@pytest.mark.timeout(180)
+def test_refused_without_the_token_then_rtl_all_sends_every_vehicle_home(http_demo):
+    """No token and a wrong one: 403, nothing done, counted; bad requests are one line; then
+    RTL all: both vehicles' heartbeats in RTL after it (not before), the mission ended early
+    the normal way."""
     assert http_demo.post({"action": "end"})[0] == 403
     assert http_demo.post({"token": http_demo.token[:-1] + "x", "action": "rtl_all"})[0] == 403
     status, answer = http_demo.post({"token": http_demo.token, "action": "check"})
@@ -140,11 +141,7 @@ def test_actions_without_the_token_are_refused_and_counted(http_demo):
     status, answer = http_demo.post(nowhere)
     assert status == 400 and "outside the mission area" in answer["error"]
 
-
-@pytest.mark.timeout(180)
-def test_rtl_all_sends_every_vehicle_home_and_ends_the_mission(http_demo):
-    http_demo.wait_airborne()
-    time.sleep(2.0)  # a few steps out: their flight home lasts a few heartbeats
+    http_demo.wait_step(5)  # a few steps out: their flight home lasts a few heartbeats
     status, answer = http_demo.post({"token": http_demo.token, "action": "rtl_all"})
     assert status == 200, answer
     assert "RTL accepted by vehicle 1, 2" in answer["result"]
@@ -152,7 +149,7 @@ def test_rtl_all_sends_every_vehicle_home_and_ends_the_mission(http_demo):
     assert result["ended"].startswith("completed early: every plane sent home by the operator")
     assert result["steps"] < STEPS
     assert [a["action"] for a in result["operator_actions"]] == ["rtl_all"]
-    assert result["operator_refused"] == 2  # the previous test's two
+    assert result["operator_refused"] == 2  # the two above
     asked = utc_s(result["operator_actions"][0]["time_utc"])
     modes = heartbeats(http_demo.out / "mission.tlog")
     for sid in (1, 2):  # each vehicle said RTL in its heartbeats, after the operator asked
