@@ -22,11 +22,12 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class ViewOptions:
     """Whether and where a live view is served (``swarmplan daemon`` and ``demo`` take them
-    from ``--no-view``, ``--view-host`` and ``--view-port``)."""
+    from ``--no-view``, ``--view-host``, ``--view-port`` and ``--tiles``)."""
 
     serve: bool = True
     host: str = "127.0.0.1"
     port: int = 0  # 0: a free port, printed at start
+    tiles: str | None = None  # an XYZ tile URL template for the map's backdrop (None: none)
 
 
 class ViewSession:
@@ -65,7 +66,9 @@ class ViewSession:
         if self.options.serve:
             from mission_view.server import ViewServer
 
-            self.server = ViewServer(self.store, self.options.host, self.options.port, actions)
+            self.server = ViewServer(
+                self.store, self.options.host, self.options.port, actions, tiles=self.options.tiles
+            )
             try:
                 self.url = self.server.start()
             except UserError:
@@ -78,8 +81,8 @@ class ViewSession:
     def post(self, view: StepView, planner: Any = None) -> None:
         self.feed.post(view, planner)
 
-    def phase(self, text: str) -> None:
-        self.feed.phase(text)
+    def phase(self, text: str, step: int | None = None) -> None:
+        self.feed.phase(text, step)
 
     def close(self) -> None:
         """The mission is over: record what is pending and close the replay file (the server,

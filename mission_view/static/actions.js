@@ -150,8 +150,9 @@
     if (!map) return;
     dialog.close("pick");
     status.textContent = "click the map where the sighting is";
-    map.once("click", (e) => {  // the page's map: 1 unit = 1 m, x east, y north
-      const km = [e.latlng.lng / 1000, e.latlng.lat / 1000];
+    map.once("click", (e) => {  // the page's own conversion (view.js; tiles: Web Mercator)
+      const km = typeof window.toKm === "function" ? window.toKm(e.latlng) :
+        [e.latlng.lng / 1000, e.latlng.lat / 1000];
       $("operator-cell-x").value = String(Math.floor(km[0] / state.cellKm));
       $("operator-cell-y").value = String(Math.floor(km[1] / state.cellKm));
       status.textContent = "";

@@ -204,7 +204,7 @@ def test_an_operator_flies_the_mission_from_the_page(page_demo):
     answer = confirm(page, "button[data-action=resume]")
     assert answer["step"] >= held_at + 5
 
-    page.evaluate("() => dispatchEvent(new CustomEvent('swarm:select', {detail: {uav: 1}}))")
+    page.click('#vehicles tbody tr[data-uav="1"]')  # the page's vehicle panel: swarm:select
     assert page.inner_text("#vehicle-actions button[data-action=rtl]") == "RTL UAV 2"
     answer = confirm(page, "#vehicle-actions button[data-action=rtl]")
     assert "RTL accepted by vehicle 2" in answer["result"]
