@@ -28,10 +28,7 @@
   }
   let vehiclePanel = document.getElementById("vehicle-actions");
   const ownVehiclePanel = !vehiclePanel;  // no vehicle panel on the page: a UAV menu of our own
-  if (!vehiclePanel) {
-    vehiclePanel = el("span", { id: "vehicle-actions" });
-    panel.appendChild(vehiclePanel);
-  }
+  if (!vehiclePanel) vehiclePanel = el("span", { id: "vehicle-actions" });
   panel.style.display = "inline-flex";
   panel.style.gap = "0.4em";
   panel.style.alignItems = "center";
@@ -45,8 +42,11 @@
   const rtlOne = el("button", { type: "button", "data-action": "rtl" }, "RTL UAV");
   const uavMenu = el("select", { id: "operator-uav", "aria-label": "UAV to send home" });
   const status = el("span", { id: "operator-status", role: "status" });
-  for (const b of Object.values(buttons)) panel.insertBefore(b, vehiclePanel);
-  if (ownVehiclePanel) vehiclePanel.appendChild(uavMenu);
+  for (const b of Object.values(buttons)) panel.appendChild(b);
+  if (ownVehiclePanel) {
+    panel.appendChild(vehiclePanel);
+    vehiclePanel.appendChild(uavMenu);
+  }
   vehiclePanel.appendChild(rtlOne);
   panel.appendChild(status);
 
