@@ -12,6 +12,15 @@ in order, each once), ``layer`` (``data``: the
 layer's bytes, base64, column-major cells (x, y) as ``belief_layers`` keeps them), ``end``. From
 the page: ``{"type": "view", "kind": "coverage"|"tpm"|"pheromone", "uav": i, "step": k|null}``
 (null: follow the newest step).
+
+Operator actions (docs/view.md, "Operator actions"): with an ``actions`` handler (a live daemon's
+``OperatorInbox``) the server makes a secret token (``secrets.token_urlsafe``) and its URL carries
+it (``/?token=...``, as notebook servers do); ``POST /api/action`` with a JSON body ``{"token",
+"action", "uav"?, "cell"?, "lat"?, "lon"?}`` hands the action to the handler and answers with
+what the mission did (200; 202 when it is still queued after ``ACTION_WAIT_S``; 409 when it was
+not applied, the mission being over; 400 for a bad request). A wrong or missing token is refused
+(403), counted (``refused_actions``) and told to the handler; tokens are compared with
+``hmac.compare_digest``. Without a handler (a replay) every action is 404.
 """
 
 from __future__ import annotations
@@ -19,12 +28,15 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import hmac
 import json
+import secrets
 import threading
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from aiohttp import WSMsgType, web
 
@@ -33,6 +45,22 @@ from mission_view.mission_store import MissionStore
 from planner.errors import UserError
 
 STATIC = Path(str(resources.files("mission_view") / "static"))
+
+#: how long an action's request waits for the decision loop to carry it out before 202
+ACTION_WAIT_S = 20.0
+
+
+class ActionHandler(Protocol):
+    """Takes the operator's actions (``mavlink_bridge.mission.operator_actions.OperatorInbox``)."""
+
+    def submit(self, doc: dict[str, Any], who: str) -> Future:
+        """Queue ``doc`` (token checked); a bad request is a ``ValueError`` (one line). The
+        future's result: ``{"applied": bool, "result": str, ...}``."""
+        ...
+
+    def refuse(self, who: str) -> None:
+        """A request with a wrong or missing token was refused."""
+        ...
 
 
 @dataclass(eq=False)  # one per open page, kept in a set by identity
@@ -58,6 +86,7 @@ class ViewServer:
         store: MissionStore,
         host: str = "127.0.0.1",
         port: int = 0,
+        actions: ActionHandler | None = None,
         *,
         tiles: str | None = None,
         port_option: str = "--view-port, or --no-view",
@@ -65,6 +94,10 @@ class ViewServer:
         self.store = store
         self.host = host
         self.port = port
+        self.actions = actions
+        #: the secret an operator's action must carry (only with ``actions``)
+        self.token = None if actions is None else secrets.token_urlsafe(24)
+        self.refused_actions = 0
         self.tiles = tiles
         self.port_option = port_option
         self._pages: set[_Page] = set()
@@ -78,7 +111,8 @@ class ViewServer:
     @property
     def url(self) -> str:
         host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}/"
+        query = "" if self.token is None else f"?token={self.token}"
+        return f"http://{host}:{self.port}/{query}"
 
     # ------------------------------------------------------------------ life cycle
 
@@ -126,6 +160,7 @@ class ViewServer:
         app = web.Application()
         app.router.add_get("/", self._index)
         app.router.add_get("/ws", self._websocket)
+        app.router.add_post("/api/action", self._action)
         app.router.add_static("/static/", STATIC, follow_symlinks=False)
         self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
         await self._runner.setup()
@@ -160,6 +195,41 @@ class ViewServer:
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-store"})
+
+    async def _action(self, request: web.Request) -> web.StreamResponse:
+        """``POST /api/action``: an operator's action (see the module docstring)."""
+        who = request.remote or "unknown"
+        if self.actions is None or self.token is None:
+            return web.json_response({"error": "this view takes no actions (a replay)"}, status=404)
+        try:
+            doc = await request.json()
+        except ValueError:
+            doc = None
+        token = doc.get("token") if isinstance(doc, dict) else None
+        if not isinstance(token, str) or not hmac.compare_digest(
+            token.encode("utf-8", "replace"), self.token.encode()
+        ):
+            self.refused_actions += 1
+            self.actions.refuse(who)
+            return web.json_response(
+                {"error": "wrong or missing token: open the URL the daemon printed (?token=...)"},
+                status=403,
+            )
+        assert isinstance(doc, dict)
+        try:
+            done = self.actions.submit(doc, who)
+        except ValueError as exc:
+            return web.json_response({"error": str(exc)}, status=400)
+        try:
+            # shielded: giving up waiting must not cancel the action the loop will carry out
+            waited = asyncio.shield(asyncio.wrap_future(done))
+            answer = await asyncio.wait_for(waited, ACTION_WAIT_S)
+        except TimeoutError:
+            return web.json_response(
+                {"applied": False, "result": "queued: carried out at the next decision step"},
+                status=202,
+            )
+        return web.json_response(answer, status=200 if answer.get("applied") else 409)
 
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
         ws = web.WebSocketResponse(heartbeat=20.0)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mission_view.belief_layers import LAYER_SCALES, layer_shape
 from mission_view.feed import ViewFeed
@@ -14,6 +14,9 @@ from mission_view.replay_file import ReplayWriter, replay_path
 from mission_view.view_model import StepView, mission_layout
 from planner.errors import UserError
 from planner.scenario import Scenario
+
+if TYPE_CHECKING:
+    from mission_view.server import ActionHandler
 
 
 @dataclass(frozen=True)
@@ -44,8 +47,11 @@ class ViewSession:
         options: ViewOptions | None = None,
         live: bool = True,
         append: bool = False,
+        actions: ActionHandler | None = None,
     ) -> None:
-        """``append``: add to the replay already in ``out_dir`` (a resumed daemon)."""
+        """``append``: add to the replay already in ``out_dir`` (a resumed daemon). ``actions``:
+        the live server takes the operator's actions (a daemon's ``OperatorInbox``), with a
+        token in its URL (``server.py``)."""
         self.options = options or ViewOptions(serve=False)
         layout = mission_layout(
             scenario, seed=seed, steps=steps, uav_count=uav_count, source=source, live=live,
@@ -61,7 +67,7 @@ class ViewSession:
             from mission_view.server import ViewServer
 
             self.server = ViewServer(
-                self.store, self.options.host, self.options.port, tiles=self.options.tiles
+                self.store, self.options.host, self.options.port, actions, tiles=self.options.tiles
             )
             try:
                 self.url = self.server.start()

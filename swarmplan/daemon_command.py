@@ -229,7 +229,7 @@ def fly_with_view(daemon: MissionDaemon, args: argparse.Namespace, out: Path) ->
     view = ViewSession(
         daemon.scenario, seed=args.seed, steps=daemon.steps, uav_count=daemon.n,
         source="mavlink", truth=False, out_dir=out, options=option_groups.view_options(args),
-        append=args.resume,
+        append=args.resume, actions=daemon.operator.inbox,
     )  # fmt: skip
     feed = DaemonViewFeed(daemon, view)
     said = daemon.options.progress

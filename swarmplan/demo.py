@@ -213,7 +213,7 @@ class DemoDisplay:
         and by the simulator's true targets (a UDP port of this process)."""
         self.view = ViewSession(
             scenario, seed=seed, steps=steps, uav_count=scenario.uav_count, source="mavlink",
-            truth=True, out_dir=out, options=options,
+            truth=True, out_dir=out, options=options, actions=daemon.operator.inbox,
         )  # fmt: skip
         self.truth = TruthReceiver()  # the simulator's true targets, for the view only
         feed = DaemonViewFeed(daemon, self.view, self.truth.latest)

@@ -34,6 +34,7 @@ from mavlink_bridge.mission.decision_loop import DecisionLoop
 from mavlink_bridge.mission.keeping_up import measure_step_wall_s, refuse_unkeepable_time_scale
 from mavlink_bridge.mission.launch import Launch, LaunchPhase, launch_phases, run_launch
 from mavlink_bridge.mission.lockstep_clock import LockstepClock
+from mavlink_bridge.mission.operator_actions import OperatorActions
 from mavlink_bridge.mission.options import DaemonOptions
 from mavlink_bridge.mission.resume_takeback import TakeBack
 from mavlink_bridge.results.checkpoint import (
@@ -91,13 +92,6 @@ def _import_planner() -> tuple[Any, Any]:
     return HapfAcoPlanner, MissionRecorder
 
 
-def _import_planner() -> tuple[Any, Any]:
-    from planner.hapf_aco import HapfAcoPlanner
-    from planner.metrics import MissionRecorder
-
-    return HapfAcoPlanner, MissionRecorder
-
-
 class MissionDaemon:
     """Runs one mission over MAVLink (see the module docstring)."""
 
@@ -141,7 +135,9 @@ class MissionDaemon:
         #: the launch, in order; a phase is added here (launch.LaunchPhase), not in fly()
         self.launch: list[LaunchPhase] = launch_phases()
         self.launching = Launch(ctx, self.home, self.loss)
-        self.loop = DecisionLoop(ctx, self.home, self.audit, self.watch_links)
+        #: what an operator asks from the mission view (operator_actions.py): ``operator.inbox``
+        self.operator = OperatorActions(ctx, self.home, self.loss)
+        self.loop = DecisionLoop(ctx, self.home, self.audit, self.watch_links, self.operator)
 
     @property
     def options(self) -> DaemonOptions:
@@ -313,6 +309,7 @@ class MissionDaemon:
         and keep the result of what was flown in ``self.report``. Never raises: a dead socket
         or an unanswered command is a warning line."""
         where = self.phase
+        self.operator.inbox.close(f"the mission is over ({ended})")
         self.enter("rtl")
         self.audit.set_phase("rtl")
         sent_to: list[int] = []
@@ -320,6 +317,7 @@ class MissionDaemon:
         completed = ended.startswith("completed")
         stages = self.loop.stages
         try:
+            self.operator.watched_home()  # the planes it sent home: watched like the others
             # an interrupted daemon does not stay to watch the flight home, so holds no plane
             sent_to, skipped = self.home.return_to_launch(
                 None if stages is None else stages.end_leg_timing, separate=completed
@@ -356,6 +354,7 @@ class MissionDaemon:
         extra["ended_in_phase"] = phase
         if self.take_back:
             extra["resume_decisions"] = [t.row() for t in self.take_back]
+        extra.update(self.operator.result())
         hold = self.loop.hold_policy
         if hold is not None:
             extra["held_steps"] = hold.held_steps

@@ -23,6 +23,7 @@ from mavlink_bridge.mission.decision_step import DecisionStep
 from mavlink_bridge.mission.flown_planning import flight_margin_km, planning_scenario
 from mavlink_bridge.mission.keeping_up import HoldWhenLate, held_apart
 from mavlink_bridge.mission.loop_state import LoopState, course_heading
+from mavlink_bridge.mission.operator_actions import OperatorActions
 from mavlink_bridge.mission.pacing import (
     STEP_DEADLINE_SHARE,
     DecisionInstant,
@@ -49,11 +50,14 @@ class DecisionLoop:
         home: FlightHomePhase,
         audit: TrackAudit,
         watch: Callable[[int], None],
+        operator: OperatorActions | None = None,
     ) -> None:
         self.ctx = ctx
         self.home = home
         self.audit = audit
         self.watch = watch  # loss and return, at every pump of the loop (``vehicle_loss.py``)
+        #: the operator's actions from the mission view, at the top of each step
+        self.operator = operator
         cfg = ctx.scenario.config
         self.state: LoopState | None = None  # once it runs
         self.stages: DecisionStep | None = None
@@ -239,6 +243,8 @@ class DecisionLoop:
             state, first_step = self.state, resume_from.step + 1
         for step in range(first_step, ctx.steps + 1):  # the start, then one record per step
             instant = pacing.wait(step, state.consumed) if step > 0 else self.first_instant()
+            if self.operator_ends(step, state):
+                break
             inputs = stages.gather(state, step, instant.looks)
             plan = stages.plan(state, inputs)
             flight = stages.envelope(state, inputs, plan)
@@ -248,7 +254,8 @@ class DecisionLoop:
             batch = stages.command_batch(state, inputs, plan, flight)
             # how late the step's commands go out, measured once (pacing.Lateness)
             lateness = pacing.current.lateness(instant) if step > 0 else None
-            if self.holds(step, lateness):
+            held = self.holds(step, lateness)
+            if held:
                 self.audit.set_phase("hold")  # nothing new: the planes circle their last targets
                 self.hold_apart(state, inputs.active, instant.deadline)
             else:
@@ -260,15 +267,33 @@ class DecisionLoop:
             homeward = self.home.guide_stray_returns() + self.home.guide_sent_home()
             ctx.send(homeward, deadline=instant.deadline)
             self.look_times.note(step, state.positions_ms, inputs.active)
-            self.tell_listeners(state, inputs, plan, flight, lateness is not None and lateness.late)
+            late = lateness is not None and lateness.late
+            self.tell_listeners(state, inputs, plan, flight, late, held)
             if checkpoints is not None:  # atomically, after every step
                 checkpoints.save(step, ctx.account, state.checkpoint_view(), elapsed_s())
             if plan.done.all() and not ctx.scenario.config.home_by_end:
                 break  # (home_by_end: the mission ends at its last step, as offline)
         ctx.options = replace(ctx.options, leg_timing=stages.leg_timing)
 
+    def operator_ends(self, step: int, state: LoopState) -> bool:
+        """The operator's actions queued since the last step (``operator_actions.py``); True
+        when they end the mission before this step (``ended_early`` says how)."""
+        if self.operator is None:
+            return False
+        if self.operator.apply(step, state.planner):
+            self.watch(step)  # a plane the operator sent home is lost to the planner from now
+        if self.operator.ended is None:
+            return False
+        self.ended_early = self.operator.ended
+        self.ctx.say(f"mission {self.ended_early}")
+        return True
+
     def holds(self, step: int, lateness: Lateness | None) -> bool:
-        """Paced time: is this step too late to fly (``keeping_up.HoldWhenLate``)?"""
+        """Is this step held: the operator holds the search (``operator_actions.py``), or, in
+        paced time, it is too late to fly (``keeping_up.HoldWhenLate``)?"""
+        if self.operator is not None and self.operator.holding:
+            self.operator.held_steps += 1
+            return True
         if self.hold_policy is None or lateness is None:
             return False
         return self.hold_policy.hold(step, lateness.seconds)
@@ -308,9 +333,10 @@ class DecisionLoop:
         self.stuck_in_hold = set(stuck)
 
     def tell_listeners(
-        self, state: LoopState, inputs: Any, plan: Any, flight: Any, late: bool
+        self, state: LoopState, inputs: Any, plan: Any, flight: Any, late: bool, held: bool = False
     ) -> None:
-        """The progress callback (StepStatus) and the step listeners (StepRecord)."""
+        """The progress callback (StepStatus) and the step listeners (StepRecord; a held step's
+        aims are the targets the planes circle, not the ones planned and not sent)."""
         ctx, active = self.ctx, inputs.active
         status = StepStatus(
             inputs.step,
@@ -333,7 +359,7 @@ class DecisionLoop:
             cells=state.cells.copy(),
             headings=state.headings.copy(),
             next_cells=np.array(flight.next_cells, copy=True),
-            aims_km=np.array(flight.aims_km, copy=True),
+            aims_km=held_aims(flight.aims_km, state) if held else np.array(flight.aims_km),
             speeds_mps=np.array(flight.speeds_mps, copy=True),
             active=active.copy(),
             done=plan.done.copy(),
@@ -350,3 +376,9 @@ class DecisionLoop:
         )
         for listener in ctx.options.step_listeners:
             listener(record)
+
+
+def held_aims(planned_km: np.ndarray, state: LoopState) -> np.ndarray:
+    """A held step's aims: the target each plane last accepted, where it has one."""
+    last = state.last_targets_km()
+    return np.where(np.isfinite(last), last, planned_km)

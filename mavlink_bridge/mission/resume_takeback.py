@@ -53,6 +53,7 @@ if TYPE_CHECKING:
     from mavlink_bridge.mission.context import MissionContext
     from mavlink_bridge.mission.loop_state import LoopState
     from mavlink_bridge.results.checkpoint import Checkpoint
+    from mavlink_bridge.vehicles.guided_commands import Command
     from mavlink_bridge.vehicles.vehicle_loss import LossWatch
     from mavlink_bridge.way_home.flight_home import FlightHomePhase
 
@@ -301,14 +302,30 @@ def send_home(
     """The planes judged HOME: out of the mission for good (lost to the planner, with why)
     and on the daemon's safe flight home (RTL where the line home is clear, else guided
     around the threats; re-judged at every step by ``flight_home.guide_sent_home``)."""
-    home = [t for t in decisions if t.decision == HOME]
-    if not home:
-        return
+    home = {t.system_id: t.why for t in decisions if t.decision == HOME}
+    if home:
+        send_planes_home(ctx, flight_home, loss, home, "sent home at the resume")
+
+
+def send_planes_home(
+    ctx: MissionContext,
+    flight_home: FlightHomePhase,
+    loss: LossWatch,
+    why: dict[int, str],
+    lost_reason: str,
+) -> list[Command]:
+    """Planes (system id -> why) out of the mission for good: lost to the planner with
+    ``lost_reason`` (``LossWatch.retire``) and on the daemon's safe flight home (RTL where the
+    line home is clear, else guided around the threats; re-judged at every decision step by
+    ``flight_home.guide_sent_home``). A resumed daemon's planes judged HOME, and the planes an
+    operator sends home (``operator_actions.py``). Returns the commands sent, answered."""
     by_id = {v.system_id: v for v in ctx.vehicles()}
-    for t in home:
-        flight_home.send_home(t.system_id, t.why)
-        loss.retire(t.system_id - 1, "sent home at the resume")
-    planes = [by_id[t.system_id] for t in home]
-    for c in ctx.send(flight_home.homeward_commands(planes, announce=True)):
+    for system_id, reason in why.items():
+        flight_home.send_home(system_id, reason)
+        loss.retire(system_id - 1, lost_reason)
+    planes = [by_id[s] for s in why if s in by_id]
+    sent = ctx.send(flight_home.homeward_commands(planes, announce=True))
+    for c in sent:
         if not c.accepted:
             ctx.say(f"warning: {c.describe_failure()}")
+    return sent

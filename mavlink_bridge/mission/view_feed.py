@@ -20,7 +20,13 @@ from planner.geodesy import geodetic_to_local_km
 from planner.planner_interface import MODES
 
 #: progress lines that go to the timeline, by the kind of event they are
-LINE_KINDS = (("refused", "refusal"), ("warning", "warning"), ("lost", "link"), ("rejoin", "link"))
+LINE_KINDS = (
+    ("operator (", "operator"),  # an operator's action (operator_actions.py)
+    ("refused", "refusal"),
+    ("warning", "warning"),
+    ("lost", "link"),
+    ("rejoin", "link"),
+)
 
 #: the mission's stage an operator thinks in, by the daemon's phase (any other: the launch)
 STAGES = {"decisions": "search", "rtl": "return"}
