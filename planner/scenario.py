@@ -23,13 +23,16 @@ from planner.errors import UserError
 #: The four kinds of time-sensitive target of section 3.1.1, by what the swarm knows of them.
 TARGET_KINDS = ("unknown_position", "known_position", "known_speed", "known_velocity")
 
-BUILTIN_SCENARIOS = ("paper-2uav", "paper-10uav", "paper-20uav", "arduplane-3uav")
+BUILTIN_SCENARIOS = (
+    "paper-2uav", "paper-10uav", "paper-20uav", "arduplane-3uav", "swarm-100uav", "swarm-500uav",
+)  # fmt: skip
 
 #: Bounds that keep a scenario runnable (memory, time): the paper's grid is 10,000 cells, 250
-#: steps, 20 UAVs; MAVLink system ids leave room for at most 200 vehicles.
+#: steps, 20 UAVs; the built-in swarm-500uav has 500 (one MAVLink network carries at most 254
+#: vehicles, so a larger swarm flies over several).
 MAX_GRID_CELLS = 250_000
 MAX_STEPS = 100_000
-MAX_UAVS = 200
+MAX_UAVS = 1000
 
 
 class ScenarioError(UserError, ValueError):

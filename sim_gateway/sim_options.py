@@ -13,7 +13,10 @@ from dataclasses import dataclass
 from planner.errors import UserError
 from planner.scenario import Scenario
 
-MAX_VEHICLES = 200  # system ids 201-255 are left to ground stations (MAVSDK 245, MAVProxy 255)
+#: one simulator's vehicles take system ids 1..250 of its MAVLink network; 251-255 are left to
+#: ground stations (MAVProxy and the daemon 255; MAVSDK's 245 is a vehicle's beyond 244)
+MAX_VEHICLES = 250
+MAVLINK_NOTE = f"{MAX_VEHICLES} (the system ids of one MAVLink network)"
 
 
 class SimulatorError(UserError):
@@ -123,8 +126,14 @@ def resolve_gcs_host(host: str) -> str:
 
 
 def with_vehicle_count(scenario: Scenario, count: int | None) -> Scenario:
-    """The scenario with ``count`` UAVs (random starts only: fixed starts fix the count)."""
+    """The scenario with ``count`` UAVs (random starts only: fixed starts fix the count), at most
+    ``MAX_VEHICLES`` of them."""
     if count is None or count == scenario.uav_count:
+        if scenario.uav_count > MAX_VEHICLES:
+            raise SimulatorError(
+                f"scenario {scenario.name!r} has {scenario.uav_count} UAVs and one simulator "
+                f"serves at most {MAVLINK_NOTE}; fly it offline (swarmplan run)"
+            )
         return scenario
     if scenario.uav_starts is not None:
         raise SimulatorError(

@@ -108,3 +108,13 @@ def test_usage_errors_of_the_real_command_line():
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["sim", "--scenario", "swarm-500uav", "--quiet"], ["sim", "--vehicles", "251", "--quiet"]],
+)
+def test_a_simulator_of_more_vehicles_than_one_mavlink_network_holds_is_one_line(capsys, args):
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "250" in err, err

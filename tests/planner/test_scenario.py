@@ -1,10 +1,20 @@
 import dataclasses
 import math
+import subprocess
+import sys
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from planner.config import ConfigError, PlannerConfig
-from planner.scenario import BUILTIN_SCENARIOS, ScenarioError, load_scenario, parse_scenario
+from planner.scenario import (
+    BUILTIN_SCENARIOS,
+    START_THREAT_GAP_KM,
+    ScenarioError,
+    load_scenario,
+    parse_scenario,
+)
 
 GOOD = """
 name = "small"
@@ -36,7 +46,31 @@ def test_builtin_scenarios_match_the_paper():
         "known_velocity",
     }
     assert load_scenario("paper-20uav").uav_count == 20
-    assert set(BUILTIN_SCENARIOS) == {"paper-2uav", "paper-10uav", "paper-20uav", "arduplane-3uav"}
+    assert {"paper-2uav", "paper-10uav", "paper-20uav", "arduplane-3uav"} <= set(BUILTIN_SCENARIOS)
+
+
+@pytest.mark.parametrize("count", [100, 500])
+def test_the_swarm_scenarios_start_apart_on_the_edges_clear_of_threats(count, tmp_path):
+    s = load_scenario(f"swarm-{count}uav")
+    assert s.uav_count == count == len(s.uav_starts)
+    assert (s.config.grid_nx, s.config.grid_ny, s.config.cell_km) == (200, 200, 1.0)
+    assert len(s.targets) == 64 and len(s.threats) == 20 and s.config.max_range_km == 330
+    xy = np.array([(u.x_km, u.y_km) for u in s.uav_starts])
+    gaps = np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1))
+    assert gaps[np.triu_indices(count, 1)].min() >= 2.0  # two cells, as random starts keep
+    inset = np.minimum(xy, 200 - xy).min(axis=1)
+    assert inset.min() >= 5 and inset.max() <= 13  # on the rings near the edges
+    clearance = s.config.detection_radius_km + START_THREAT_GAP_KM
+    for t in s.threats:
+        assert np.hypot(xy[:, 0] - t.x_km, xy[:, 1] - t.y_km).min() > t.radius_km + clearance
+    heading = np.radians([u.heading_deg for u in s.uav_starts])  # counter-clockwise from east
+    inward = (np.cos(heading) * (100 - xy[:, 0]) + np.sin(heading) * (100 - xy[:, 1])) > 0
+    assert inward.all()
+    # the file is what its generator writes
+    tool = Path(__file__).parents[2] / "tools" / "swarm_scenarios.py"
+    subprocess.run([sys.executable, str(tool), str(tmp_path)], check=True, capture_output=True)
+    packaged = Path(__file__).parents[2] / "planner" / "scenarios" / f"swarm-{count}uav.toml"
+    assert (tmp_path / f"swarm-{count}uav.toml").read_text() == packaged.read_text()
 
 
 def test_random_starts_are_reproducible_and_safe():
