@@ -223,7 +223,8 @@ function drawVehicle(k, v, i) {
   g.marker.setLatLng(pt(v.x_km, v.y_km));
   const el = g.marker.getElement();
   el.querySelector("svg").style.transform = `rotate(${-v.heading_deg}deg)`;
-  el.classList.toggle("lost", !v.active);
+  el.classList.toggle("lost", !v.active && !v.sent_home);
+  el.classList.toggle("sent-home", Boolean(v.sent_home));
   el.classList.toggle("selected", view.selected === i);
   const from = Math.max(0, k - TRAIL_STEPS);
   g.trail.setLatLngs(view.steps.slice(from, k + 1).map((t) => pt(t.vehicles[i].x_km,
@@ -292,12 +293,14 @@ function drawTable() {
   if (!s) return;
   const newest = view.current === view.steps.length - 1, stale = newest ? staleSeconds() : 0;
   const rows = s.vehicles.map((v, i) => {
-    const lost = !v.active && !v.done;
+    const lost = !v.active && !v.done && !v.sent_home;  // sent home: out, not lost
     const age = v.last_heard_s === null ? null : v.last_heard_s + stale;
-    const link = age === null ? "–" : lost ? `LOST ${fmt(age, 1)} s` :
-      stale ? `${fmt(age, 1)} s?` : `${fmt(age, 1)} s`;
+    const heard = age === null ? "–" : stale ? `${fmt(age, 1)} s?` : `${fmt(age, 1)} s`;
+    const link = v.sent_home ? `${v.sent_home} ${heard}` : lost && age !== null ?
+      `LOST ${fmt(age, 1)} s` : heard;
     const signed = v.signed === null ? "–" : v.signed ? "yes" : "no";
-    const cls = [lost ? "lost" : "", stale ? "stale" : ""].join(" ").trim();
+    const cls = [lost ? "lost" : "", v.sent_home ? "sent-home" : "", stale ? "stale" : ""]
+      .join(" ").trim();
     return `<tr data-uav="${i}" tabindex="0" class="${view.selected === i ? "selected" : ""}">` +
       `<td><span class="swatch" style="background:${colour(i)}"></span>${i + 1}</td>` +
       `<td>${v.mode || "–"}</td><td>${v.planner_mode || "–"}</td>` +
