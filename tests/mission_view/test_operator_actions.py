@@ -186,6 +186,29 @@ def confirm(page, action_button: str) -> dict:
     return last["answer"]
 
 
+def check_header_layout(page) -> None:
+    """With the action buttons and their status in the header, the phase line is whole at
+    1920 and 1280 wide; at 390 the actions come below the map and the player, and nothing is
+    wider than the window."""
+    geometry = (
+        "() => { const box = id => document.getElementById(id).getBoundingClientRect(),"
+        " p = document.getElementById('phase'); return {cut: p.scrollWidth > p.clientWidth,"
+        " phase: p.textContent, map: box('map').bottom, player: box('play').bottom,"
+        " actions: [box('operator-actions').top, box('operator-actions').left,"
+        " box('operator-actions').right], page: document.documentElement.scrollWidth}; }"
+    )
+    for width, height in ((1920, 1080), (1280, 720)):
+        page.set_viewport_size({"width": width, "height": height})
+        at = page.evaluate(geometry)
+        assert at["phase"] and not at["cut"] and at["page"] <= width, (width, at)
+    page.set_viewport_size({"width": 390, "height": 844})
+    at = page.evaluate(geometry)
+    top, left, right = at["actions"]
+    assert top >= at["map"] and top >= at["player"] and left >= 0 and right <= 390, at
+    assert at["page"] <= 390, at
+    page.set_viewport_size({"width": 1280, "height": 800})
+
+
 def live_step(page) -> int:
     return page.evaluate("() => missionView.steps.length ? missionView.steps.at(-1).step : -1")
 
@@ -237,6 +260,7 @@ def test_an_operator_flies_the_mission_from_the_page(page_demo):
     )  # fmt: skip
     assert "LOST" not in page.inner_text("#vehicles")
     assert page.inner_text('#vp-fields dd[data-field="state"]') == "sent home (operator)"
+    check_header_layout(page)
     page.wait_for_function(
         "() => missionView.events.filter(e => e.kind === 'operator').length >= 4", timeout=30_000
     )
