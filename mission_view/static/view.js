@@ -296,8 +296,7 @@ function drawTable() {
     const lost = !v.active && !v.done && !v.sent_home;  // sent home: out, not lost
     const age = v.last_heard_s === null ? null : v.last_heard_s + stale;
     const heard = age === null ? "–" : stale ? `${fmt(age, 1)} s?` : `${fmt(age, 1)} s`;
-    const link = v.sent_home ? `${v.sent_home} ${heard}` : lost && age !== null ?
-      `LOST ${fmt(age, 1)} s` : heard;
+    const link = v.sent_home ? escapeHtml(v.sent_home) : (lost && age !== null ? `LOST ${fmt(age, 1)} s` : heard);
     const signed = v.signed === null ? "–" : v.signed ? "yes" : "no";
     const cls = [lost ? "lost" : "", v.sent_home ? "sent-home" : "", stale ? "stale" : ""]
       .join(" ").trim();
@@ -305,7 +304,8 @@ function drawTable() {
       `<td><span class="swatch" style="background:${colour(i)}"></span>${i + 1}</td>` +
       `<td>${v.mode || "–"}</td><td>${v.planner_mode || "–"}</td>` +
       `<td>${fmt(v.ground_speed_mps)} / ${fmt(v.airspeed_mps)}</td>` +
-      `<td class="link ${cls}"${stale ? ' title="no word from the server: older than this"' : ""}>${link}</td><td>${signed}</td></tr>`;
+      `<td class="link ${cls}"${stale ? ' title="no word from the server: older than this"' :
+        v.sent_home ? ` title="heard ${heard} ago"` : ""}>${link}</td><td>${signed}</td></tr>`;
   });
   const body = $("vehicles").tBodies[0], focused = document.activeElement;
   const refocus = focused && body.contains(focused) ? focused.dataset.uav : null;
