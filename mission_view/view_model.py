@@ -47,6 +47,8 @@ class VehicleView:
     home_km: tuple[float, float] | None = None  # its home (HOME_POSITION; offline: its start)
     last_look: int | None = None  # index of its newest sensor look
     last_look_s: float | None = None  # seconds since that look arrived
+    #: out of the mission for good and flying home, and why ("sent home (operator)"); None: not
+    sent_home: str | None = None
 
 
 @dataclass

@@ -12,6 +12,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from mavlink_bridge.mission.operator_actions import SENT_HOME
 from mavlink_bridge.results.mission_result import StepRecord
 from mavlink_wire.protocol import mode_name
 from mission_view.view_model import StepView, TimelineEvent, VehicleView
@@ -22,11 +23,16 @@ from planner.planner_interface import MODES
 #: progress lines that go to the timeline, by the kind of event they are
 LINE_KINDS = (
     ("operator (", "operator"),  # an operator's action (operator_actions.py)
+    (SENT_HOME, "operator"),  # a plane it sent home, out of the mission (not a lost link)
     ("refused", "refusal"),
     ("warning", "warning"),
     ("lost", "link"),
     ("rejoin", "link"),
 )
+
+#: how the page names why a plane left the mission for good (``LossWatch.retired``); any other
+#: reason (a resumed daemon's: "sent home at the resume") as it is
+SENT_HOME_LABELS = {SENT_HOME: "sent home (operator)"}
 
 #: the mission's stage an operator thinks in, by the daemon's phase (any other: the launch)
 STAGES = {"decisions": "search", "rtl": "return"}
@@ -142,7 +148,14 @@ class DaemonViewFeed:
             home_km=self.home_km(v.home),
             last_look=None if look is None else look.index,
             last_look_s=None if look is None else max(0.0, now - look.received_s),
+            sent_home=self.sent_home(i),
         )  # fmt: skip
+
+    def sent_home(self, i: int) -> str | None:
+        """Why UAV ``i`` is out of the mission for good and on its way home (the operator sent
+        it, or a resumed daemon did), or None: a plane sent home is not a lost one."""
+        why = self.daemon.loss.retired.get(i)
+        return None if why is None else SENT_HOME_LABELS.get(why, why)
 
     def home_km(self, home: tuple[float, float, float] | None) -> tuple[float, float] | None:
         """A vehicle's home in the mission frame (converted once per home)."""

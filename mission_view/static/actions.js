@@ -29,9 +29,6 @@
   let vehiclePanel = document.getElementById("vehicle-actions");
   const ownVehiclePanel = !vehiclePanel;  // no vehicle panel on the page: a UAV menu of our own
   if (!vehiclePanel) vehiclePanel = el("span", { id: "vehicle-actions" });
-  panel.style.display = "inline-flex";
-  panel.style.gap = "0.4em";
-  panel.style.alignItems = "center";
 
   const buttons = {
     hold: el("button", { type: "button", "data-action": "hold" }, "Hold search"),

@@ -40,7 +40,7 @@ const na = (v, text) => (v === null || v === undefined ? "n/a" : text);
 
 function vehicleFields(v, i) {
   const stale = view.current === view.steps.length - 1 ? staleSeconds() : 0;
-  const state = v.done ? "home (done)" : v.active ? "flying" : "LOST";
+  const state = v.done ? "home (done)" : v.sent_home || (v.active ? "flying" : "LOST");
   const why = MODE_REASONS[v.planner_mode] || "";
   const home = v.home_km ? rangeBearing([v.x_km, v.y_km], v.home_km) : null;
   const target = v.target_km && v.active && !v.done ? v.target_km : null;

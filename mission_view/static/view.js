@@ -1,18 +1,17 @@
-// The mission view page: one WebSocket (/ws) brings the mission's layout, its steps, its phase
-// lines and the heat layer asked for. The map is Leaflet (vendored): without --tiles in the
-// mission frame (L.CRS.Simple, 1 unit = 1 m, x east, y north from the area's south-west corner);
-// with --tiles in Web Mercator over the tile server, the mission frame converted through the
-// layout's geo_grid. Works the same live and in a replay. panel.js adds the vehicle panel, the
-// cursor readout and the distance measure.
+// The mission view page: one WebSocket (/ws, connection.js) brings the mission's layout, its
+// steps, its phase lines and the heat layer asked for. The map is Leaflet (vendored): without
+// --tiles in the mission frame (L.CRS.Simple, 1 unit = 1 m, x east, y north from the area's
+// south-west corner); with --tiles in Web Mercator over the tile server, the mission frame
+// converted through the layout's geo_grid. Works the same live and in a replay. This file draws
+// the map and one step (vehicles, header, table); timeline.js the events, player.js the player,
+// connection.js the server and its reconnection; panel.js adds the vehicle panel, the cursor
+// readout and the distance measure. Classic scripts sharing the page's globals, in that order.
 "use strict";
 
 const TRAIL_STEPS = 30;
 const PALETTE = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2",
   "#17becf", "#bcbd22", "#393b79", "#637939", "#ad494a", "#7b4173", "#3182bd", "#e6550d",
   "#31a354", "#756bb1", "#636363", "#843c39", "#5254a3"];
-const KIND_NAMES = { engagement: "engagements", miss: "misses", override: "envelope",
-  refusal: "refused", warning: "warnings", link: "link", phase: "phase", operator: "operator" };
-const RECONNECT_MAX_S = 10;
 
 const view = {
   layout: null, steps: [], events: [], phases: [], current: -1, follow: true, ended: false,
@@ -224,7 +223,8 @@ function drawVehicle(k, v, i) {
   g.marker.setLatLng(pt(v.x_km, v.y_km));
   const el = g.marker.getElement();
   el.querySelector("svg").style.transform = `rotate(${-v.heading_deg}deg)`;
-  el.classList.toggle("lost", !v.active);
+  el.classList.toggle("lost", !v.active && !v.sent_home);
+  el.classList.toggle("sent-home", Boolean(v.sent_home));
   el.classList.toggle("selected", view.selected === i);
   const from = Math.max(0, k - TRAIL_STEPS);
   g.trail.setLatLngs(view.steps.slice(from, k + 1).map((t) => pt(t.vehicles[i].x_km,
@@ -288,28 +288,24 @@ function endMark() {
   return "";
 }
 
-// how long the page has had no word from the server (s), 0 while connected
-function staleSeconds() {
-  if (view.conn.state === "connected" || view.ended || !view.conn.lastMessageAt) return 0;
-  return (performance.now() - view.conn.lastMessageAt) / 1000;
-}
-
 function drawTable() {
   const s = view.steps[view.current];
   if (!s) return;
   const newest = view.current === view.steps.length - 1, stale = newest ? staleSeconds() : 0;
   const rows = s.vehicles.map((v, i) => {
-    const lost = !v.active && !v.done;
+    const lost = !v.active && !v.done && !v.sent_home;  // sent home: out, not lost
     const age = v.last_heard_s === null ? null : v.last_heard_s + stale;
-    const link = age === null ? "–" : lost ? `LOST ${fmt(age, 1)} s` :
-      stale ? `${fmt(age, 1)} s?` : `${fmt(age, 1)} s`;
+    const heard = age === null ? "–" : stale ? `${fmt(age, 1)} s?` : `${fmt(age, 1)} s`;
+    const link = v.sent_home ? escapeHtml(v.sent_home) : (lost && age !== null ? `LOST ${fmt(age, 1)} s` : heard);
     const signed = v.signed === null ? "–" : v.signed ? "yes" : "no";
-    const cls = [lost ? "lost" : "", stale ? "stale" : ""].join(" ").trim();
+    const cls = [lost ? "lost" : "", v.sent_home ? "sent-home" : "", stale ? "stale" : ""]
+      .join(" ").trim();
     return `<tr data-uav="${i}" tabindex="0" class="${view.selected === i ? "selected" : ""}">` +
       `<td><span class="swatch" style="background:${colour(i)}"></span>${i + 1}</td>` +
       `<td>${v.mode || "–"}</td><td>${v.planner_mode || "–"}</td>` +
       `<td>${fmt(v.ground_speed_mps)} / ${fmt(v.airspeed_mps)}</td>` +
-      `<td class="link ${cls}"${stale ? ' title="no word from the server: older than this"' : ""}>${link}</td><td>${signed}</td></tr>`;
+      `<td class="link ${cls}"${stale ? ' title="no word from the server: older than this"' :
+        v.sent_home ? ` title="heard ${heard} ago"` : ""}>${link}</td><td>${signed}</td></tr>`;
   });
   const body = $("vehicles").tBodies[0], focused = document.activeElement;
   const refocus = focused && body.contains(focused) ? focused.dataset.uav : null;
@@ -347,237 +343,12 @@ function drawTruth(s) {
   }
 }
 
-// ------------------------------------------------------------------ the timeline
-
-function shownEvents() { return view.events.filter((e) => !view.hiddenKinds.has(e.kind)); }
-
-function drawFilter() {
-  const counts = {};
-  for (const e of view.events) counts[e.kind] = (counts[e.kind] || 0) + 1;
-  const box = $("timeline-filter");
-  for (const kind of Object.keys(counts)) {
-    let input = box.querySelector(`input[data-kind="${kind}"]`);
-    if (!input) {
-      const label = document.createElement("label");
-      label.className = `chip ${kind}`;
-      label.innerHTML = `<input type="checkbox" data-kind="${kind}" checked> <span></span>`;
-      box.appendChild(label);
-      input = label.querySelector("input");
-      input.addEventListener("change", () => {
-        if (input.checked) view.hiddenKinds.delete(kind); else view.hiddenKinds.add(kind);
-        drawTimeline();
-      });
-    }
-    input.nextElementSibling.textContent = `${KIND_NAMES[kind] || kind} ${counts[kind]}`;
-  }
-}
-
-// every event known, newest first (those after the step shown are greyed): jump by clicking
-// or by Enter on one
-function drawTimeline() {
-  const s = view.steps[view.current];
-  if (!s) return;
-  const shown = shownEvents();
-  const key = `${view.events.length}|${[...view.hiddenKinds].join(",")}`;
-  const list = $("timeline");
-  if (key !== view.timelineKey) {
-    view.timelineKey = key;
-    drawFilter();
-    const focused = list.contains(document.activeElement) ? document.activeElement.dataset.n : null;
-    list.innerHTML = shown.slice(-400).reverse().map((e) =>
-      `<li class="${e.kind}" value="${e.step}"><button type="button" data-step="${e.step}" data-n="${view.events.indexOf(e)}">` +
-      `${e.uav === null || e.uav === undefined ? "" : `UAV ${e.uav + 1}: `}${escapeHtml(e.text)}</button></li>`).join("");
-    if (focused !== null) {
-      const again = list.querySelector(`button[data-n="${focused}"]`);
-      if (again) again.focus({ preventScroll: true });
-    }
-  }
-  for (const li of list.children) li.classList.toggle("ahead", Number(li.value) > s.step);
-}
-
 function escapeHtml(text) {
   return String(text).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" })[c]);
 }
 
-function showStep(k) {
-  k = Math.max(0, Math.min(view.steps.length - 1, k));
-  const newest = k === view.steps.length - 1 && view.layout.live && !view.ended &&
-    view.conn.state === "connected";
-  setFollow(newest);
-  render(k);
-  ask();
-}
+// ------------------------------------------------------------------ layer controls
 
-function jumpToStep(step) {
-  const k = view.steps.findIndex((s) => s.step === step);
-  if (k >= 0) { stopPlaying(); setFollow(false); render(k); ask(); }
-}
-
-function jumpEvent(direction) {
-  const here = view.steps[view.current].step;
-  const steps = shownEvents().map((e) => e.step);
-  const next = direction > 0 ? steps.find((t) => t > here) : steps.reverse().find((t) => t < here);
-  if (next !== undefined) jumpToStep(next);
-}
-
-// ------------------------------------------------------------------ the player
-
-function stopPlaying() {
-  if (view.playing !== null) clearInterval(view.playing);
-  view.playing = null;
-  $("play").textContent = "play";
-}
-
-function play() {
-  if (view.playing !== null) { stopPlaying(); return; }
-  if (view.current >= view.steps.length - 1) showStep(0);
-  $("play").textContent = "pause";
-  view.playing = setInterval(() => {
-    if (view.current >= view.steps.length - 1) { stopPlaying(); return; }
-    showStep(view.current + 1);
-  }, 1000 / Number($("speed").value));
-}
-
-// ------------------------------------------------------------------ talking to the server
-
-function ask() {
-  if (!view.ws || view.ws.readyState !== WebSocket.OPEN) return;
-  const step = view.follow ? null : (view.steps[view.current] || {}).step ?? null;
-  view.ws.send(JSON.stringify({ type: "view", kind: view.kind, uav: view.uav, step }));
-}
-
-function setFollow(on) {
-  view.follow = Boolean(on && view.layout && view.layout.live && !view.ended &&
-    view.conn.state === "connected");
-  $("follow").classList.toggle("active", view.follow);
-  $("follow").setAttribute("aria-pressed", String(view.follow));
-}
-
-function onMission(msg) {
-  if (view.layout) {  // a reconnection: the server sends everything again
-    view.restore = view.follow ? null : (view.steps[view.current] || {}).step ?? null;
-    view.steps = []; view.events = []; view.phases = []; view.timelineKey = "";
-    view.layout = { ...msg };
-    return;
-  }
-  view.layout = msg;
-  initMap(msg);
-  $("layer-uav").innerHTML = Array.from({ length: msg.uav_count }, (_, i) =>
-    `<option value="${i}">UAV ${i + 1}</option>`).join("");
-  $("title").textContent = `${msg.scenario}, seed ${msg.seed}, ` +
-    (msg.live ? `live (${msg.source === "mavlink" ? "over MAVLink" : msg.source})` : `replay of ${msg.source === "mavlink" ? "a MAVLink mission" : "an offline run"}`);
-  $("follow").style.display = msg.live ? "" : "none";
-  setFollow(msg.live);
-  drawLegend();
-}
-
-function onSteps(steps) {
-  for (const s of steps) {
-    view.steps.push(s);
-    for (const e of s.events) view.events.push(e);
-  }
-  const restore = view.restore === null ? -1 : view.steps.findIndex((s) => s.step === view.restore);
-  if (view.follow) render(view.steps.length - 1);
-  else if (view.current < 0) render(view.layout.live ? view.steps.length - 1 : 0);  // a replay opens at its start
-  else if (restore >= 0) { view.restore = null; render(restore); }  // after a reconnection
-  else {
-    $("slider").max = String(view.steps.length - 1);
-    drawHeader();
-  }
-}
-
-function onMessage(ev) {
-  view.conn.lastMessageAt = performance.now();
-  const msg = JSON.parse(ev.data);
-  if (msg.type === "mission") onMission(msg);
-  else if (msg.type === "steps") onSteps(msg.steps);
-  else if (msg.type === "layer") drawHeat(msg);
-  else if (msg.type === "phase") {
-    view.phases.push({ step: msg.step ?? -1, text: msg.text });
-    drawHeader();
-  } else if (msg.type === "end") {
-    view.ended = true;
-    setFollow(false);
-    drawHeader();
-  }
-}
-
-function setConnection(state, text) {
-  view.conn.state = state;
-  $("connection").textContent = text;
-  $("connection").className = state === "connected" ? "on" : "off";
-}
-
-function connect() {
-  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
-  view.ws = ws;
-  ws.onopen = () => {
-    const again = view.conn.lostAt !== null;
-    view.conn.attempts = 0; view.conn.lostAt = null;
-    setConnection("connected", "connected");
-    $("banner").hidden = true;
-    document.body.classList.remove("disconnected");
-    if (again && view.conn.resumeFollow) setFollow(true);
-    ask();
-  };
-  ws.onmessage = onMessage;
-  ws.onclose = () => {
-    if (view.ws !== ws) return;
-    if (view.ended) {
-      setConnection("over", "mission over, disconnected");
-      showBanner("info", view.layout && view.layout.live
-        ? "The mission is over and its server has stopped: this is its last picture. " +
-          "swarmplan view OUT shows it again." : "The view's server has stopped.");
-      return;
-    }
-    if (view.conn.lostAt === null) {
-      view.conn.lostAt = Date.now();
-      view.conn.resumeFollow = view.follow;
-    }
-    setFollow(false);
-    view.conn.attempts += 1;
-    const wait = Math.min(RECONNECT_MAX_S, 2 ** (view.conn.attempts - 1));
-    view.conn.retryAt = performance.now() + wait * 1000;
-    setConnection("lost", "disconnected");
-    document.body.classList.add("disconnected");
-    setTimeout(connect, wait * 1000);
-    tick();
-  };
-}
-
-function showBanner(kind, text) {
-  const banner = $("banner");
-  banner.className = kind;
-  banner.textContent = text;
-  banner.hidden = false;
-}
-
-// once a second: the disconnected banner's clock and the vehicles' growing link ages
-function tick() {
-  const c = view.conn;
-  if (c.state !== "lost") return;
-  const since = new Date(c.lostAt).toLocaleTimeString();
-  const ago = Math.round((Date.now() - c.lostAt) / 1000);
-  const retry = Math.max(0, Math.ceil((c.retryAt - performance.now()) / 1000));
-  const at = view.steps.length ? ` The picture is frozen at step ${view.steps[view.steps.length - 1].step}.` : "";
-  showBanner("error", `Connection to the view's server lost at ${since} (${ago} s ago).${at} ` +
-    `Reconnecting: attempt ${c.attempts + 1} ${retry ? `in ${retry} s` : "now"}.`);
-  setConnection("lost", `disconnected, retrying (${c.attempts})`);
-  drawTable();
-  if (window.drawVehiclePanel) window.drawVehiclePanel();
-}
-setInterval(tick, 1000);
-
-// ------------------------------------------------------------------ controls
-
-$("slider").addEventListener("input", (e) => { stopPlaying(); setFollow(false); render(Number(e.target.value)); ask(); });
-$("follow").addEventListener("click", () => { stopPlaying(); setFollow(true); render(view.steps.length - 1); ask(); });
-$("step-back").addEventListener("click", () => { stopPlaying(); setFollow(false); showStep(view.current - 1); });
-$("step-forward").addEventListener("click", () => { stopPlaying(); showStep(view.current + 1); });
-$("play").addEventListener("click", play);
-$("speed").addEventListener("change", () => { if (view.playing !== null) { stopPlaying(); play(); } });
-$("prev-event").addEventListener("click", () => jumpEvent(-1));
-$("next-event").addEventListener("click", () => jumpEvent(1));
 $("layer-kind").addEventListener("change", (e) => {
   view.kind = e.target.value;
   $("layer-uav").disabled = view.kind === "coverage";
@@ -590,8 +361,3 @@ $("layer-uav").addEventListener("change", (e) => {
   ask();
 });
 $("show-truth").addEventListener("change", () => render(view.current));
-$("timeline").addEventListener("click", (e) => {
-  const button = e.target.closest("button");
-  if (button) jumpToStep(Number(button.dataset.step));
-});
-connect();

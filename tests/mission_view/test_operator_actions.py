@@ -1,11 +1,12 @@
 """Operator actions from the mission view (docs/view.md, "Operator actions") on real lockstep
-demos of paper-2uav (simulator and daemon over loopback UDP): refused without the view's token
-(403, counted in result.json), RTL all over HTTP (both vehicles' heartbeats in RTL, the mission
-ended early, the normal way), and, clicked through the page in headless Chromium, mark a sighting,
-hold and resume (no guided target sent while held), RTL one UAV (its heartbeats in RTL, the
-other's not) and end the mission (result.json written early, with every action, who and when).
-Two demos of ~15-25 s each, one per test (each test stands alone: under pytest-xdist the tests of
-one module may run on different workers)."""
+missions of paper-2uav over loopback UDP. ``swarmplan sim`` with ``swarmplan daemon`` (the URL with
+the token the daemon prints): refused without the view's token (403, counted in result.json), RTL
+all over HTTP (both vehicles' heartbeats in RTL, the mission ended early, the normal way). And
+``swarmplan demo`` clicked through the page in headless Chromium: mark a sighting, hold and resume
+(no guided target sent while held), RTL one UAV (its heartbeats in RTL, the other's not; "sent
+home (operator)" on the page, not "LOST") and end the mission (result.json written early, with
+every action, who and when). One mission of ~15-25 s per test (each test stands alone: under
+pytest-xdist the tests of one module may run on different workers)."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import pytest
 from browser import CHROMIUM_ARGS, chromium_or_skip
-from loopback import start_swarmplan, stop
+from loopback import free_udp_port, start_swarmplan, stop
 
 from mavlink_wire.protocol import PLANE_MODE_RTL
 
@@ -26,16 +27,32 @@ STEPS = 250  # the scenario's; every mission here is ended early by its operator
 
 
 class Demo:
-    """A running demo: its process, the view's URL with its token, its folder."""
+    """A running mission with its view: ``swarmplan demo`` or, with ``daemon``, ``swarmplan
+    sim`` and ``swarmplan daemon`` (lockstep); the daemon's process, the view's URL with its
+    token, its folder."""
 
-    def __init__(self, out: Path) -> None:
+    def __init__(self, out: Path, daemon: bool = False) -> None:
         self.out = out
-        self.log = out / "demo.log"
-        self.proc = start_swarmplan(
-            ["demo", "paper-2uav", "--seed", "2", "--out", str(out)], self.log
-        )
+        self.log = out / ("daemon.log" if daemon else "demo.log")
+        self.sim = None
+        if daemon:
+            port = free_udp_port()
+            self.sim = start_swarmplan(
+                ["sim", "--scenario", "paper-2uav", "--seed", "2", "--lockstep", "--speedup",
+                 "100", "--gcs-port", str(port), "--quiet"], out / "sim.log",
+            )  # fmt: skip
+            args = ["daemon", "--connect", f"udpin:127.0.0.1:{port}", "--scenario", "paper-2uav",
+                    "--seed", "2", "--lockstep", "--timeout", "30", "--out", str(out)]  # fmt: skip
+        else:
+            args = ["demo", "paper-2uav", "--seed", "2", "--out", str(out)]
+        self.proc = start_swarmplan(args, self.log)
         self.url = self.token_url(60)
         self.base, self.token = self.url.split("?token=")
+
+    def stop(self) -> None:
+        stop(self.proc)
+        if self.sim is not None:
+            stop(self.sim)
 
     def token_url(self, timeout_s: float) -> str:
         deadline = time.monotonic() + timeout_s
@@ -71,12 +88,12 @@ class Demo:
 
 
 @pytest.fixture
-def http_demo(tmp_path_factory):
-    demo = Demo(tmp_path_factory.mktemp("operator-http"))
+def http_daemon(tmp_path_factory):
+    demo = Demo(tmp_path_factory.mktemp("operator-http"), daemon=True)
     try:
         yield demo
     finally:
-        stop(demo.proc)
+        demo.stop()
 
 
 @pytest.fixture
@@ -93,7 +110,7 @@ def page_demo(tmp_path_factory):
             finally:
                 browser.close()
     finally:
-        stop(demo.proc)
+        demo.stop()
 
 
 def heartbeats(tlog: Path) -> list[tuple[float, int, int]]:
@@ -127,31 +144,31 @@ def utc_s(stamp: str) -> float:
 
 
 @pytest.mark.timeout(180)
-def test_refused_without_the_token_then_rtl_all_sends_every_vehicle_home(http_demo):
-    """No token and a wrong one: 403, nothing done, counted; bad requests are one line; then
-    RTL all: both vehicles' heartbeats in RTL after it (not before), the mission ended early
-    the normal way."""
-    assert http_demo.post({"action": "end"})[0] == 403
-    assert http_demo.post({"token": http_demo.token[:-1] + "x", "action": "rtl_all"})[0] == 403
-    status, answer = http_demo.post({"token": http_demo.token, "action": "check"})
+def test_refused_without_the_token_then_rtl_all_sends_every_vehicle_home(http_daemon):
+    """``swarmplan daemon``'s view (the URL with the token it prints). No token and a wrong
+    one: 403, nothing done, counted; bad requests are one line; then RTL all: both vehicles'
+    heartbeats in RTL after it (not before), the mission ended early the normal way."""
+    assert http_daemon.post({"action": "end"})[0] == 403
+    assert http_daemon.post({"token": http_daemon.token[:-1] + "x", "action": "rtl_all"})[0] == 403
+    status, answer = http_daemon.post({"token": http_daemon.token, "action": "check"})
     assert status == 200 and answer["open"] and answer["uav_count"] == 2
-    status, answer = http_demo.post({"token": http_demo.token, "action": "rtl", "uav": 7})
+    status, answer = http_daemon.post({"token": http_daemon.token, "action": "rtl", "uav": 7})
     assert status == 400 and "0..1" in answer["error"]
-    nowhere = {"token": http_demo.token, "action": "mark", "lat": 0.0, "lon": 0.0}
-    status, answer = http_demo.post(nowhere)
+    nowhere = {"token": http_daemon.token, "action": "mark", "lat": 0.0, "lon": 0.0}
+    status, answer = http_daemon.post(nowhere)
     assert status == 400 and "outside the mission area" in answer["error"]
 
-    http_demo.wait_step(5)  # a few steps out: their flight home lasts a few heartbeats
-    status, answer = http_demo.post({"token": http_demo.token, "action": "rtl_all"})
+    http_daemon.wait_step(5)  # a few steps out: their flight home lasts a few heartbeats
+    status, answer = http_daemon.post({"token": http_daemon.token, "action": "rtl_all"})
     assert status == 200, answer
     assert "RTL accepted by vehicle 1, 2" in answer["result"]
-    result = http_demo.result()
+    result = http_daemon.result()
     assert result["ended"].startswith("completed early: every plane sent home by the operator")
     assert result["steps"] < STEPS
     assert [a["action"] for a in result["operator_actions"]] == ["rtl_all"]
     assert result["operator_refused"] == 2  # the two above
     asked = utc_s(result["operator_actions"][0]["time_utc"])
-    modes = heartbeats(http_demo.out / "mission.tlog")
+    modes = heartbeats(http_daemon.out / "mission.tlog")
     for sid in (1, 2):  # each vehicle said RTL in its heartbeats, after the operator asked
         assert any(t >= asked - 1 and s == sid and m == PLANE_MODE_RTL for t, s, m in modes)
         assert not any(t < asked - 1 and s == sid and m == PLANE_MODE_RTL for t, s, m in modes)
@@ -167,6 +184,29 @@ def confirm(page, action_button: str) -> dict:
     last = page.evaluate("() => operatorActions.last")
     assert last["code"] == 200, last
     return last["answer"]
+
+
+def check_header_layout(page) -> None:
+    """With the action buttons and their status in the header, the phase line is whole at
+    1920 and 1280 wide; at 390 the actions come below the map and the player, and nothing is
+    wider than the window."""
+    geometry = (
+        "() => { const box = id => document.getElementById(id).getBoundingClientRect(),"
+        " p = document.getElementById('phase'); return {cut: p.scrollWidth > p.clientWidth,"
+        " phase: p.textContent, map: box('map').bottom, player: box('play').bottom,"
+        " actions: [box('operator-actions').top, box('operator-actions').left,"
+        " box('operator-actions').right], page: document.documentElement.scrollWidth}; }"
+    )
+    for width, height in ((1920, 1080), (1280, 720)):
+        page.set_viewport_size({"width": width, "height": height})
+        at = page.evaluate(geometry)
+        assert at["phase"] and not at["cut"] and at["page"] <= width, (width, at)
+    page.set_viewport_size({"width": 390, "height": 844})
+    at = page.evaluate(geometry)
+    top, left, right = at["actions"]
+    assert top >= at["map"] and top >= at["player"] and left >= 0 and right <= 390, at
+    assert at["page"] <= 390, at
+    page.set_viewport_size({"width": 1280, "height": 800})
 
 
 def live_step(page) -> int:
@@ -213,6 +253,14 @@ def test_an_operator_flies_the_mission_from_the_page(page_demo):
         " return v[1].mode === 'RTL' && v[0].mode === 'GUIDED'; }",
         timeout=60_000,
     )
+    # sent home by the operator, not lost: in the table and in its panel
+    page.wait_for_function(
+        "() => document.querySelector('#vehicles tr[data-uav=\"1\"] td.link')"
+        ".textContent.startsWith('sent home (operator)')", timeout=30_000,
+    )  # fmt: skip
+    assert "LOST" not in page.inner_text("#vehicles")
+    assert page.inner_text('#vp-fields dd[data-field="state"]') == "sent home (operator)"
+    check_header_layout(page)
     page.wait_for_function(
         "() => missionView.events.filter(e => e.kind === 'operator').length >= 4", timeout=30_000
     )

@@ -16,8 +16,9 @@ from browser import (
 from loopback import start_swarmplan, stop
 
 STEPS = 30
-# the replay test views the live test's demo: both on one worker of pytest-xdist, in order
-pytestmark = pytest.mark.xdist_group("browser")
+# the replay test views the live test's demo: both on one worker of pytest-xdist, in order (a
+# group of this module's own: test_operator_view.py's demo can fly on the other worker meanwhile)
+pytestmark = pytest.mark.xdist_group("view-in-browser")
 
 
 @pytest.fixture(scope="module")
