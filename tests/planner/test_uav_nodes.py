@@ -1,0 +1,85 @@
+"""The swarm without a centre (planner/uav_node.py, planner/swarm_bus.py): N one-UAV planners on
+an in-process bus decide what the batched planner decides when the link is perfect, and keep C_c
+when it is not."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from planner.registry import register
+from planner.scenario import load_scenario
+from planner.swarm_bus import LinkModel, NodeSwarmPlanner
+from planner.swarm_messages import CellClaim, Look, UavState
+from sim_gateway.offline_runner import run_offline
+
+built: list[NodeSwarmPlanner] = []
+
+
+def _nodes(link: LinkModel):
+    def factory(scenario, starts, seed):
+        planner = NodeSwarmPlanner(scenario, starts, seed, link)
+        built.append(planner)
+        return planner
+
+    return factory
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_perfect_link_decides_what_the_central_planner_decides(seed: int) -> None:
+    # 90 steps: seed 1 parts at step 91, where the batched TPM forecast trims a ring layer's
+    # negligible border over the union of every UAV's map (planner/motion_forecast.py
+    # tighten_box), a coupling a UAV alone cannot have
+    register("nodes-perfect", _nodes(LinkModel()))
+    scenario = load_scenario("paper-10uav")
+    central = run_offline(scenario, seed, 90, "hapf-aco", account=False)
+    nodes = run_offline(scenario, seed, 90, "nodes-perfect", account=False)
+    assert [u["track_km"] for u in nodes["uavs"]] == [u["track_km"] for u in central["uavs"]]
+    assert nodes["engagements"] == central["engagements"]
+    assert nodes["decision_modes"] == central["decision_modes"]
+
+
+def test_lossy_short_range_link_keeps_separation() -> None:
+    built.clear()
+    register("nodes-lossy", _nodes(LinkModel(range_km=10.0, loss=0.3, seed=5)))
+    result = run_offline(load_scenario("paper-10uav"), 1, 50, "nodes-lossy", account=False)
+    assert result["violations"]["separation"] == 0
+    assert result["min_separation_km"] >= 1.0 - 1e-9
+    stats, link = built[-1].claim_stats(), built[-1].bus.stats
+    assert link.lost > 0 and link.out_of_range > 0  # the link did drop frames
+    assert stats.missed > 0  # claims missed by the deadline ...
+    assert stats.missed == stats.avoided + stats.held  # ... each avoided or held
+
+
+def test_messages_are_plain_data() -> None:
+    scenario = load_scenario("paper-2uav")
+    planner = NodeSwarmPlanner(scenario, scenario.starts_for_seed(1), 1)
+    heard: list = []
+    node = planner.nodes[1]
+    original = node.receive
+    node.receive = lambda m: (heard.append(m), original(m))[1]  # type: ignore[method-assign]
+    run = planner.step
+    import numpy as np
+
+    from planner.grid import Grid, heading_of_angle
+    from sim_gateway.world import World
+
+    cfg = scenario.config
+    grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
+    starts = scenario.starts_for_seed(1)
+    cells = grid.cell_of(np.array([[s.x_km, s.y_km] for s in starts]))
+    headings = heading_of_angle(np.radians([s.heading_deg for s in starts]))
+    reports = World(scenario, 1).sense(grid.centre_km(cells))
+    run(cells, headings, reports)
+    kinds = {type(m) for m in heard}
+    assert {UavState, Look, CellClaim} <= kinds
+
+    def plain(value) -> bool:
+        if isinstance(value, tuple):
+            return all(plain(v) for v in value)
+        return value is None or type(value) in (int, float, bool)
+
+    for message in heard:
+        for f in dataclasses.fields(message):
+            assert plain(getattr(message, f.name)), (type(message).__name__, f.name)
