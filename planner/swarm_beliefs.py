@@ -145,6 +145,7 @@ class SwarmBeliefs:
         self.k = 0
         self.mission_steps = scenario.steps  # the last step, for ``home_by_end``
         self._safety: dict[bytes, SafetyModel] = {}  # by the known-threat row's bytes
+        self._options: MoveOptions | None = None  # this step's, once the threats are heard
         #: Read-only observers, called as ``observe(beliefs, decision)`` after each decision and
         #: before the forecast (``planner.pursuit_log.PursuitLog``); they must not change state.
         self.observers: list[Callable[[SwarmBeliefs, StepDecision], None]] = []
@@ -199,6 +200,7 @@ class SwarmBeliefs:
         detect and their engagement outcomes. What they then tell the swarm is read from here
         (``planner.uav_node``)."""
         cfg = self.cfg
+        self._options = None
         self.measured_km = positions_km
         cells = np.asarray(cells, dtype=np.int64).reshape(self.n, 2)
         moved = np.hypot(*((cells - self.cells) * cfg.cell_km).T)
@@ -219,6 +221,7 @@ class SwarmBeliefs:
         (``view``): the swarm information of eqs 30-31, threats and serviced targets heard,
         looks (eqs 16-18) and the engagement choice before ``leave_to_nearer``."""
         cfg, own, flying = self.cfg, self.owners, self.flying
+        self._options = None  # the threats heard change C_t
         positions = self.grid.centre_km(view.cells)
         diff = positions[own][:, None, :] - positions[None, :, :]
         distances = np.hypot(diff[..., 0], diff[..., 1])
@@ -249,6 +252,7 @@ class SwarmBeliefs:
             observe(self, decision)
         self.tpm.forecast()
         self.k += 1
+        self._options = None
 
     def _take_engagements(self, engagements: Sequence[EngagementOutcome | None] | None) -> None:
         """The owners' own engagement outcomes (one per owner, or None)."""
@@ -444,12 +448,16 @@ class SwarmBeliefs:
     # ------------------------------------------------------------------ constraints
 
     def move_options(self) -> MoveOptions:
-        """The candidate moves and the hard constraints on them (C_m, C_t, C_r)."""
-        steps_left = self.mission_steps - self.k - 1 if self.cfg.home_by_end else None
-        return feasible_moves(
-            self.cells, self.headings, self.distance_km, self.homes_key, self.known_threats,
-            self.safety_model, self.cfg, self.grid, steps_left,
-        )  # fmt: skip
+        """The candidate moves and the hard constraints on them (C_m, C_t, C_r), computed once
+        a step after the threats are heard (a UAV's node reads them for its claim priority and
+        for its decision)."""
+        if self._options is None:
+            steps_left = self.mission_steps - self.k - 1 if self.cfg.home_by_end else None
+            self._options = feasible_moves(
+                self.cells, self.headings, self.distance_km, self.homes_key, self.known_threats,
+                self.safety_model, self.cfg, self.grid, steps_left,
+            )  # fmt: skip
+        return self._options
 
     def update_return(self, opts: MoveOptions, flying: np.ndarray) -> None:
         """C_r: the return term takes over once the range slack is nearly spent (eqs 35/37,

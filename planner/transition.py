@@ -171,15 +171,12 @@ def claim_cells(
     return board.choice
 
 
-def claim_next(i: int, board: ClaimBoard, extra_km: np.ndarray | None = None) -> int | None:
+def claim_next(i: int, board: ClaimBoard) -> int | None:
     """UAV ``i``'s claim on ``board`` (in place): its first ranked candidate separated from the
-    claims it senses (and from the points ``extra_km``, (M, 2), e.g. every cell a neighbour
-    whose claim is missing might take); failing that, a swap with one blocker
-    (``_make_room``). Returns the UAV it moved to make room, or None."""
+    claims it senses; failing that, a swap with one blocker (``_make_room``). Returns the UAV
+    it moved to make room, or None."""
     b = board
     others = b.claimed[b.senses[i] & ~np.isnan(b.claimed[:, 0])]
-    if extra_km is not None and len(extra_km):
-        others = np.concatenate([others, extra_km])
     spots_i = b.spots[i]
     if len(others):  # which of the UAV's candidates keep d_min from every claimed cell
         d = np.hypot(*(others[:, None, :] - spots_i[None, :, :]).transpose(2, 0, 1))

@@ -8,8 +8,10 @@ state, look, engagement outcome, threats: sent), ``hear`` (what arrived: sent ba
 intent), ``rank`` (the transition rules up to C_c), ``claim`` in C_c's priority order and
 ``finish``. C_c without a centre: a node claims after the claims of the higher-priority
 neighbours that could conflict; one whose claim has not arrived by the node's turn (the
-deadline) is taken to go to any cell it can reach (``predicted_cells``), and the node takes a
-move none of them can conflict with, or holds (``ClaimStats``).
+deadline) may make any move it can (``planner.claim_deadline.neighbour_moves``, holding
+included), and the node keeps clear of all of them, holds where none can reach, or takes the
+choice that keeps the most separation (``planner.claim_deadline.choose_under_deadline``,
+counted in ``ClaimStats``).
 """
 
 from __future__ import annotations
@@ -19,8 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from planner.claim_deadline import PREDICT_STEPS, choose_under_deadline, neighbour_moves
 from planner.engagement import EngagementOutcome
-from planner.grid import candidate_moves
 from planner.hapf_aco import HapfAcoPlanner, RankedMoves
 from planner.planner_interface import MODES, StepDecision
 from planner.scenario import Scenario, UavStart
@@ -37,17 +39,15 @@ from planner.swarm_messages import (
 )
 from planner.transition import ClaimBoard, claim_board, claim_next, claim_priority
 
-#: How many steps a neighbour last heard of is still predicted (its reach grows a cell a step).
-PREDICT_STEPS = 5
-
 
 @dataclass
 class ClaimStats:
     """C_c without a centre, counted over a mission."""
 
-    missed: int = 0  # neighbours' claims not heard by the deadline, that could conflict
-    avoided: int = 0  # ... where the node took a move none of their reachable cells conflicts with
-    held: int = 0  # ... where it held its cell instead
+    missed: int = 0  # steps with neighbours' claims not heard by the deadline, that could conflict
+    avoided: int = 0  # ... where the node took a move none of their moves comes near
+    held: int = 0  # ... where it held a cell none of their moves comes near
+    squeezed: int = 0  # ... where neither was left: the choice keeping the most separation
     swaps: int = 0  # a blocker asked to step aside, and it did
     swaps_failed: int = 0  # ... no answer by the deadline: the node held
 
@@ -233,31 +233,56 @@ class UavNode:
         board.ranked[j] = np.arange(c)
         board.choice[j] = 0
         board.claimed[j] = board.spots[j, 0]
+        if self._seen is not None and not self._seen.received[j]:
+            # its state was lost, its claim came: the board cannot tell how far it is, so
+            # the claim counts (the link's range is the only distance known)
+            board.senses[self.uav, j] = True
 
     def claim(self) -> list[Message]:
         """This node's claim on its board (``planner.transition.claim_next``), after the
-        claims it heard; a higher-priority neighbour whose claim is missing counts as going
-        anywhere it can reach."""
+        claims it heard; when a higher-priority neighbour's claim is missing, by
+        ``planner.claim_deadline.choose_under_deadline`` instead (no request to step aside)."""
         board, ranking = self._board, self._ranking
         assert board is not None and ranking is not None
         i, b = self.uav, self.beliefs
         if not b.flying[0]:
             return []
-        extra = self._missing_neighbours()
-        moved = claim_next(i, board, extra if len(extra) else None)
-        if len(extra):
-            first = ranking.options.cells[0, board.choice[i]]
-            d = np.hypot(*(extra - (first + 0.5) * self.cfg.cell_km).T)
-            if (d >= board.limit).all():
-                self.stats.avoided += 1
-            else:
-                self._hold, moved = True, None
-                self.stats.held += 1
-        displace = None
-        if moved is not None:
-            alt = board.spots[moved, board.choice[moved]] / self.cfg.cell_km - 0.5
-            displace = (int(moved), (int(round(alt[0])), int(round(alt[1]))))
-        return [self._claim_message(displace)]
+        missed = self._missed_moves()
+        if not len(missed):
+            moved = claim_next(i, board)
+            displace = None
+            if moved is not None:
+                alt = board.spots[moved, board.choice[moved]] / self.cfg.cell_km - 0.5
+                displace = (int(moved), (int(round(alt[0])), int(round(alt[1]))))
+            return [self._claim_message(displace)]
+        here = b.grid.centre_km(b.cells)[0]
+        choice = choose_under_deadline(
+            here, board.spots[i], board.ranked[i], board.allowed[i], self._heard_claims(),
+            missed, board.limit,
+        )  # fmt: skip
+        self.stats.missed += 1
+        setattr(self.stats, choice.rule, getattr(self.stats, choice.rule) + 1)
+        if choice.hold:
+            self._hold = True
+            board.claimed[i] = here
+        else:
+            board.choice[i] = choice.candidate
+            board.claimed[i] = board.spots[i, choice.candidate]
+        return [self._claim_message(None)]
+
+    def _heard_claims(self) -> np.ndarray:
+        """(H, 2) km: the claims on this node's board it senses (and the UAVs holding still),
+        and the cell of every claimant that asked a blocker to step aside (it holds there when
+        the blocker does not answer, and that hold may not reach this node)."""
+        board = self._board
+        assert board is not None
+        known = board.senses[self.uav] & ~np.isnan(board.claimed[:, 0])
+        points = [board.claimed[known]]
+        for j, claim in self.inbox.claims.items():
+            state = self.last_heard.get(j)
+            if claim.displace is not None and state is not None and j != self.uav:
+                points.append((np.array(state.cell, float)[None, :] + 0.5) * self.cfg.cell_km)
+        return np.concatenate(points)
 
     def hold_claim(self) -> CellClaim:
         """The claim of this node holding its cell (a request to step aside unanswered)."""
@@ -279,11 +304,12 @@ class UavNode:
         )
         return CellClaim(self.uav, b.k, cell, heading, alternatives, displace)  # type: ignore[arg-type]
 
-    def _missing_neighbours(self) -> np.ndarray:
-        """(M, 2) km: every cell a neighbour that should have claimed before this node, and has
-        not been heard to, can reach next (``predicted_cells``)."""
-        mine = self.priority
-        spots: list[np.ndarray] = []
+    def _missed_moves(self) -> np.ndarray:
+        """(M, 2, 2) km: every move (``neighbour_moves``) of each neighbour that should have
+        claimed before this node and has not been heard to (its priority unknown counts as
+        before), last heard at most ``PREDICT_STEPS`` ago, that comes near enough to matter."""
+        mine, cfg = self.priority, self.cfg
+        moves: list[np.ndarray] = []
         for j, state in self.last_heard.items():
             if j == self.uav or j in self.inbox.claims:
                 continue
@@ -295,16 +321,15 @@ class UavNode:
             age = self.beliefs.k - state.step
             if age > PREDICT_STEPS:
                 continue
-            cells = predicted_cells(state, age, self.cfg.max_turn_deg)
-            spots.append((cells + 0.5) * self.cfg.cell_km)
-        if not spots:
-            return np.zeros((0, 2))
-        near = np.concatenate(spots)
+            moves.append(neighbour_moves(state.cell, state.heading, age, cfg.max_turn_deg,
+                                         cfg.cell_km))  # fmt: skip
+        if not moves:
+            return np.zeros((0, 2, 2))
+        near = np.concatenate(moves)
         here = self.beliefs.grid.centre_km(self.beliefs.cells)[0]
-        reach = self.cfg.separation_sense_km + 2 * self.cfg.cell_km
-        near = near[np.hypot(*(near - here).T) <= reach]
-        self.stats.missed += int(bool(len(near)))
-        return near
+        reach = cfg.separation_sense_km + 2 * cfg.cell_km
+        return near[(np.hypot(*(near[:, 1] - here).T) <= reach)
+                    | (np.hypot(*(near[:, 0] - here).T) <= reach)]  # fmt: skip
 
     def answer(self, claim: CellClaim) -> list[Message]:
         """A claim that asks this UAV to step aside: move, and say so, when the cell keeps clear
@@ -356,15 +381,3 @@ class UavNode:
         self.beliefs.finish_step(decision)
         self._board = None
         return decision
-
-
-def predicted_cells(state: UavState, age: int, max_turn_deg: float) -> np.ndarray:
-    """The cells a UAV last heard of ``age`` steps ago can take next: its candidate moves when
-    heard this step, else every cell within ``age + 1`` moves of where it was (km-free, cells)."""
-    cell = np.array(state.cell, dtype=np.int64)
-    if age == 0:
-        cand, _ = candidate_moves(cell[None, :], np.array([state.heading]), max_turn_deg)
-        return cand[0]
-    r = np.arange(-(age + 1), age + 2)
-    square = np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
-    return cell[None, :] + square

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import pytest
 
 from planner.registry import register
-from planner.scenario import load_scenario
-from planner.swarm_bus import LinkModel, NodeSwarmPlanner
-from planner.swarm_messages import CellClaim, Look, UavState
+from planner.scenario import UavStart, load_scenario
+from planner.swarm_bus import LinkModel, NodeSwarmPlanner, SwarmBus
+from planner.swarm_messages import CellClaim, Look, TrackIntent, UavState
 from sim_gateway.offline_runner import run_offline
 
 built: list[NodeSwarmPlanner] = []
@@ -48,7 +49,7 @@ def test_lossy_short_range_link_keeps_separation() -> None:
     stats, link = built[-1].claim_stats(), built[-1].bus.stats
     assert link.lost > 0 and link.out_of_range > 0  # the link did drop frames
     assert stats.missed > 0  # claims missed by the deadline ...
-    assert stats.missed == stats.avoided + stats.held  # ... each avoided or held
+    assert stats.missed == stats.avoided + stats.held + stats.squeezed  # each resolved once
 
 
 def test_messages_are_plain_data() -> None:
@@ -59,8 +60,6 @@ def test_messages_are_plain_data() -> None:
     original = node.receive
     node.receive = lambda m: (heard.append(m), original(m))[1]  # type: ignore[method-assign]
     run = planner.step
-    import numpy as np
-
     from planner.grid import Grid, heading_of_angle
     from sim_gateway.world import World
 
@@ -82,3 +81,56 @@ def test_messages_are_plain_data() -> None:
     for message in heard:
         for f in dataclasses.fields(message):
             assert plain(getattr(message, f.name)), (type(message).__name__, f.name)
+
+
+class _ClaimsLostBus(SwarmBus):
+    """A link that carries the UAVs' states and looks but loses every claim and every track
+    intent (so neither node knows it claims first): claims lost both ways."""
+
+    def send(self, sender, messages, positions_km):
+        kept = [m for m in messages if not isinstance(m, CellClaim | TrackIntent)]
+        return super().send(sender, kept, positions_km) if kept else set()
+
+
+def _closest_during_step(a0, a1, b0, b1) -> float:
+    """The two UAVs' smallest distance while flying straight from a0 to a1 and b0 to b1 (km)."""
+    t = np.linspace(0.0, 1.0, 201)[:, None]
+    gap = (np.asarray(a0) + t * (np.subtract(a1, a0))) - (np.asarray(b0) + t * np.subtract(b1, b0))
+    return float(np.hypot(gap[:, 0], gap[:, 1]).min())
+
+
+#: (offset of the second UAV in cells, the first's heading, d_min km): flying at each other
+#: (the second's heading opposite), straight and diagonal, from d_min apart to three cells
+HEAD_ON = [
+    (offset, heading, d_min)
+    for d_min in (1.0, 2.0)
+    for offset, heading in [((1, 0), 0), ((2, 0), 0), ((3, 0), 0), ((1, 1), 1), ((2, 2), 1),
+                            ((2, 1), 0), ((1, 2), 1)]  # fmt: skip
+    if np.hypot(*offset) >= d_min  # the paper's 1 km cells
+]
+
+
+@pytest.mark.parametrize(("offset", "heading", "d_min"), HEAD_ON)
+def test_heading_at_each_other_with_claims_lost_both_ways(offset, heading, d_min) -> None:
+    # two nodes flying at each other, neither hearing the other's claim nor its place in the
+    # claim order: each must keep clear of every move the other can make, holding included,
+    # so they neither meet, nor swap cells, nor cross within d_min during the step
+    scenario = load_scenario("paper-2uav")
+    scenario = dataclasses.replace(
+        scenario, config=dataclasses.replace(scenario.config, min_separation_km=d_min)
+    )
+    cell_km = scenario.config.cell_km
+    a = np.array([50, 50])
+    b = a + np.array(offset)
+    starts = [UavStart(*((a + 0.5) * cell_km), 45.0 * heading),
+              UavStart(*((b + 0.5) * cell_km), 45.0 * ((heading + 4) % 8))]  # fmt: skip
+    for seed in range(1, 6):  # the nodes' rankings differ by seed
+        planner = NodeSwarmPlanner(scenario, starts, seed)
+        planner.bus = _ClaimsLostBus(planner.nodes, LinkModel())
+        cells = np.array([a, b])
+        headings = np.array([heading, (heading + 4) % 8])
+        decision = planner.step(cells, headings, [None, None])
+        ends = decision.next_cells
+        closest = _closest_during_step(a, ends[0], b, ends[1]) * cell_km
+        assert closest >= d_min - 1e-9, (seed, ends.tolist())
+        assert planner.claim_stats().missed == 2
