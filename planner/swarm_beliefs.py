@@ -132,6 +132,12 @@ class SwarmBeliefs(SwarmHearing):
             )  # fmt: skip
         return self._safety[key]
 
+    def share_safety_models(self, other: SwarmBeliefs) -> None:
+        """Use ``other``'s cache of C_t's models (beliefs of the same scenario: a model depends
+        on the area, the threats known and the margins alone), so that planners of one swarm in
+        one process build each model once."""
+        self._safety = other._safety
+
     # ------------------------------------------------------------------ the step's beliefs
 
     def observe(

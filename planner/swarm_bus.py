@@ -140,6 +140,10 @@ class NodeSwarmPlanner:
         cfg = scenario.config
         self.grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
         nodes = [UavNode(scenario, starts, seed, i) for i in range(self.n)]
+        # C_t's models depend on the scenario and the threats known alone: in one process the
+        # nodes share them (each of N companion computers would build its own)
+        for node in nodes[1:]:
+            node.beliefs.share_safety_models(nodes[0].beliefs)
         self.bus = SwarmBus(nodes, link or LinkModel())
 
     @property

@@ -74,6 +74,7 @@ class UavNode:
         self.beliefs = self.planner.beliefs
         self.cfg = self.beliefs.cfg
         self.stats = ClaimStats()
+        self._target_index = {int(t): i for i, t in enumerate(self.beliefs.target_ids)}
         self.inbox = _Inbox()
         self.last_heard: dict[int, UavState] = {}  # each neighbour's latest state
         self._report: SensorReport | None = None
@@ -163,13 +164,14 @@ class UavNode:
             threats[j, list(found.threats)] = True
         engaged = np.zeros((size, len(b.target_ids)), dtype=bool)
         cells_of = np.full((len(b.target_ids), 2), -1, dtype=np.int64)
+        index = self._target_index
         for j, heard in sorted(box.engagements.items()):
             for target, where in heard.serviced:
-                t = np.flatnonzero(b.target_ids == target)
-                if t.size:
-                    engaged[j, t[0]] = True
-                    if cells_of[t[0], 0] < 0:
-                        cells_of[t[0]] = where
+                t = index.get(target)
+                if t is not None:
+                    engaged[j, t] = True
+                    if cells_of[t, 0] < 0:
+                        cells_of[t] = where
         return HeardSwarm(cells, headings, flying, received, reports, threats, engaged, cells_of)
 
     # ------------------------------------------------------------------ exchange 3
