@@ -6,7 +6,8 @@ python benchmarks/bench_node.py [--scenario paper-20uav] [--sizes 100 200] [--st
 
 The swarm flies offline (``sim_gateway.offline_runner``) as nodes on a perfect in-process link
 (``planner.swarm_bus``); each node's five calls of a step (begin, hear, rank, claim, finish) are
-timed, so the link and the offline world are left out. Memory: what building one node
+timed in CPU time of the process (``time.process_time``: a shared machine's load stretches wall
+time, not this), so the link and the offline world are left out. Memory: what building one node
 allocates (its beliefs: TPM layers, pheromone, coverage; ``tracemalloc``), and the most
 allocated at once while one node steps. The batched planner's time per UAV per step over the
 same run is printed beside it.
@@ -15,6 +16,7 @@ same run is printed beside it.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 import tracemalloc
@@ -35,11 +37,11 @@ def timed_nodes() -> dict[tuple[int, int], dict[str, float]]:
         original = getattr(UavNode, phase)
 
         def timed(self, *args, _original=original, _phase=phase, **kwargs):
-            started = time.perf_counter()
+            started = time.process_time()
             out = _original(self, *args, **kwargs)
             key = (self.uav, self.beliefs.k if _phase != "finish" else self.beliefs.k - 1)
             row = spent.setdefault(key, dict.fromkeys(PHASES, 0.0))
-            row[_phase] += time.perf_counter() - started
+            row[_phase] += time.process_time() - started
             return out
 
         setattr(UavNode, phase, timed)
@@ -69,16 +71,17 @@ def main() -> None:
     args = parser.parse_args()
     spent = timed_nodes()
     register("nodes-bench", lambda sc, st, s: NodeSwarmPlanner(sc, st, s, LinkModel()))
-    print(f"{args.scenario}, seed {args.seed}, {args.steps} steps")
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
+    print(f"{args.scenario}, seed {args.seed}, {args.steps} steps, CPU time; load average {load}")
     print("| cells | UAVs | node step: median | p95 | per phase (ms): " + " / ".join(PHASES)
           + " | batched, per UAV step | node memory: built | peak while stepping |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|")
     for size in args.sizes:
         scenario = load_scenario(args.scenario).with_config(grid_nx=size, grid_ny=size)
         n = len(scenario.starts_for_seed(args.seed))
-        started = time.perf_counter()
+        started = time.process_time()
         run_offline(scenario, args.seed, args.steps, "hapf-aco", account=False)
-        batched = (time.perf_counter() - started) / (args.steps * n)
+        batched = (time.process_time() - started) / (args.steps * n)
         spent.clear()
         run_offline(scenario, args.seed, args.steps, "nodes-bench", account=False)
         totals = [sum(row.values()) for row in spent.values()]
