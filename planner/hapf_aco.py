@@ -27,11 +27,13 @@ Nothing here does I/O; randomness comes from one seeded generator.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
 from planner.belief_planner import BeliefPlanner
+from planner.feasibility import MoveOptions
 from planner.grid import HEADING_STEPS, corridor_offsets
 from planner.pheromone import PheromoneMaps
 from planner.planner_interface import MODES, StepDecision
@@ -54,16 +56,35 @@ from planner.transition import (
 )
 
 
+@dataclass(frozen=True)
+class RankedMoves:
+    """The owners' candidates as the transition rules rank them, before C_c."""
+
+    ranked: np.ndarray  # (n, C) candidate indices, the rule's choice first
+    options: MoveOptions  # the candidates and their constraints
+    modes: np.ndarray  # (n,) index into MODES
+
+
 class HapfAcoPlanner(BeliefPlanner):
     """The swarm's HAPF-ACO planners, batched (``planner.planner_interface.SwarmPlanner``)."""
 
     algorithm = "hapf-aco"
 
-    def __init__(self, scenario: Scenario, starts: Sequence[UavStart], seed: int) -> None:
-        self.beliefs = beliefs = SwarmBeliefs(scenario, starts)
+    def __init__(
+        self,
+        scenario: Scenario,
+        starts: Sequence[UavStart],
+        seed: int,
+        owners: Sequence[int] | None = None,
+    ) -> None:
+        """``owners``: the UAVs this planner decides for (all by default; one in a UAV's own
+        node, ``planner.uav_node``)."""
+        self.beliefs = beliefs = SwarmBeliefs(scenario, starts, owners)
         cfg = self.cfg = beliefs.cfg
         self.grid = beliefs.grid
         n = self.n = beliefs.n
+        # The swarm's random stream: every planner draws the whole swarm's numbers of a step and
+        # uses its owners' (a UAV's own numbers, whoever decides for it)
         self.rng = np.random.default_rng([seed, 0xAC0])
         self.pheromone = PheromoneMaps(n, cfg)
         footprint = beliefs.footprint
@@ -94,14 +115,35 @@ class HapfAcoPlanner(BeliefPlanner):
         return getattr(maps, "static", maps)
 
     def decide(self, seen: Hearing) -> StepDecision:
-        """Steps 4-6: pheromone, then the potential field and the transition."""
+        """Steps 4-6: pheromone, then the potential field and the transition, with C_c's
+        claims resolved among the owners (``SwarmBeliefs.claim``)."""
+        ranking = self.rank_moves(seen)
+        b = self.beliefs
+        pick = b.claim(ranking.ranked, ranking.options, seen.positions, seen.distances, seen.flying)
+        return self.finish_decision(ranking, pick, seen.flying)
+
+    def rank_moves(self, seen: Hearing) -> RankedMoves:
+        """Steps 4-6 up to C_c: pheromone, potential field, the transition rules' ranking."""
         self._update_pheromone(seen.flying)
-        return self._decide(seen)
+        return self._rank(seen)
+
+    def finish_decision(
+        self, ranking: RankedMoves, pick: np.ndarray, flying: np.ndarray
+    ) -> StepDecision:
+        """The decision from the claimed candidates ``pick`` (n,): next cells, engagements."""
+        b, modes = self.beliefs, ranking.modes.copy()
+        cand, cand_head = ranking.options.cells, ranking.options.headings
+        rows = np.arange(self.n)
+        next_cells = np.where(flying[:, None], cand[rows, pick], b.cells)
+        next_headings = np.where(flying, cand_head[rows, pick], b.headings)
+        modes[~flying] = MODES.index("hold")
+        engage = b.engage_requests(flying)
+        return StepDecision(next_cells, next_headings, engage, b.done.copy(), modes)
 
     def _update_pheromone(self, flying: np.ndarray) -> None:
         cfg, b = self.cfg, self.beliefs
         age = b.k - b.info_step
-        known = (age >= 0) & (age <= cfg.info_max_age_steps) & flying[:, None]
+        known = (age >= 0) & (age <= cfg.info_max_age_steps) & flying[:, None]  # (n, N)
         owners, members = np.nonzero(known)
         steps = HEADING_STEPS[b.info_headings[owners, members]] * age[owners, members][:, None]
         predicted = b.info_cells[owners, members] + steps  # eq 31, dead reckoning
@@ -135,7 +177,9 @@ class HapfAcoPlanner(BeliefPlanner):
         force = force + threat_repulsion(
             centres, b.threat_xy, b.threat_r, b.known_threats, cfg
         )
-        force = force + morse_repulsion(centres, positions, neighbours, cfg)
+        force = force + morse_repulsion(
+            centres, positions, neighbours, cfg, self.grid.centre_km(b.cells)
+        )
         return force
 
     def _pursuit_scores(
@@ -219,11 +263,11 @@ class HapfAcoPlanner(BeliefPlanner):
             b.escape_goal[i] = (ix[tuple(b.cells[i])], iy[tuple(b.cells[i])])
         return stalled
 
-    def _decide(self, seen: Hearing) -> StepDecision:
-        """Steps 5-6 for every UAV."""
+    def _rank(self, seen: Hearing) -> RankedMoves:
+        """Steps 5-6 for every owner, up to C_c."""
         cfg, n, b = self.cfg, self.n, self.beliefs
         flying, hears, positions = seen.flying, seen.hears, seen.positions
-        distances = seen.distances
+        near = (seen.distances <= cfg.separation_sense_km) & seen.received[None, :]
         opts = b.move_options()
         cand, cand_head, moves, feasible = opts.cells, opts.headings, opts.moves, opts.feasible
         b.update_return(opts, flying)
@@ -231,14 +275,15 @@ class HapfAcoPlanner(BeliefPlanner):
         # potential field at the UAV and over its footprint (eqs 23-27)
         points = b.cells[:, None, :] + b.footprint[None, :, :]
         window = self._existence_window()
-        force = self._forces(window, positions, hears | (distances <= cfg.separation_sense_km))
+        force = self._forces(window, positions, hears | near)
         norms = np.hypot(force[..., 0], force[..., 1])
         inside_fp = b.grid.inside(points)
         force_max = np.where(inside_fp, norms, 0.0).max(axis=1)
         force_here = force[:, self.centre_index]
-        q = self.rng.random(n)
-        q1 = self.rng.random(n)
-        u = self.rng.random(n)
+        own, size = b.owners, b.size
+        q = self.rng.random(size)[own]
+        q1 = self.rng.random(size)[own]
+        u = self.rng.random(size)[own]
 
         eta = self._eta(cand, cand_head, feasible, window)
         tau = self.pheromone.at(np.arange(n)[:, None], cand)
@@ -274,12 +319,5 @@ class HapfAcoPlanner(BeliefPlanner):
         order = np.argsort(-np.where(np.isfinite(scores), scores, -1e300), axis=1, kind="stable")
         others = order[order != chosen_first[:, None]].reshape(n, -1)  # order is a permutation
         ranked = np.concatenate([chosen_first[:, None], others], axis=1)
-        pick = b.claim(ranked, opts, positions, distances, flying)
-        rows = np.arange(n)
-        next_cells = np.where(flying[:, None], cand[rows, pick], b.cells)
-        next_headings = np.where(flying, cand_head[rows, pick], b.headings)
-        modes[~flying] = MODES.index("hold")
-
-        engage = b.engage_requests(flying)
-        return StepDecision(next_cells, next_headings, engage, b.done.copy(), modes)
+        return RankedMoves(ranked, opts, modes)
 

@@ -119,8 +119,8 @@ def tighten_box(
     maps: np.ndarray, box: tuple[int, int, int, int], negligible: np.ndarray
 ) -> tuple[int, int, int, int]:
     """Shrink ``box`` (x0, x1, y0, y1) of maps (N, nx, ny) past border rows and columns whose
-    values all lie below ``negligible`` (N,), zeroing them: a few strips per call, so the work
-    stays proportional to the box's perimeter."""
+    values all lie below ``negligible`` (N,) in every map, zeroing them: a few strips per
+    call (``tighten_boxes`` keeps a box per map)."""
     x0, x1, y0, y1 = box
     limit = negligible[:, None]
     for _ in range(2):
@@ -137,6 +137,49 @@ def tighten_box(
             maps[:, x0:x1, y1 - 1] = 0.0
             y1 -= 1
     return x0, x1, y0, y1
+
+
+def union_box(boxes: np.ndarray) -> tuple[int, int, int, int]:
+    """The smallest box (x0, x1, y0, y1) holding every box of ``boxes`` (N, 4)."""
+    return (int(boxes[:, 0].min()), int(boxes[:, 1].max()), int(boxes[:, 2].min()),
+            int(boxes[:, 3].max()))  # fmt: skip
+
+
+def grow_boxes(boxes: np.ndarray, nx: int, ny: int) -> np.ndarray:
+    """``grow_box`` of every box of ``boxes`` (N, 4)."""
+    grown = boxes + np.array([-1, 1, -1, 1])
+    return np.clip(grown, 0, np.array([nx, nx, ny, ny]))
+
+
+def tighten_boxes(maps: np.ndarray, boxes: np.ndarray, negligible: np.ndarray) -> np.ndarray:
+    """Shrink each map's own box (``boxes`` (N, 4) of x0, x1, y0, y1 for maps (N, nx, ny),
+    every cell outside a map's box zero) past border rows and columns whose values all lie
+    below that map's ``negligible`` (N,), zeroing them: a few strips per call, so the work stays
+    proportional to the boxes' perimeters. Map i's box and cells depend on map i alone: a
+    UAV's TPM forecast is the same whether the swarm's maps are batched or it is alone
+    (``planner.uav_node``). Returns the new boxes."""
+    if len(maps) == 1:  # one UAV (its own node): the strips as slices, fewer numpy calls
+        return np.array([tighten_box(maps, tuple(int(v) for v in boxes[0]), negligible)])
+    x0, x1, y0, y1 = (boxes[:, k].copy() for k in range(4))
+    uav = np.arange(len(maps))
+    limit = negligible[:, None]
+
+    def trim(rows: np.ndarray, wide: np.ndarray, at: np.ndarray, axis: int) -> np.ndarray:
+        # rows: (N, len) the strip of each map (zero outside its box, so whole rows do)
+        ok = wide & (rows < limit).all(axis=1)
+        if ok.any():
+            if axis == 1:
+                maps[uav[ok], at[ok], :] = 0.0
+            else:
+                maps[uav[ok], :, at[ok]] = 0.0
+        return ok
+
+    for _ in range(2):
+        x0 += trim(maps[uav, x0, :], x1 - x0 > 1, x0, 1)
+        x1 -= trim(maps[uav, x1 - 1, :], x1 - x0 > 1, x1 - 1, 1)
+        y0 += trim(maps[uav, :, y0], y1 - y0 > 1, y0, 2)
+        y1 -= trim(maps[uav, :, y1 - 1], y1 - y0 > 1, y1 - 1, 2)
+    return np.stack([x0, x1, y0, y1], axis=1)
 
 
 def convolve_reflect(maps: np.ndarray, kernel: np.ndarray) -> np.ndarray:

@@ -15,7 +15,6 @@ from functools import lru_cache
 import numpy as np
 
 from planner.config import PlannerConfig
-from planner.topology import pairwise_distances
 
 
 def attraction(existence: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
@@ -77,16 +76,23 @@ def _threat_force(
 
 
 def morse_repulsion(
-    points_km: np.ndarray, others_km: np.ndarray, neighbours: np.ndarray, cfg: PlannerConfig
+    points_km: np.ndarray,
+    others_km: np.ndarray,
+    neighbours: np.ndarray,
+    cfg: PlannerConfig,
+    own_km: np.ndarray | None = None,
 ) -> np.ndarray:
     """Eq 27: F = sum_j (b/c) e^{||x||/c} / (e^{||x||/c} - e^{r0/c})^2 x_hat over neighbours j
     with ||x_ij|| in [d_min, d^v_max] (closer than d_min it is held at its d_min value).
 
-    ``points_km`` (N, K, 2) around each UAV, ``others_km`` (N, 2) UAV positions,
-    ``neighbours`` (N, N) bool. Only the (i, j) pairs that can be in range are evaluated."""
+    ``points_km`` (n, K, 2) around each of n UAVs at ``own_km`` (n, 2; None: ``others_km``),
+    ``others_km`` (N, 2) the swarm's positions, ``neighbours`` (n, N) bool. Only the (i, j)
+    pairs that can be in range are evaluated."""
+    own_km = others_km if own_km is None else own_km
     force = np.zeros(points_km.shape)
-    spread = np.hypot(*(points_km - others_km[:, None, :]).transpose(2, 0, 1)).max(initial=0.0)
-    gap = pairwise_distances(others_km)
+    spread = np.hypot(*(points_km - own_km[:, None, :]).transpose(2, 0, 1)).max(initial=0.0)
+    diff = own_km[:, None, :] - others_km[None, :, :]
+    gap = np.hypot(diff[..., 0], diff[..., 1])
     owner, other = np.nonzero(neighbours & (gap <= cfg.uav_repulsion_range_km + spread))
     if owner.size == 0:
         return force

@@ -8,11 +8,12 @@ Each UAV keeps its own beliefs (TPM, coverage it knows of, the threats and the s
 has heard of); only the states and looks of the neighbours inside its cooperative radius reach
 it. Per decision step a planner calls:
 
-1. ``observe``: topology (eqs 1-3) and what each UAV hears; engagement outcomes and serviced
-   targets; probe update of the TPMs with own and neighbours' looks (eqs 17-18), renormalised
-   (eq 16); the engagement choice (section 3.2.1: the cell each UAV goes for, circled for more
-   looks from ``pursue_threshold``, flown to and engaged from ``confirm_threshold``; higher
-   value first; one UAV per target). It returns what the step's decision needs (``Hearing``);
+1. ``observe``: topology (eqs 1-3) and what each UAV hears (``planner.swarm_hearing``);
+   engagement outcomes and serviced targets; probe update of the TPMs with own and
+   neighbours' looks (eqs 17-18), renormalised (eq 16); the engagement choice (section
+   3.2.1: the cell each UAV goes for, circled for more looks from ``pursue_threshold``, flown
+   to and engaged from ``confirm_threshold``; higher value first; one UAV per target). It
+   returns what the step's decision needs (``Hearing``);
 2. its own decision, with ``move_options`` (C_m, C_t, C_r over the candidate cells,
    ``planner.feasibility``), ``update_return`` / ``return_scores`` (C_r's return home),
    ``claim`` (C_c) and ``engage_requests``;
@@ -34,7 +35,6 @@ Nothing here does I/O and nothing here draws random numbers: randomness is the d
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -46,46 +46,47 @@ from planner.grid import Grid, disc_overlap, disc_overlap_at, heading_of_angle, 
 from planner.planner_interface import MODES, StepDecision
 from planner.scenario import Scenario, UavStart
 from planner.sensor_model import SensorReport
+from planner.swarm_hearing import HeardSwarm, Hearing, SwarmHearing
 from planner.target_probability_map import TargetProbabilityMaps
-from planner.topology import adapt_radius, adjacency, pairwise_distances
 from planner.transition import claim_cells, range_scores
 
 
-@dataclass(frozen=True)
-class Hearing:
-    """What ``SwarmBeliefs.observe`` found at this step, for the decision."""
+class SwarmBeliefs(SwarmHearing):
+    """Every UAV's beliefs, batched, and the constraints shared by the planners (what they
+    hear: ``planner.swarm_hearing.SwarmHearing``)."""
 
-    flying: np.ndarray  # (N,) bool: reachable and not done
-    hears: np.ndarray  # (N, N) bool: i hears j (eqs 1-3)
-    positions: np.ndarray  # (N, 2) km, the cell centres
-    distances: np.ndarray  # (N, N) km, ``pairwise_distances(positions)``
-
-
-class SwarmBeliefs:
-    """Every UAV's beliefs, batched, and the constraints shared by the planners."""
-
-    def __init__(self, scenario: Scenario, starts: Sequence[UavStart]) -> None:
+    def __init__(
+        self, scenario: Scenario, starts: Sequence[UavStart], owners: Sequence[int] | None = None
+    ) -> None:
+        """``starts``: every member of the swarm; ``owners``: the members whose beliefs are
+        kept here (all by default: the batched swarm; one: a UAV's own node,
+        ``planner.uav_node``)."""
         cfg = scenario.config
         self.cfg: PlannerConfig = cfg
         self.scenario = scenario
         self.grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
-        n = len(starts)
+        self.size = len(starts)  # N, the swarm's members
+        self.owners = np.arange(self.size) if owners is None else np.asarray(owners, np.int64)
+        n = len(self.owners)
         self.n = n
         xy = np.array([[s.x_km, s.y_km] for s in starts], dtype=float)
-        self.home = self.grid.cell_of(xy)
+        self.member_home = self.grid.cell_of(xy)
+        member_headings = heading_of_angle(np.radians([s.heading_deg for s in starts]))
+        self.home = self.member_home[self.owners]
         self.home_flat = self.grid.flat(self.home)
         self.homes_key = tuple(int(h) for h in self.home_flat)
         self.cells = self.home.copy()
-        self.headings = heading_of_angle(np.radians([s.heading_deg for s in starts]))
+        self.headings = member_headings[self.owners]
         self.distance_km = np.zeros(n)
         self.done = np.zeros(n, dtype=bool)
+        self.flying = ~self.done  # this step's: reachable and not done (``begin_step``)
         self.returning = np.zeros(n, dtype=bool)
         self.radius_km = np.full(n, min(cfg.coop_radius_init_km, cfg.sensing_radius_km))
-        # What UAV i last heard of UAV j (eqs 30-31): cell, heading, step.
-        self.info_cells = np.repeat(self.home[None, :, :], n, axis=0)
-        self.info_headings = np.repeat(self.headings[None, :], n, axis=0)
-        self.info_step = np.full((n, n), -(10**9))
-        np.fill_diagonal(self.info_step, 0)
+        # What owner i last heard of member j (eqs 30-31): cell, heading, step.
+        self.info_cells = np.repeat(self.member_home[None, :, :], n, axis=0)
+        self.info_headings = np.repeat(member_headings[None, :], n, axis=0)
+        self.info_step = np.full((n, self.size), -(10**9))
+        self.info_step[np.arange(n), self.owners] = 0
         self.threat_xy = np.array([[t.x_km, t.y_km] for t in scenario.threats], float).reshape(
             -1, 2
         )
@@ -116,6 +117,7 @@ class SwarmBeliefs:
         self.k = 0
         self.mission_steps = scenario.steps  # the last step, for ``home_by_end``
         self._safety: dict[bytes, SafetyModel] = {}  # by the known-threat row's bytes
+        self._options: MoveOptions | None = None  # this step's, once the threats are heard
         #: Read-only observers, called as ``observe(beliefs, decision)`` after each decision and
         #: before the forecast (``planner.pursuit_log.PursuitLog``); they must not change state.
         self.observers: list[Callable[[SwarmBeliefs, StepDecision], None]] = []
@@ -130,6 +132,12 @@ class SwarmBeliefs:
             )  # fmt: skip
         return self._safety[key]
 
+    def share_safety_models(self, other: SwarmBeliefs) -> None:
+        """Use ``other``'s cache of C_t's models (beliefs of the same scenario: a model depends
+        on the area, the threats known and the margins alone), so that planners of one swarm in
+        one process build each model once."""
+        self._safety = other._safety
+
     # ------------------------------------------------------------------ the step's beliefs
 
     def observe(
@@ -138,51 +146,53 @@ class SwarmBeliefs:
         active: np.ndarray | None, positions_km: np.ndarray | None,
     ) -> Hearing:  # fmt: skip
         """Take in what the UAVs report at step k (the arguments of
-        ``planner.planner_interface.SwarmPlanner.step``): topology, engagement outcomes, looks
-        and the engagement choice."""
-        cfg, n = self.cfg, self.n
-        self.measured_km = None if positions_km is None else np.asarray(positions_km, float)
-        active = np.ones(n, dtype=bool) if active is None else np.asarray(active, dtype=bool)
-        cells = np.asarray(cells, dtype=np.int64).reshape(n, 2)
+        ``planner.planner_interface.SwarmPlanner.step``, for every member: the beliefs of the
+        whole swarm): the three parts of the step's beliefs on the swarm's own rows."""
+        size, own = self.size, self.owners
+        active = np.ones(size, dtype=bool) if active is None else np.asarray(active, dtype=bool)
+        cells = np.asarray(cells, dtype=np.int64).reshape(size, 2)[own]
+        headings = np.asarray(headings, dtype=np.int64).reshape(size)[own]
+        measured = None if positions_km is None else np.asarray(positions_km, float)[own]
+        outcomes = None if engagements is None else [engagements[i] for i in own]
+        self.begin_step(cells, headings, outcomes, active[own], measured)
+        seen = self.hear(self.own_view(reports))
+        self.leave_to_nearer(seen, self.cells, self.headings, self.track)
+        return seen
+
+    def own_view(self, reports: Sequence[SensorReport | None]) -> HeardSwarm:
+        """The swarm as the owners are to each other: a batched swarm hears itself whole (its
+        own rows are every member's, ``owners`` all)."""
+        if self.n != self.size:
+            raise ValueError("own_view needs the beliefs of every member (owners all)")
+        return HeardSwarm(
+            self.cells, self.headings, self.flying, np.ones(self.size, dtype=bool), reports,
+            self.known_threats.copy(), self.known_engaged.copy(), self.engaged_cells,
+        )  # fmt: skip
+
+    def begin_step(
+        self, cells: np.ndarray, headings: np.ndarray,
+        engagements: Sequence[EngagementOutcome | None] | None,
+        active: np.ndarray, positions_km: np.ndarray | None,
+    ) -> None:  # fmt: skip
+        """The step's first part, the owners' own (n rows): where they are, the threats they
+        detect and their engagement outcomes. What they then tell the swarm is read from here
+        (``planner.uav_node``)."""
+        cfg = self.cfg
+        self._options = None
+        self.measured_km = positions_km
+        cells = np.asarray(cells, dtype=np.int64).reshape(self.n, 2)
         moved = np.hypot(*((cells - self.cells) * cfg.cell_km).T)
         self.distance_km += np.where(active, moved, 0.0)
         self.cells = cells
-        self.headings = np.asarray(headings, dtype=np.int64).reshape(n) % 8
-        flying = active & ~self.done
-
-        # topology (eqs 1-3) and the swarm information of eqs 30-31
-        positions = self.grid.centre_km(self.cells)
-        distances = pairwise_distances(positions)
-        hears = adjacency(distances, self.radius_km, flying)
-        self.radius_km = np.where(
-            flying, adapt_radius(self.radius_km, hears.sum(axis=1), cfg), self.radius_km
-        )
-        listen = hears | np.eye(n, dtype=bool)
-        listen &= flying[:, None]
-        listen &= active[None, :]
-        self.info_cells = np.where(listen[:, :, None], cells[None, :, :], self.info_cells)
-        self.info_headings = np.where(listen, self.headings[None, :], self.info_headings)
-        self.info_step = np.where(listen, self.k, self.info_step)
-
-        # threats: detected within R + R_t, then shared with neighbours
-        if len(self.threat_r):
+        self.headings = np.asarray(headings, dtype=np.int64).reshape(self.n) % 8
+        self.flying = active & ~self.done
+        if len(self.threat_r):  # threats: detected within R + R_t
             seen = (
-                distances_to_threats(positions, self.threat_xy)
+                distances_to_threats(self.grid.centre_km(cells), self.threat_xy)
                 <= self.threat_r + cfg.detection_radius_km
             )
-            self.known_threats |= seen & flying[:, None]
-            self.known_threats |= (hears.astype(np.int64) @ self.known_threats.astype(np.int64)) > 0
-
-        # engagement outcomes and what the swarm knows of serviced targets
-        self._take_engagements(engagements, hears)
-
-        # probe update (eqs 17-18) with own and heard looks, then eq 16
-        have = np.array([r is not None and len(r.cells) > 0 for r in reports], dtype=bool)
-        self._apply_looks(reports, have, listen, positions)
-
-        # confirmation and the engagement choice
-        self._update_tracks(reports, have, listen, hears)
-        return Hearing(flying, hears, positions, distances)
+            self.known_threats |= seen & self.flying[:, None]
+        self._take_engagements(engagements)
 
     def finish_step(self, decision: StepDecision) -> None:
         """The observers read the step's decision; then the forecast (eqs 19-22) to the next
@@ -191,170 +201,28 @@ class SwarmBeliefs:
             observe(self, decision)
         self.tpm.forecast()
         self.k += 1
+        self._options = None
 
-    def _take_engagements(
-        self, engagements: Sequence[EngagementOutcome | None] | None, hears: np.ndarray
-    ) -> None:
-        if engagements is not None:
-            for i, outcome in enumerate(engagements):
-                if outcome is None:
-                    continue
-                where = self.request_cells[i] if self.request_cells[i, 0] >= 0 else self.cells[i]
-                if outcome.success:
-                    index = np.flatnonzero(self.target_ids == outcome.target_id)
-                    if index.size:
-                        self.engaged_cells[index[0]] = where
-                        self.known_engaged[i, index[0]] = True
-                else:
-                    # nothing within the engage radius: a certain negative look at the cell of
-                    # the request
-                    self.tpm.apply_looks(
-                        np.array([i]), [where[None, :]], [np.array([False])], where[None, :]
-                    )
-                self.track[i] = -1
-        self.known_engaged |= (hears.astype(np.int64) @ self.known_engaged.astype(np.int64)) > 0
-        for i, t in zip(*np.nonzero(self.known_engaged & ~self.engaged_applied), strict=True):
-            self.tpm.remove_target(int(i), int(self.target_ids[t]), self.engaged_cells[t])
-        self.engaged_applied = self.known_engaged.copy()
-
-    def _apply_looks(
-        self,
-        reports: Sequence[SensorReport | None],
-        have: np.ndarray,
-        listen: np.ndarray,
-        positions: np.ndarray,
-    ) -> None:
-        """``have[j]``: UAV j reported a look with at least one cell."""
-        pairs = listen & have[None, :]  # receiver i gets look j
-        receivers, sources = np.nonzero(pairs)
-        if receivers.size == 0:
-            self.tpm.renormalise()
+    def _take_engagements(self, engagements: Sequence[EngagementOutcome | None] | None) -> None:
+        """The owners' own engagement outcomes (one per owner, or None)."""
+        if engagements is None:
             return
-        origins = self.grid.cell_of(positions)
-        look_cells = [reports[j].cells for j in sources]
-        self.tpm.apply_looks(
-            receivers, look_cells, [reports[j].detected for j in sources], origins[sources]
-        )
-        # coverage each UAV knows of, and the N_t counter of steps without a gain
-        seen_by = np.repeat(receivers, [len(c) for c in look_cells])
-        seen = np.concatenate(look_cells)
-        # only the cells new to their receiver change the counts: set and count those
-        covered = self.coverage.reshape(-1)
-        keys = seen_by * self.grid.size + self.grid.flat(seen)
-        fresh = distinct(keys[~covered[keys]])
-        covered[fresh] = True
-        new_cells = np.bincount(fresh // self.grid.size, minlength=self.n)
-        self.coverage_count = self.coverage_count + new_cells
-        gained = new_cells > 0
-        self.stall_steps = np.where(gained, 0, self.stall_steps + 1)
-        self.escape_goal[gained] = -1
-        if self.cfg.tpm_decay_tau < 1.0:
-            observed = np.zeros(self.coverage.shape, dtype=bool)
-            observed[seen_by, seen[:, 0], seen[:, 1]] = True
-            self.tpm.decay_unobserved(observed)
-        self.tpm.renormalise()
-
-    def _update_tracks(
-        self,
-        reports: Sequence[SensorReport | None],
-        have: np.ndarray,
-        listen: np.ndarray,
-        hears: np.ndarray,
-    ) -> None:
-        """Section 3.2.1: choose the cell each UAV goes for. Candidates are the cells it just heard
-        a detection in and the cells around its current track (the belief peak moves with the
-        target).
-        A cell whose existence probability reaches ``pursue_threshold`` is worth a closer look
-        (the attraction of eq 24 toward a rising p); one that reaches ``confirm_threshold`` is a
-        confirmed target, and confirmed targets come first, the higher value first. Batched over
-        UAVs: one TPM read for all (UAV, cell) pairs."""
-        cfg = self.cfg
-        rows: list[np.ndarray] = []
-        cells: list[np.ndarray] = []
-        tracking = np.flatnonzero((self.track[:, 0] >= 0) & ~self.done)
-        if tracking.size:
-            rows.append(np.repeat(tracking, len(self.track_window)))
-            cells.append(
-                (self.track[tracking][:, None, :] + self.track_window[None]).reshape(-1, 2)
-            )
-        receivers, sources = np.nonzero(listen & have[None, :] & ~self.done[:, None])
-        if receivers.size:
-            # only a detection (b = 1) raises a cell's probability: the cells worth checking
-            by_source = {
-                j: reports[j].cells[np.asarray(reports[j].detected, dtype=bool)]
-                for j in np.unique(sources).tolist()
-            }
-            positive = [by_source[j] for j in sources.tolist()]
-            rows.append(np.repeat(receivers, [len(c) for c in positive]))
-            cells.append(np.concatenate(positive))
-        previous = self.track.copy()
-        self.track[:] = -1
-        if not rows:
-            return
-        rows_all, cells_all = np.concatenate(rows), np.concatenate(cells)
-        reach = np.hypot(*((cells_all - self.cells[rows_all]) * cfg.cell_km).T)
-        keep = self.grid.inside(cells_all) & (reach <= cfg.pursue_range_km)
-        rows_all, cells_all = rows_all[keep], cells_all[keep]
-        # one look per distinct (UAV, cell): heard footprints overlap
-        keys = distinct(rows_all * self.grid.size + self.grid.flat(cells_all))
-        rows_all = keys // self.grid.size
-        cells_all = np.column_stack(np.unravel_index(keys % self.grid.size, self.grid.shape))
-        p = self.engage_probability(rows_all, cells_all)
-        # a suspect already pursued is kept (hysteresis) while its peak stays above
-        # ``pursue_keep_threshold``, for at most ``pursue_max_steps`` steps: one look that
-        # misses a moving target does not end its pursuit; looks that find nothing rule it out
-        on_track = (previous[rows_all, 0] >= 0) & (
-            np.abs(cells_all - previous[rows_all]).max(axis=1) <= 2
-        )
-        kept = on_track & (self.track_age[rows_all] < cfg.pursue_max_steps)
-        worth = (p >= cfg.pursue_threshold) | (kept & (p >= cfg.pursue_keep_threshold))
-        if not worth.any():
-            self.track_age[:] = 0
-            return
-        rows_all, cells_all, p = rows_all[worth], cells_all[worth], p[worth]
-        on_track = on_track[worth]
-        value = self.tpm.values_at(rows_all, cells_all)
-        confirmed = p >= cfg.confirm_threshold
-        # confirmed first (higher value first), then the likeliest value among the suspects;
-        # among equal scores (the cells around one confirmed target, whose layer gives them one
-        # value) the likeliest cell, not the first in index order
-        score = np.where(confirmed, 1.0 + value, 0.0) + np.where(
-            confirmed, 0.0, p * value / (1.0 + value)
-        )
-        order = np.lexsort((-p, -score, rows_all))
-        sorted_rows = rows_all[order]
-        first = np.concatenate(([True], sorted_rows[1:] != sorted_rows[:-1]))
-        chosen = order[first]
-        who = rows_all[chosen]
-        self.track[who] = cells_all[chosen]
-        self.track_confirmed[who] = confirmed[chosen]
-        age = np.zeros(self.n, dtype=np.int64)
-        age[who] = np.where(on_track[chosen], self.track_age[who] + 1, 0)
-        self.track_age = age
-        self._leave_to_nearer(hears)
-
-    def _leave_to_nearer(self, hears: np.ndarray) -> None:
-        """One UAV per target, the best placed: a UAV drops its track when a UAV it hears goes
-        for the same or an adjacent cell in fewer turn-limited moves (``steps_to_reach`` from
-        its heading: a UAV next to a target but flying away from it is worse placed than one a
-        few cells off pointing at it; ties to the lower index), instead of the swarm
-        converging."""
-        tracking = self.track[:, 0] >= 0
-        same = np.abs(self.track[:, None, :] - self.track[None, :, :]).max(axis=2) <= 1
-        same &= tracking[:, None] & tracking[None, :] & hears
-        if not same.any():
-            return
-        r = self.pursuit_reach
-        offset = self.track - self.cells
-        inside = (np.abs(offset) <= r).all(axis=1)
-        ox, oy = np.clip(offset + r, 0, 2 * r).T
-        steps = self.pursuit_steps[self.headings, ox, oy].astype(float)
-        gap = np.where(inside, steps, 1e6 + np.hypot(*offset.T))
-        nearer = (gap[None, :] < gap[:, None]) | (
-            (gap[None, :] == gap[:, None])
-            & (np.arange(self.n)[None, :] < np.arange(self.n)[:, None])
-        )
-        self.track[(same & nearer).any(axis=1)] = -1
+        for i, outcome in enumerate(engagements):
+            if outcome is None:
+                continue
+            where = self.request_cells[i] if self.request_cells[i, 0] >= 0 else self.cells[i]
+            if outcome.success:
+                index = np.flatnonzero(self.target_ids == outcome.target_id)
+                if index.size:
+                    self.engaged_cells[index[0]] = where
+                    self.known_engaged[i, index[0]] = True
+            else:
+                # nothing within the engage radius: a certain negative look at the cell of
+                # the request
+                self.tpm.apply_looks(
+                    np.array([i]), [where[None, :]], [np.array([False])], where[None, :]
+                )
+            self.track[i] = -1
 
     def engage_probability(
         self, uavs: np.ndarray, cells: np.ndarray, within_km: np.ndarray | None = None
@@ -377,12 +245,16 @@ class SwarmBeliefs:
     # ------------------------------------------------------------------ constraints
 
     def move_options(self) -> MoveOptions:
-        """The candidate moves and the hard constraints on them (C_m, C_t, C_r)."""
-        steps_left = self.mission_steps - self.k - 1 if self.cfg.home_by_end else None
-        return feasible_moves(
-            self.cells, self.headings, self.distance_km, self.homes_key, self.known_threats,
-            self.safety_model, self.cfg, self.grid, steps_left,
-        )  # fmt: skip
+        """The candidate moves and the hard constraints on them (C_m, C_t, C_r), computed once
+        a step after the threats are heard (a UAV's node reads them for its claim priority and
+        for its decision)."""
+        if self._options is None:
+            steps_left = self.mission_steps - self.k - 1 if self.cfg.home_by_end else None
+            self._options = feasible_moves(
+                self.cells, self.headings, self.distance_km, self.homes_key, self.known_threats,
+                self.safety_model, self.cfg, self.grid, steps_left,
+            )  # fmt: skip
+        return self._options
 
     def update_return(self, opts: MoveOptions, flying: np.ndarray) -> None:
         """C_r: the return term takes over once the range slack is nearly spent (eqs 35/37,
@@ -422,26 +294,34 @@ class SwarmBeliefs:
         distances: np.ndarray,
         flying: np.ndarray,
     ) -> np.ndarray:
-        """C_c: the chosen candidate of every UAV (``claim_cells``), with one step of foresight:
-        when another UAV is within two closing steps, a move into a state with a single way on
-        (``MoveOptions.freedom`` 1, e.g. between a threat and the area's edge) comes after every
-        other allowed move, so two UAVs are not left one cell with no separated pair of moves.
-        Separation comes before ``home_by_end``: when no move that keeps the time slack is
-        separated, a safe move that spends it is taken (paper-10uav seed 4 met two UAVs in one
-        cell at step 239 without this)."""
-        cfg, n = self.cfg, self.n
-        gaps = distances + np.diag(np.full(n, np.inf))
-        crowded = (gaps <= cfg.separation_sense_km + 2 * np.sqrt(2) * cfg.cell_km).any(axis=1)
-        rows = np.arange(n)[:, None]
-        cornered = (opts.freedom[rows, ranked] <= 1) & crowded[:, None]
-        # forbidden moves last; before them, safe moves that spend the time slack (home_by_end)
-        late = ~opts.feasible[rows, ranked]
-        last = cornered.astype(np.int64) + 2 * late + 2 * ~opts.safe[rows, ranked]
-        ranked = np.take_along_axis(ranked, np.argsort(last, axis=1, kind="stable"), axis=1)
+        """C_c for the whole swarm (owners all): the chosen candidate of every UAV
+        (``claim_cells``) over the candidates ranked by ``claim_ranking``."""
+        cfg = self.cfg
+        ranked = self.claim_ranking(ranked, opts, distances, np.ones(self.size, dtype=bool))
         return claim_cells(
             ranked, opts.cells, opts.safe, positions, flying, cfg.cell_km,
             cfg.min_separation_km, cfg.separation_sense_km,
         )  # fmt: skip
+
+    def claim_ranking(
+        self, ranked: np.ndarray, opts: MoveOptions, distances: np.ndarray, received: np.ndarray
+    ) -> np.ndarray:
+        """The owners' candidates in the order they claim them, with one step of foresight:
+        when another UAV (``received``) is within two closing steps, a move into a state with a
+        single way on (``MoveOptions.freedom`` 1, e.g. between a threat and the area's edge)
+        comes after every other allowed move, so two UAVs are not left one cell with no
+        separated pair of moves. Separation comes before ``home_by_end``: when no move that
+        keeps the time slack is separated, a safe move that spends it is taken (paper-10uav
+        seed 4 met two UAVs in one cell at step 239 without this); forbidden moves last."""
+        cfg, n = self.cfg, self.n
+        gaps = np.where(received[None, :], distances, np.inf)
+        gaps[np.arange(n), self.owners] = np.inf
+        crowded = (gaps <= cfg.separation_sense_km + 2 * np.sqrt(2) * cfg.cell_km).any(axis=1)
+        rows = np.arange(n)[:, None]
+        cornered = (opts.freedom[rows, ranked] <= 1) & crowded[:, None]
+        late = ~opts.feasible[rows, ranked]
+        last = cornered.astype(np.int64) + 2 * late + 2 * ~opts.safe[rows, ranked]
+        return np.take_along_axis(ranked, np.argsort(last, axis=1, kind="stable"), axis=1)
 
     def unsearched(self, cells: np.ndarray) -> np.ndarray:
         """(N, ...) bool: ``cells[i, ...]`` is inside the area and not yet covered as UAV i
@@ -471,15 +351,6 @@ class SwarmBeliefs:
             engage[who] = self.engage_probability(who, cells, within) >= self.cfg.confirm_threshold
         self.request_cells[engage] = self.cells[engage]
         return engage
-
-
-def distinct(values: np.ndarray) -> np.ndarray:
-    """``np.unique`` of a 1-D array (sorted distinct values), without its overhead on the small
-    arrays of one step."""
-    ordered = np.sort(values)
-    if ordered.size == 0:
-        return ordered
-    return ordered[np.concatenate(([True], ordered[1:] != ordered[:-1]))]
 
 
 def distances_to_threats(positions_km: np.ndarray, threat_xy: np.ndarray) -> np.ndarray:

@@ -28,11 +28,12 @@ from planner.motion_forecast import (
     SquareStencil,
     convolve_reflect,
     drifted_ratio,
-    grow_box,
+    grow_boxes,
     has_square_symmetry,
     ring_kernel,
     shift_with_reflection,
-    tighten_box,
+    tighten_boxes,
+    union_box,
     wiener_kernel_1d,
 )
 from planner.scenario import TargetSpec
@@ -91,7 +92,8 @@ class TargetProbabilityMaps:
         self.wiener_1d = wiener_kernel_1d(cfg.delta_e_km_per_sqrt_s * np.sqrt(dt) / cfg.cell_km)
         self.ring_kernels: dict[int, np.ndarray] = {}
         self.ring_symmetric: dict[int, bool] = {}
-        self.ring_box: dict[int, tuple[int, int, int, int]] = {}
+        # per known-speed layer, each UAV's box (N, 4: x0, x1, y0, y1) outside which its map is 0
+        self.ring_box: dict[int, np.ndarray] = {}
         self.stencil = SquareStencil(self.maps.shape[1:], self.maps.dtype)
         self.work = np.empty(self.maps.shape[1:], dtype=self.maps.dtype)  # one layer's maps
         self.wiener_work = np.empty_like(self.work)
@@ -120,15 +122,18 @@ class TargetProbabilityMaps:
         return np.divide(self.NEGLIGIBLE, self.scale, out=np.full(self.scale.shape, np.inf),
                          where=self.scale > 0).astype(np.float32)  # fmt: skip
 
-    def _support_box(self, layer: int) -> tuple[int, int, int, int]:
-        """Zero the negligible cells of a layer and return the box holding the rest."""
+    def _support_box(self, layer: int) -> np.ndarray:
+        """Zero the negligible cells of a layer and return, per UAV, the box (N, 4: x0, x1,
+        y0, y1) holding the rest of its map (each UAV's from its own map alone)."""
         maps = self.maps[layer]
         maps[maps < self._negligible_stored()[layer][:, None, None]] = 0.0
-        xs = np.flatnonzero(maps.any(axis=(0, 2)))
-        ys = np.flatnonzero(maps.any(axis=(0, 1)))
-        if xs.size == 0:
-            return 0, 1, 0, 1
-        return int(xs[0]), int(xs[-1]) + 1, int(ys[0]), int(ys[-1]) + 1
+        boxes = np.tile(np.array([0, 1, 0, 1], dtype=np.int64), (len(maps), 1))
+        for i, own in enumerate(maps):
+            xs = np.flatnonzero(own.any(axis=1))
+            ys = np.flatnonzero(own.any(axis=0))
+            if xs.size:
+                boxes[i] = xs[0], xs[-1] + 1, ys[0], ys[-1] + 1
+        return boxes
 
     def forecast(self) -> None:
         """Propagate every UAV's map over one decision period (eq 19 with the kernels of eqs
@@ -158,11 +163,14 @@ class TargetProbabilityMaps:
             layer = self.maps[l]
             if spec.kind == "known_speed":
                 if self.ring_symmetric[l]:
-                    self.stencil.apply(layer, self.ring_kernels[l], self.ring_box[l])
-                    grown = grow_box(self.ring_box[l], self.grid.nx, self.grid.ny)
+                    # one stencil over the boxes' union: a map is zero outside its own box,
+                    # so each UAV's cells come out as they would from its own box
+                    boxes = self.ring_box[l]
+                    self.stencil.apply(layer, self.ring_kernels[l], union_box(boxes))
+                    grown = grow_boxes(boxes, self.grid.nx, self.grid.ny)
                     if negligible is None:  # the scales do not change during the forecast
                         negligible = self._negligible_stored()
-                    self.ring_box[l] = tighten_box(layer, grown, negligible[l])
+                    self.ring_box[l] = tighten_boxes(layer, grown, negligible[l])
                 else:
                     self.maps[l] = convolve_reflect(layer, self.ring_kernels[l])
             elif spec.kind == "known_velocity":

@@ -11,6 +11,8 @@ Symbols: Omega -> the candidate axis; theta_j -> ``angle_to``; tau_ij -> ``tau``
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from planner.config import PlannerConfig
@@ -93,6 +95,58 @@ def range_scores(
     return np.where(allowed, scores, -np.inf)
 
 
+def claim_order(allowed: np.ndarray) -> np.ndarray:
+    """C_c's priority: the most constrained UAV first (fewest allowed cells), then the lower
+    index. Every UAV can compute its own key (``claim_priority``), so a swarm without a centre
+    resolves its claims in the same order (``planner.uav_node``)."""
+    n = len(allowed)
+    return np.lexsort((np.arange(n), allowed.sum(axis=1)))
+
+
+def claim_priority(allowed_count: int, uav: int, n_uavs: int) -> int:
+    """The place of a UAV with ``allowed_count`` allowed cells in ``claim_order`` as one
+    number (smaller claims first)."""
+    return allowed_count * n_uavs + uav
+
+
+@dataclass
+class ClaimBoard:
+    """The claims of one step as one claimant knows them (``claim_cells`` knows them all):
+    every UAV's ranked candidates, their centres and which are allowed; what has been claimed
+    so far (NaN: not yet); who senses whom."""
+
+    ranked: np.ndarray  # (N, C) candidate indices, the UAV's preference first
+    allowed: np.ndarray  # (N, C) bool
+    spots: np.ndarray  # (N, C, 2) km, candidate centres
+    claimed: np.ndarray  # (N, 2) km, the claimed (or held) position, NaN when unknown
+    choice: np.ndarray  # (N,) int, chosen candidate index
+    senses: np.ndarray  # (N, N) bool
+    movers: np.ndarray  # (N,) bool
+    limit: float  # d_min less a rounding margin
+
+
+def claim_board(
+    ranked: np.ndarray,
+    candidates: np.ndarray,
+    allowed: np.ndarray,
+    positions_km: np.ndarray,
+    movers: np.ndarray,
+    cell_km: float,
+    min_separation_km: float,
+    sense_km: float,
+) -> ClaimBoard:
+    """The board before any claim: the UAVs that hold still hold their positions."""
+    n = len(ranked)
+    claimed = np.full((n, 2), np.nan)
+    claimed[~movers] = positions_km[~movers]
+    senses = pairwise_distances(positions_km) <= sense_km
+    np.fill_diagonal(senses, False)
+    return ClaimBoard(
+        ranked, allowed, (candidates + 0.5) * cell_km, claimed, ranked[:, 0].copy(), senses,
+        movers, min_separation_km - 1e-9,
+    )  # fmt: skip
+
+
 def claim_cells(
     ranked: np.ndarray,
     candidates: np.ndarray,
@@ -103,77 +157,71 @@ def claim_cells(
     min_separation_km: float,
     sense_km: float,
 ) -> np.ndarray:
-    """C_c: every moving UAV, the most constrained first (fewest allowed cells, then index),
-    takes the first of its ranked candidates that keeps
-    ``min_separation_km`` from the cells already claimed by UAVs it can sense (within
-    ``sense_km``) and from the UAVs that hold still. Returns the chosen candidate index per UAV
-    (its first choice when nothing satisfies the constraint, so the metrics see the breach)."""
-    n = len(ranked)
-    choice = ranked[:, 0].copy()
-    claimed = np.full((n, 2), np.nan)
-    claimed[~movers] = positions_km[~movers]
-    order = np.lexsort((np.arange(n), allowed.sum(axis=1)))
-    # who senses whom, and every candidate's centre
-    senses = pairwise_distances(positions_km) <= sense_km
-    np.fill_diagonal(senses, False)
-    spots = (candidates + 0.5) * cell_km  # (N, C, 2)
-    limit = min_separation_km - 1e-9
+    """C_c: every moving UAV, in ``claim_order``, takes the first of its ranked candidates that
+    keeps ``min_separation_km`` from the cells already claimed by UAVs it can sense (within
+    ``sense_km``) and from the UAVs that hold still (``claim_next``). Returns the chosen
+    candidate index per UAV (its first choice when nothing satisfies the constraint, so the
+    metrics see the breach)."""
+    board = claim_board(
+        ranked, candidates, allowed, positions_km, movers, cell_km, min_separation_km, sense_km
+    )
+    order = claim_order(allowed)
     for i in order[movers[order]].tolist():
-        others = claimed[senses[i] & ~np.isnan(claimed[:, 0])]
-        if len(others):  # which of the UAV's candidates keep d_min from every claimed cell
-            d = np.hypot(*(others[:, None, :] - spots[i][None, :, :]).transpose(2, 0, 1))
-            separated = (d.min(axis=0) >= limit).tolist()
-        else:
-            separated = [True] * spots.shape[1]
-        allowed_i, first = allowed[i].tolist(), int(ranked[i, 0])
-        found = False
-        for c in ranked[i].tolist():
-            if not allowed_i[c] and c != first:
-                continue
-            if separated[c]:
-                choice[i], found = c, True
-                break
-        if not found:
-            _make_room(i, ranked, allowed, spots, claimed, choice, senses, movers, limit)
-        claimed[i] = spots[i, choice[i]]
-    return choice
+        claim_next(i, board)
+    return board.choice
 
 
-def _make_room(
-    i: int,
-    ranked: np.ndarray,
-    allowed: np.ndarray,
-    spots: np.ndarray,
-    claimed: np.ndarray,
-    choice: np.ndarray,
-    senses: np.ndarray,
-    movers: np.ndarray,
-    limit: float,
-) -> None:
+def claim_next(i: int, board: ClaimBoard) -> int | None:
+    """UAV ``i``'s claim on ``board`` (in place): its first ranked candidate separated from the
+    claims it senses; failing that, a swap with one blocker (``_make_room``). Returns the UAV
+    it moved to make room, or None."""
+    b = board
+    others = b.claimed[b.senses[i] & ~np.isnan(b.claimed[:, 0])]
+    spots_i = b.spots[i]
+    if len(others):  # which of the UAV's candidates keep d_min from every claimed cell
+        d = np.hypot(*(others[:, None, :] - spots_i[None, :, :]).transpose(2, 0, 1))
+        separated = (d.min(axis=0) >= b.limit).tolist()
+    else:
+        separated = [True] * spots_i.shape[0]
+    allowed_i, first = b.allowed[i].tolist(), int(b.ranked[i, 0])
+    for c in b.ranked[i].tolist():
+        if not allowed_i[c] and c != first:
+            continue
+        if separated[c]:
+            b.choice[i] = c
+            b.claimed[i] = spots_i[c]
+            return None
+    moved = _make_room(i, b)
+    b.claimed[i] = spots_i[b.choice[i]]
+    return moved
+
+
+def _make_room(i: int, b: ClaimBoard) -> int | None:
     """UAV ``i`` found every allowed candidate within d_min of a claimed cell: where exactly one
     UAV claimed before it blocks one of them, move that UAV to another of its allowed
     candidates that stays separated from everyone else (and from ``i`` there), and give ``i``
     the freed cell. ``choice`` and ``claimed`` are updated in place; when no such swap exists
     they are left as they are (``i`` keeps its first choice and the breach is seen). A UAV
-    holding still (not in ``movers``) is never moved."""
-    has = ~np.isnan(claimed[:, 0])
-    for c in ranked[i].tolist():
-        if not allowed[i, c]:
+    holding still (not in ``movers``) is never moved. Returns the UAV moved, or None."""
+    has = ~np.isnan(b.claimed[:, 0])
+    for c in b.ranked[i].tolist():
+        if not b.allowed[i, c]:
             continue
-        spot = spots[i, c]
-        near = np.hypot(*(claimed - spot).T) < limit
-        blockers = np.flatnonzero(has & senses[i] & near)
-        if len(blockers) != 1 or not movers[blockers[0]]:
+        spot = b.spots[i, c]
+        near = np.hypot(*(b.claimed - spot).T) < b.limit
+        blockers = np.flatnonzero(has & b.senses[i] & near)
+        if len(blockers) != 1 or not b.movers[blockers[0]]:
             continue
         j = int(blockers[0])
-        for cj in ranked[j].tolist():
-            if cj == choice[j] or not allowed[j, cj]:
+        for cj in b.ranked[j].tolist():
+            if cj == b.choice[j] or not b.allowed[j, cj]:
                 continue
-            alt = spots[j, cj]
-            rest = has & senses[j]
+            alt = b.spots[j, cj]
+            rest = has & b.senses[j]
             rest[j] = False
-            apart = np.hypot(*(claimed[rest] - alt).T)
-            if (apart >= limit).all() and np.hypot(*(alt - spot)) >= limit:
-                choice[j], claimed[j] = cj, alt
-                choice[i] = c
-                return
+            apart = np.hypot(*(b.claimed[rest] - alt).T)
+            if (apart >= b.limit).all() and np.hypot(*(alt - spot)) >= b.limit:
+                b.choice[j], b.claimed[j] = cj, alt
+                b.choice[i] = c
+                return j
+    return None

@@ -1,0 +1,385 @@
+"""The planner of one UAV in a swarm without a centre (section 3.3.1): its own beliefs (TPM
+layers, pheromone, the coverage and threats it knows of, what it last heard of each neighbour),
+the messages it heard (``planner.swarm_messages``), and its own move, decided by the same
+HAPF-ACO code as the batched swarm (``planner.hapf_aco.HapfAcoPlanner`` with one owner).
+
+A step is driven from outside (``planner.swarm_bus.SwarmBus``, or a radio): ``begin`` (own
+state, look, engagement outcome, threats: sent), ``hear`` (what arrived: sent back the track
+intent), ``rank`` (the transition rules up to C_c), ``claim`` in C_c's priority order and
+``finish``. C_c without a centre: a node claims after the claims of the higher-priority
+neighbours that could conflict; one whose claim has not arrived by the node's turn (the
+deadline) may make any move it can (``planner.claim_deadline.neighbour_moves``, holding
+included), and the node keeps clear of all of them, holds where none can reach, or takes the
+choice that keeps the most separation (``planner.claim_deadline.choose_under_deadline``,
+counted in ``ClaimStats``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from planner.claim_deadline import PREDICT_STEPS, choose_under_deadline, neighbour_moves
+from planner.engagement import EngagementOutcome
+from planner.hapf_aco import HapfAcoPlanner, RankedMoves
+from planner.planner_interface import MODES, StepDecision
+from planner.scenario import Scenario, UavStart
+from planner.sensor_model import SensorReport
+from planner.swarm_beliefs import HeardSwarm, Hearing
+from planner.swarm_messages import (
+    CellClaim,
+    Engagements,
+    Look,
+    Message,
+    ThreatsFound,
+    TrackIntent,
+    UavState,
+)
+from planner.transition import ClaimBoard, claim_board, claim_next, claim_priority
+
+
+@dataclass
+class ClaimStats:
+    """C_c without a centre, counted over a mission."""
+
+    missed: int = 0  # steps with neighbours' claims not heard by the deadline, that could conflict
+    avoided: int = 0  # ... where the node took a move none of their moves comes near
+    held: int = 0  # ... where it held a cell none of their moves comes near
+    squeezed: int = 0  # ... where neither was left: the choice keeping the most separation
+    swaps: int = 0  # a blocker asked to step aside, and it did
+    swaps_failed: int = 0  # ... no answer by the deadline: the node held
+
+
+@dataclass
+class _Inbox:
+    states: dict[int, UavState] = field(default_factory=dict)
+    looks: dict[int, Look] = field(default_factory=dict)
+    engagements: dict[int, Engagements] = field(default_factory=dict)
+    threats: dict[int, ThreatsFound] = field(default_factory=dict)
+    tracks: dict[int, TrackIntent] = field(default_factory=dict)
+    claims: dict[int, CellClaim] = field(default_factory=dict)
+
+
+class UavNode:
+    """One UAV's planner (see the module's docstring)."""
+
+    def __init__(
+        self, scenario: Scenario, starts: Sequence[UavStart], seed: int, uav: int
+    ) -> None:
+        self.uav = uav
+        self.size = len(starts)
+        self.planner = HapfAcoPlanner(scenario, starts, seed, owners=[uav])
+        self.beliefs = self.planner.beliefs
+        self.cfg = self.beliefs.cfg
+        self.stats = ClaimStats()
+        self._target_index = {int(t): i for i, t in enumerate(self.beliefs.target_ids)}
+        self.inbox = _Inbox()
+        self.last_heard: dict[int, UavState] = {}  # each neighbour's latest state
+        self._report: SensorReport | None = None
+        self._seen: Hearing | None = None
+        self._ranking: RankedMoves | None = None
+        self._board: ClaimBoard | None = None
+        self._hold = False
+
+    # ------------------------------------------------------------------ exchange 1
+
+    def begin(
+        self, cell: np.ndarray, heading: int, report: SensorReport | None,
+        outcome: EngagementOutcome | None, active: bool = True,
+        position_km: np.ndarray | None = None,
+    ) -> list[Message]:  # fmt: skip
+        """The step's own part; returns what the UAV tells the swarm."""
+        b, k = self.beliefs, self.beliefs.k
+        self.inbox = _Inbox()
+        request = tuple(int(v) for v in b.request_cells[0])
+        measured = None if position_km is None else np.asarray(position_km, float)[None, :]
+        b.begin_step(np.asarray(cell).reshape(1, 2), np.array([heading]), [outcome],
+                     np.array([active]), measured)  # fmt: skip
+        self._report = report
+        here = tuple(int(v) for v in b.cells[0])
+        where = measured[0] if measured is not None else b.grid.centre_km(b.cells)[0]
+        state = UavState(self.uav, k, here, int(b.headings[0]), (float(where[0]), float(where[1])),
+                         float(b.radius_km[0]), bool(b.flying[0]))  # fmt: skip
+        own = None
+        if outcome is not None:
+            at = request if request[0] >= 0 else here
+            own = (int(outcome.target_id), int(outcome.success), at)
+        serviced = tuple(
+            (int(b.target_ids[t]), (int(b.engaged_cells[t, 0]), int(b.engaged_cells[t, 1])))
+            for t in np.flatnonzero(b.known_engaged[0])
+        )
+        sent: list[Message] = [state, Engagements(self.uav, k, own, serviced)]
+        sent.append(ThreatsFound(self.uav, k, tuple(np.flatnonzero(b.known_threats[0]).tolist())))
+        if report is not None and len(report.cells) > 0:
+            cells = tuple((int(x), int(y)) for x, y in np.asarray(report.cells))
+            sent.append(Look(self.uav, k, cells, tuple(bool(d) for d in report.detected)))
+        for message in sent:
+            self.receive(message)
+        return sent
+
+    def receive(self, message: Message) -> None:
+        """Take in one message heard (any exchange); one of another step is ignored."""
+        if message.step != self.beliefs.k:
+            return
+        box = {
+            UavState: self.inbox.states, Look: self.inbox.looks,
+            Engagements: self.inbox.engagements, ThreatsFound: self.inbox.threats,
+            TrackIntent: self.inbox.tracks, CellClaim: self.inbox.claims,
+        }[type(message)]  # fmt: skip
+        box[message.uav] = message
+        if isinstance(message, UavState):
+            self.last_heard[message.uav] = message
+        if isinstance(message, CellClaim) and self._board is not None:
+            self._take_claim(message)
+
+    # ------------------------------------------------------------------ exchange 2
+
+    def hear(self) -> list[Message]:
+        """What the UAV heard of the swarm; returns its track intent and C_c priority."""
+        b = self.beliefs
+        self._seen = b.hear(self._view())
+        safe = int(b.move_options().safe.sum())
+        track = tuple(int(v) for v in b.track[0])
+        intent = TrackIntent(self.uav, b.k, track, claim_priority(safe, self.uav, self.size))
+        self.receive(intent)
+        return [intent]
+
+    def _view(self) -> HeardSwarm:
+        b, box, size = self.beliefs, self.inbox, self.size
+        cells = np.zeros((size, 2), dtype=np.int64)
+        headings = np.zeros(size, dtype=np.int64)
+        flying = np.zeros(size, dtype=bool)
+        received = np.zeros(size, dtype=bool)
+        for j, s in box.states.items():
+            cells[j], headings[j], flying[j], received[j] = s.cell, s.heading, s.flying, True
+        reports: list[SensorReport | None] = [None] * size
+        for j, look in box.looks.items():
+            reports[j] = SensorReport(np.array(look.cells, dtype=np.int64).reshape(-1, 2),
+                                      np.array(look.detected, dtype=bool))  # fmt: skip
+        reports[self.uav] = self._report
+        threats = np.zeros((size, len(b.threat_r)), dtype=bool)
+        for j, found in box.threats.items():
+            threats[j, list(found.threats)] = True
+        engaged = np.zeros((size, len(b.target_ids)), dtype=bool)
+        cells_of = np.full((len(b.target_ids), 2), -1, dtype=np.int64)
+        index = self._target_index
+        for j, heard in sorted(box.engagements.items()):
+            for target, where in heard.serviced:
+                t = index.get(target)
+                if t is not None:
+                    engaged[j, t] = True
+                    if cells_of[t, 0] < 0:
+                        cells_of[t] = where
+        return HeardSwarm(cells, headings, flying, received, reports, threats, engaged, cells_of)
+
+    # ------------------------------------------------------------------ exchange 3
+
+    def rank(self) -> None:
+        """One UAV per target, then the transition rules up to C_c."""
+        b, seen = self.beliefs, self._seen
+        assert seen is not None
+        tracks = np.full((self.size, 2), -1, dtype=np.int64)
+        for j, intent in self.inbox.tracks.items():
+            tracks[j] = intent.track
+        view_cells = np.zeros((self.size, 2), dtype=np.int64)
+        view_headings = np.zeros(self.size, dtype=np.int64)
+        for j, s in self.inbox.states.items():
+            view_cells[j], view_headings[j] = s.cell, s.heading
+        b.leave_to_nearer(seen, view_cells, view_headings, tracks)
+        ranking = self.planner.rank_moves(seen)
+        ranked = b.claim_ranking(ranking.ranked, ranking.options, seen.distances, seen.received)
+        self._ranking = RankedMoves(ranked, ranking.options, ranking.modes)
+        self._board = self._new_board(seen)
+        self._hold = False
+        for claim in list(self.inbox.claims.values()):
+            self._take_claim(claim)
+
+    @property
+    def priority(self) -> int:
+        return self.inbox.tracks[self.uav].priority
+
+    def _new_board(self, seen: Hearing) -> ClaimBoard:
+        """The claims as this node will know them: its own candidates in row ``uav``."""
+        assert self._ranking is not None
+        size, opts, cfg = self.size, self._ranking.options, self.cfg
+        c = opts.cells.shape[1]
+        ranked = np.tile(np.arange(c), (size, 1))
+        ranked[self.uav] = self._ranking.ranked[0]
+        allowed = np.zeros((size, c), dtype=bool)
+        allowed[self.uav] = opts.safe[0]
+        candidates = np.zeros((size, c, 2), dtype=np.int64)
+        candidates[self.uav] = opts.cells[0]
+        positions = np.where(seen.received[:, None], seen.positions, np.nan)
+        return claim_board(
+            ranked, candidates, allowed, positions, seen.members_flying, cfg.cell_km,
+            cfg.min_separation_km, cfg.separation_sense_km,
+        )  # fmt: skip
+
+    def _take_claim(self, claim: CellClaim) -> None:
+        """Write a neighbour's claim on the board (its alternatives as its candidates); a claim
+        that asks this UAV to step aside is answered by moving, when the cell asked for keeps
+        clear of every claim this node knows of."""
+        board, j = self._board, claim.uav
+        assert board is not None
+        if j == self.uav:
+            return
+        cells = [claim.cell] + [a for a in claim.alternatives if a != claim.cell]
+        c = board.spots.shape[1]
+        cells = cells[:c] + [cells[0]] * (c - len(cells[:c]))
+        board.spots[j] = (np.array(cells, dtype=float) + 0.5) * self.cfg.cell_km
+        board.allowed[j] = [True] * min(len(claim.alternatives) + 1, c) + [False] * max(
+            0, c - len(claim.alternatives) - 1
+        )
+        board.ranked[j] = np.arange(c)
+        board.choice[j] = 0
+        board.claimed[j] = board.spots[j, 0]
+        if self._seen is not None and not self._seen.received[j]:
+            # its state was lost, its claim came: the board cannot tell how far it is, so
+            # the claim counts (the link's range is the only distance known)
+            board.senses[self.uav, j] = True
+
+    def claim(self) -> list[Message]:
+        """This node's claim on its board (``planner.transition.claim_next``), after the
+        claims it heard; when a higher-priority neighbour's claim is missing, by
+        ``planner.claim_deadline.choose_under_deadline`` instead (no request to step aside)."""
+        board, ranking = self._board, self._ranking
+        assert board is not None and ranking is not None
+        i, b = self.uav, self.beliefs
+        if not b.flying[0]:
+            return []
+        missed = self._missed_moves()
+        if not len(missed):
+            moved = claim_next(i, board)
+            displace = None
+            if moved is not None:
+                alt = board.spots[moved, board.choice[moved]] / self.cfg.cell_km - 0.5
+                displace = (int(moved), (int(round(alt[0])), int(round(alt[1]))))
+            return [self._claim_message(displace)]
+        here = b.grid.centre_km(b.cells)[0]
+        choice = choose_under_deadline(
+            here, board.spots[i], board.ranked[i], board.allowed[i], self._heard_claims(),
+            missed, board.limit,
+        )  # fmt: skip
+        self.stats.missed += 1
+        setattr(self.stats, choice.rule, getattr(self.stats, choice.rule) + 1)
+        if choice.hold:
+            self._hold = True
+            board.claimed[i] = here
+        else:
+            board.choice[i] = choice.candidate
+            board.claimed[i] = board.spots[i, choice.candidate]
+        return [self._claim_message(None)]
+
+    def _heard_claims(self) -> np.ndarray:
+        """(H, 2) km: the claims on this node's board it senses (and the UAVs holding still),
+        and the cell of every claimant that asked a blocker to step aside (it holds there when
+        the blocker does not answer, and that hold may not reach this node)."""
+        board = self._board
+        assert board is not None
+        known = board.senses[self.uav] & ~np.isnan(board.claimed[:, 0])
+        points = [board.claimed[known]]
+        for j, claim in self.inbox.claims.items():
+            state = self.last_heard.get(j)
+            if claim.displace is not None and state is not None and j != self.uav:
+                points.append((np.array(state.cell, float)[None, :] + 0.5) * self.cfg.cell_km)
+        return np.concatenate(points)
+
+    def hold_claim(self) -> CellClaim:
+        """The claim of this node holding its cell (a request to step aside unanswered)."""
+        self._hold = True
+        return self._claim_message(None)
+
+    def _claim_message(self, displace: tuple[int, tuple[int, int]] | None) -> CellClaim:
+        assert self._board is not None and self._ranking is not None
+        b, opts, board = self.beliefs, self._ranking.options, self._board
+        pick = int(board.choice[self.uav])
+        if self._hold:
+            cell, heading = tuple(int(v) for v in b.cells[0]), int(b.headings[0])
+        else:
+            cell = tuple(int(v) for v in opts.cells[0, pick])
+            heading = int(opts.headings[0, pick])
+        alternatives = tuple(
+            tuple(int(v) for v in opts.cells[0, c])
+            for c in board.ranked[self.uav] if opts.safe[0, c] and c != pick
+        )
+        return CellClaim(self.uav, b.k, cell, heading, alternatives, displace)  # type: ignore[arg-type]
+
+    def _missed_moves(self) -> np.ndarray:
+        """(M, 2, 2) km: every move (``neighbour_moves``) of each neighbour that should have
+        claimed before this node and has not been heard to (its priority unknown counts as
+        before), last heard at most ``PREDICT_STEPS`` ago, that comes near enough to matter."""
+        mine, cfg = self.priority, self.cfg
+        moves: list[np.ndarray] = []
+        for j, state in self.last_heard.items():
+            if j == self.uav or j in self.inbox.claims:
+                continue
+            intent = self.inbox.tracks.get(j)
+            if intent is not None and intent.priority > mine:
+                continue  # it claims after this node
+            if not state.flying and state.step == self.beliefs.k:
+                continue  # holding: on the board already
+            age = self.beliefs.k - state.step
+            if age > PREDICT_STEPS:
+                continue
+            moves.append(neighbour_moves(state.cell, state.heading, age, cfg.max_turn_deg,
+                                         cfg.cell_km))  # fmt: skip
+        if not moves:
+            return np.zeros((0, 2, 2))
+        near = np.concatenate(moves)
+        here = self.beliefs.grid.centre_km(self.beliefs.cells)[0]
+        reach = cfg.separation_sense_km + 2 * cfg.cell_km
+        return near[(np.hypot(*(near[:, 1] - here).T) <= reach)
+                    | (np.hypot(*(near[:, 0] - here).T) <= reach)]  # fmt: skip
+
+    def answer(self, claim: CellClaim) -> list[Message]:
+        """A claim that asks this UAV to step aside: move, and say so, when the cell keeps clear
+        of the claims this node knows of (``answered`` by its new claim)."""
+        board = self._board
+        if board is None or claim.displace is None or claim.displace[0] != self.uav:
+            return []
+        cell = claim.displace[1]
+        opts = self._ranking.options if self._ranking is not None else None
+        if opts is None or self._hold:
+            return []
+        found = [c for c in range(opts.cells.shape[1])
+                 if tuple(opts.cells[0, c]) == cell and opts.safe[0, c]]  # fmt: skip
+        if not found:
+            return []
+        spot = (np.array(cell, float) + 0.5) * self.cfg.cell_km
+        others = board.claimed[board.senses[self.uav] & ~np.isnan(board.claimed[:, 0])]
+        others = others[np.hypot(*(others - board.claimed[claim.uav]).T) > 1e-9] if len(
+            others) else others  # fmt: skip
+        asker = (np.array(claim.cell, float) + 0.5) * self.cfg.cell_km
+        if len(others) and (np.hypot(*(others - spot).T) < board.limit).any():
+            return []
+        if np.hypot(*(asker - spot)) < board.limit:
+            return []
+        board.choice[self.uav] = found[0]
+        board.claimed[self.uav] = spot
+        return [self._claim_message(None)]
+
+    def displaced(self, answered: bool) -> None:
+        """The answer to this node's request to a blocker: none by the deadline, hold."""
+        if answered:
+            self.stats.swaps += 1
+        else:
+            self.stats.swaps_failed += 1
+            self._hold = True
+
+    # ------------------------------------------------------------------ the decision
+
+    def finish(self) -> StepDecision:
+        """The UAV's decision (one row), then the forecast to the next step."""
+        assert self._board is not None and self._ranking is not None and self._seen is not None
+        pick = np.array([int(self._board.choice[self.uav])])
+        decision = self.planner.finish_decision(self._ranking, pick, self._seen.flying)
+        if self._hold and self._seen.flying[0]:
+            b = self.beliefs
+            decision.next_cells[0] = b.cells[0]
+            decision.next_headings[0] = b.headings[0]
+            decision.modes[0] = MODES.index("hold")
+        self.beliefs.finish_step(decision)
+        self._board = None
+        return decision
