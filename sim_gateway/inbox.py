@@ -3,7 +3,8 @@ sockets, parses each on its own (with signing on, refusing what is not signed: t
 signature check, ``sim_gateway/signing.py``), handles a frame that reached several vehicle
 sockets once, and hands each good message to the vehicle(s) it is addressed to
 (``sim_gateway/message_handlers.py``); a lockstep grant goes to the clock instead, if it comes
-from the vehicles' ground station (``sim_gateway/lockstep.py``).
+from the vehicles' ground station (``sim_gateway/lockstep.py``), and a swarm-link TUNNEL frame
+to the radio (``sim_gateway/radio.py``).
 """
 
 from __future__ import annotations
@@ -11,15 +12,18 @@ from __future__ import annotations
 import selectors
 import struct
 import time
+from collections.abc import Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_gateway.lockstep import Address, ClockMaster, LockstepGate
 from sim_gateway.mavlink_endpoint import DatagramParser, LinkStats, VehicleSocket
 from sim_gateway.message_handlers import AUTOPILOT_ONLY, HANDLERS
+from sim_gateway.radio import is_swarm_frame
 from sim_gateway.vehicle import Vehicle
 
 DUPLICATE_WINDOW_S = 2.0
+SwarmFrameSink = Callable[[mavlink.MAVLink_message, VehicleSocket | None], None]
 
 
 class Inbox:
@@ -38,6 +42,8 @@ class Inbox:
         self.parser = DatagramParser(stats)
         self.lockstep = lockstep
         self.clock_master = clock_master
+        #: where a swarm-link TUNNEL frame goes (the simulator's radio): ``(message, sock)``
+        self.on_swarm_frame: SwarmFrameSink | None = None
         self.recent_frames: dict[tuple[Address | None, bytes], float] = {}
         self.next_purge_wall = 0.0
         self.selector = selectors.DefaultSelector()
@@ -88,6 +94,9 @@ class Inbox:
         stats.by_type[mtype] = stats.by_type.get(mtype, 0) + 1
         if mtype == "SYSTEM_TIME" and message.time_unix_usec == 0:
             self.lockstep_grant(message, sock, sender)
+            return
+        if self.on_swarm_frame is not None and mtype == "TUNNEL" and is_swarm_frame(message):
+            self.on_swarm_frame(message, sock)
             return
         if mtype == "HEARTBEAT" and self.clock_master.is_master(
             message.get_srcSystem(), sender, None if sock is None else sock.station

@@ -21,6 +21,37 @@ class SimulatorError(UserError):
 
 
 @dataclass(frozen=True)
+class RadioOptions:
+    """The swarm radio's range (km), loss probability, latency (ms) and shared bandwidth
+    (kbit/s); ``inf`` range or bandwidth: unlimited."""
+
+    range_km: float = math.inf
+    loss: float = 0.0
+    latency_ms: float = 0.0
+    kbps: float = math.inf
+
+    def validate(self) -> None:
+        if math.isnan(self.range_km) or self.range_km <= 0:
+            raise SimulatorError(
+                f"--radio-range-km must be a positive distance in km, got {self.range_km}; "
+                "e.g. --radio-range-km 20"
+            )
+        if not (math.isfinite(self.loss) and 0.0 <= self.loss <= 1.0):
+            raise SimulatorError(
+                f"--radio-loss must be a probability in [0, 1], got {self.loss}; e.g. 0.1 for 10 %"
+            )
+        if not (math.isfinite(self.latency_ms) and 0.0 <= self.latency_ms <= 60_000):
+            raise SimulatorError(
+                f"--radio-latency-ms must be in [0, 60000] ms, got {self.latency_ms}"
+            )
+        if math.isnan(self.kbps) or self.kbps <= 0:
+            raise SimulatorError(
+                f"--radio-kbps must be a positive rate in kbit/s, got {self.kbps}; "
+                "e.g. --radio-kbps 57.6 (a SiK radio's air rate)"
+            )
+
+
+@dataclass(frozen=True)
 class SimOptions:
     """How the simulator runs and where its vehicles talk."""
 
@@ -41,8 +72,10 @@ class SimOptions:
     lockstep: bool = False  # hold at the horizon the ground station grants (SYSTEM_TIME)
     lockstep_timeout_s: float = 10.0  # wall s of ground-station silence that end the lock
     truth_port: int | None = None  # send the true targets to 127.0.0.1:PORT (truth_feed.py)
+    radio: RadioOptions = RadioOptions()  # the swarm link between the nodes (radio.py)
 
     def validate(self) -> None:
+        self.radio.validate()
         if self.fast and self.lockstep:
             raise SimulatorError(
                 "--fast and --lockstep exclude each other: lockstep already runs as fast as the "

@@ -40,6 +40,7 @@ from sim_gateway.inbox import Inbox
 from sim_gateway.lockstep import Address, ClockMaster, LockstepGate
 from sim_gateway.mavlink_endpoint import LinkStats, VehicleSocket
 from sim_gateway.mission_protocol import retry_upload
+from sim_gateway.radio import SwarmRadio
 from sim_gateway.sensor_looks import Looks
 from sim_gateway.signing import enable_signing
 from sim_gateway.sim_options import SimOptions, SimulatorError, resolve_gcs_host, with_vehicle_count
@@ -96,6 +97,11 @@ class Simulator:
         self.lockstep = LockstepGate(options.lockstep, options.lockstep_timeout_s)
         self.clock_master = ClockMaster()
         self.inbox = Inbox(self.vehicles, self.stats, self.lockstep, self.clock_master)
+        self.radio = SwarmRadio(options.radio, self.sockets, self.fleet, options.seed)
+        self.radio.backlog_limit_s = self.config.step_s
+        self.inbox.on_swarm_frame = lambda message, sock: self.radio.on_frame(
+            message, sock, self.sim_time_s
+        )
         self.signature_check = None
         if options.signing_key is not None:
             senders = (c for v in self.vehicles for c in (v.autopilot, v.camera))
@@ -236,6 +242,7 @@ class Simulator:
         events = self.fleet.step(dt)
         self.sim_time_s = (self.ticks + 1) * dt
         self.ticks += 1
+        self.radio.deliver_due(self.sim_time_s)
         for i in np.flatnonzero(events.arrived):
             self.vehicles[i].on_arrived()
         for i in np.flatnonzero(events.climbed):
@@ -479,6 +486,7 @@ class Simulator:
                 }
             ),
             "fence_breaches": self.fence_breaches,
+            "radio": self.radio.stats.summary(),
             "lockstep_grants": self.lockstep.grants,
             "safety": self.truth.summary(),
         }

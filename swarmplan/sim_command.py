@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import signal
 import threading
@@ -21,8 +22,10 @@ os.environ.setdefault("MAVLINK20", "1")
 from planner.errors import UserError  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 from sim_gateway.signing import load_or_create_key_file, load_signing_key  # noqa: E402
+from sim_gateway.sim_options import RadioOptions  # noqa: E402
 from swarmplan import option_groups  # noqa: E402
 from swarmplan.arguments import (  # noqa: E402
+    finite_float,
     non_negative_float,
     port_number,
     positive_float,
@@ -46,6 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _add_vehicle_start_arguments(parser)
     option_groups.add_duration_option(parser, "simulated")
     _add_lockstep_arguments(parser)
+    _add_radio_arguments(parser)
     option_groups.add_signing_key_option(
         parser,
         "sign everything, refuse unsigned or wrongly signed commands; a file that does not "
@@ -130,6 +134,41 @@ def _add_lockstep_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_radio_arguments(parser: argparse.ArgumentParser) -> None:
+    """The telemetry radio that carries the planner nodes' swarm link (docs/onboard.md)."""
+    group = parser.add_argument_group(
+        "swarm radio", "the link between the vehicles' planner nodes (TUNNEL frames of the swarm "
+        "payload type); default: every vehicle hears every other at once, nothing lost"
+    )  # fmt: skip
+    group.add_argument(
+        "--radio-range-km", type=finite_float, default=None, metavar="KM",
+        help="a frame reaches only the vehicles within KM of its sender (default: unlimited)",
+    )  # fmt: skip
+    group.add_argument(
+        "--radio-loss", type=finite_float, default=0.0, metavar="P",
+        help="each receiver loses each frame with probability P in [0, 1] (seeded)",
+    )  # fmt: skip
+    group.add_argument(
+        "--radio-latency-ms", type=finite_float, default=0.0, metavar="MS",
+        help="simulated delay of every frame after it left the channel (default 0)",
+    )  # fmt: skip
+    group.add_argument(
+        "--radio-kbps", type=finite_float, default=None, metavar="KBPS",
+        help="the channel's rate shared by all vehicles, kbit/s (e.g. 57.6); a frame that "
+        "would wait more than a decision period is dropped (default: unlimited)",
+    )  # fmt: skip
+
+
+def radio_options(args: argparse.Namespace) -> RadioOptions:
+    """The radio of ``swarmplan sim``'s options (checked by the simulator)."""
+    return RadioOptions(
+        range_km=math.inf if args.radio_range_km is None else args.radio_range_km,
+        loss=args.radio_loss,
+        latency_ms=args.radio_latency_ms,
+        kbps=math.inf if args.radio_kbps is None else args.radio_kbps,
+    )
+
+
 def main(args: argparse.Namespace) -> int:
     from sim_gateway.simulator import SimOptions, Simulator
 
@@ -153,6 +192,7 @@ def main(args: argparse.Namespace) -> int:
         signing_key=signing_key,
         lockstep=args.lockstep,
         lockstep_timeout_s=args.lockstep_timeout,
+        radio=radio_options(args),
     )
     with Simulator(scenario, options) as sim:
         n = len(sim.vehicles)
