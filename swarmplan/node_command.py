@@ -14,6 +14,8 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon, MissionInterrupted
 from mavlink_bridge.mission.onboard_planner import OnboardPlanner
 from mavlink_bridge.vehicles.swarm_link import SwarmLink
@@ -137,6 +139,9 @@ def main(args: argparse.Namespace) -> int:
                 result["uav"] = args.uav
                 if planners:
                     result["link"] = planners[-1].link_summary()
+                state = daemon.loop.state
+                if state is not None:  # the cells its looks covered (the swarm's union: joined)
+                    result["observed_cells"] = np.flatnonzero(state.observed).tolist()
                 write_mission_outputs(result, out)
     assert report is not None
     if args.json:
