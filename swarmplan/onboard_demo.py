@@ -227,17 +227,12 @@ def main(args: Any, scenario: Scenario, out: Path, key: bytes | None) -> int:
     quiet = args.json
     started = time.monotonic()
     sim, nodes, speedup = start_swarm(args, scenario, steps, out, key)
-    if not quiet:
-        print(f"coordinator: simulator pid {sim.pid} ({scenario.uav_count} vehicles, "
-              f"{speedup:g}x, radio range {args.radio_range_km or 'unlimited'} km, loss "
-              f"{args.radio_loss:g}, {'unsigned' if key is None else 'signed'})",
-              file=sys.stderr)  # fmt: skip
-        print(
-            f"coordinator: node pids {' '.join(str(p.pid) for p in nodes)} (node i flies "
-            f"system id i+1; its log: {out}/node-i/node.log)",
-            file=sys.stderr,
-            flush=True,
-        )
+    # (said also with --json: the pids are how to reach the processes it leaves running)
+    print(f"coordinator: simulator pid {sim.pid} ({scenario.uav_count} vehicles, {speedup:g}x, "
+          f"radio range {args.radio_range_km or 'unlimited'} km, loss {args.radio_loss:g}, "
+          f"{'unsigned' if key is None else 'signed'})", file=sys.stderr)  # fmt: skip
+    print(f"coordinator: node pids {' '.join(str(p.pid) for p in nodes)} (node i flies system "
+          f"id i+1; its log: {out}/node-i/node.log)", file=sys.stderr, flush=True)  # fmt: skip
     watch(nodes, out, steps, quiet)
     stop(sim)  # (its summary, with the radio's count and the truth of what flew, is in sim.log)
     from swarmplan.demo import simulator_summary
