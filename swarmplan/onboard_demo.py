@@ -14,6 +14,7 @@ clock; each node follows its own vehicle's clock, as on real planes.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -28,6 +29,8 @@ from typing import Any
 from mavlink_wire.signing import key_environment
 from planner.scenario import Scenario
 from sim_gateway.sim_options import RadioOptions
+from swarmplan.arguments import finite_float
+from swarmplan.sim_log import simulator_summary
 
 #: the default pace of an onboard demo: each node must hear its neighbours and decide within a
 #: share of the decision period, N processes on the machine's cores
@@ -35,6 +38,37 @@ ONBOARD_SPEEDUP = 4.0
 #: simulated seconds the simulator runs on beyond the mission's steps (boot, take-off, the
 #: flight home and its watch), after which it stops itself if no coordinator stopped it
 SIM_MARGIN_S = 600.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``swarmplan demo``'s options of the swarm without a centre."""
+    onboard = parser.add_argument_group(
+        "onboard", "one planner per UAV, no centre (docs/onboard.md): one `swarmplan node` "
+        "process per UAV beside its vehicle, a coordinator that only watches and joins"
+    )  # fmt: skip
+    onboard.add_argument(
+        "--onboard", action="store_true",
+        help="fly the swarm without a centre (paced: --speedup, default 4)",
+    )  # fmt: skip
+    onboard.add_argument(
+        "--radio-range-km",
+        type=finite_float,
+        default=None,
+        metavar="KM",
+        help="--onboard: the swarm radio's range (default unlimited)",
+    )
+    onboard.add_argument(
+        "--radio-loss",
+        type=finite_float,
+        default=0.0,
+        metavar="P",
+        help="--onboard: each receiver loses each frame with probability P",
+    )
+    onboard.add_argument(
+        "--join", action="store_true",
+        help="--onboard: fly nothing, join the nodes' parts already in --out (after the "
+        "coordinator was killed and the nodes finished) into result.json",
+    )  # fmt: skip
 
 
 def free_port_block(count: int, host: str = "127.0.0.1") -> int:
@@ -223,8 +257,9 @@ def summary_lines(result: dict, out: Path) -> list[str]:
 
 def main(args: Any, scenario: Scenario, out: Path, key: bytes | None) -> int:
     """Start the swarm, watch it, join the parts (``swarmplan demo --onboard``)."""
+    if args.join:
+        return write_joined(args, scenario, out, {})
     steps = args.steps or scenario.steps
-    quiet = args.json
     started = time.monotonic()
     sim, nodes, speedup = start_swarm(args, scenario, steps, out, key)
     # (said also with --json: the pids are how to reach the processes it leaves running)
@@ -233,15 +268,19 @@ def main(args: Any, scenario: Scenario, out: Path, key: bytes | None) -> int:
           f"{'unsigned' if key is None else 'signed'})", file=sys.stderr)  # fmt: skip
     print(f"coordinator: node pids {' '.join(str(p.pid) for p in nodes)} (node i flies system "
           f"id i+1; its log: {out}/node-i/node.log)", file=sys.stderr, flush=True)  # fmt: skip
-    watch(nodes, out, steps, quiet)
+    watch(nodes, out, steps, args.json)
     stop(sim)  # (its summary, with the radio's count and the truth of what flew, is in sim.log)
-    from swarmplan.demo import simulator_summary
+    return write_joined(args, scenario, out, {
+        "wall_time_s": round(time.monotonic() - started, 1), "speedup": speedup})  # fmt: skip
 
+
+def write_joined(args: Any, scenario: Scenario, out: Path, extra: dict[str, Any]) -> int:
+    """Join the parts in ``out`` (with the simulator's summary, when it wrote one), write
+    result.json, say the summary; exit status 1 when a node's part is missing."""
     result = join_parts(out, scenario, args.seed, simulator_summary(out / "sim.log"))
-    result["wall_time_s"] = round(time.monotonic() - started, 1)
-    result["speedup"] = speedup
+    result.update(extra)
     (out / "result.json").write_text(json.dumps(result, indent=1, default=float))
-    if quiet:
+    if args.json:
         print(json.dumps(result, default=float))
     else:
         print("\n".join(summary_lines(result, out)))

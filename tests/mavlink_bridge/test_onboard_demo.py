@@ -106,7 +106,8 @@ def test_an_onboard_demo_brings_the_planes_home_with_the_link_figures(tmp_path):
 @pytest.mark.timeout(240)
 def test_the_nodes_fly_on_and_home_when_the_coordinator_is_killed(tmp_path):
     out, log = tmp_path / "run", tmp_path / "coordinator.log"
-    coordinator = _demo(_scenario(tmp_path, 2), out, log)
+    scenario = _scenario(tmp_path, 2)
+    coordinator = _demo(scenario, out, log)
     pids: list[int] = []
     try:
         pids = _pids(log, coordinator)
@@ -136,3 +137,10 @@ def test_the_nodes_fly_on_and_home_when_the_coordinator_is_killed(tmp_path):
         assert part["link"]["reports_heard"] > 0
     truth = _sim_truth(out / "sim.log")
     assert truth["threat_entries"] == 0 and truth["separation_breaches"] == 0
+    # the parts joined afterwards, as the coordinator would have
+    joined = loopback.run_swarmplan(["demo", str(scenario), "--seed", "2", "--onboard", "--join",
+                                     "--out", str(out), "--json"], timeout=120)  # fmt: skip
+    assert joined.returncode == 0, joined.stderr
+    result = json.loads(joined.stdout)
+    assert result["returned_count"] == 2 and result["nodes_missing"] == []
+    assert result["simulator_truth"] == truth and result["link"]["radio"]["delivered"] > 0
