@@ -117,6 +117,7 @@ class OnboardPlanner:
         self._ahead: list[Message] = []  # messages of a step not begun yet
         self._sequence: dict[int, int] = {}  # last message sequence heard of each neighbour
         self._claimed = False
+        self._open = False  # between this step's begin and its decision
         self._sent = self._received = 0
         link.tunnel_listeners.append(self._heard)
 
@@ -164,7 +165,7 @@ class OnboardPlanner:
         k = self.beliefs.k
         if m.uav == self.uav:
             return
-        if m.step > k:
+        if m.step > k or (m.step == k and not self._open):  # (before its own begin: kept)
             self._ahead.append(m)
         elif m.step < k:
             self.stats.late_messages += 1
@@ -203,6 +204,7 @@ class OnboardPlanner:
         where = None if positions_km is None else np.asarray(positions_km)[0]
         self._broadcast(node.begin(np.asarray(cells)[0], int(np.asarray(headings)[0]),
                                    reports[0], outcome, flying, where))  # fmt: skip
+        self._open = True
         ahead, self._ahead = self._ahead, []
         for m in ahead:
             self._take(m)
@@ -214,6 +216,7 @@ class OnboardPlanner:
         node.rank()
         self._claim(t0, period)
         decision = node.finish()
+        self._open = False
         self._account(t0, cpu0)
         return decision
 
