@@ -49,7 +49,17 @@ ENGAGEMENT = struct.Struct("<HHHHB")  # target u16, cell x, y u16, step u16, fla
 SERVICED = struct.Struct("<H")  # target u16
 CLAIM = struct.Struct("<HHB")  # cell x, y u16, claim round u8
 THREAT = struct.Struct("<iiI")  # x, y m i32, radius m u32
+INTENT = struct.Struct("<HHH")  # track cell x, y u16 (0xFFFF: none); C_c priority u16
+#: cell x, y u16; heading u8; alternatives u8; blocker u8 (255: none); cell asked of it x, y u16
+MOVE_HEAD = struct.Struct("<HHBBBHH")
+CELL = struct.Struct("<HH")  # one alternative cell x, y u16
+SERVICED_AT = struct.Struct("<HHH")  # target u16, cell x, y u16
 KIND_STATE, KIND_LOOK, KIND_ENGAGEMENT, KIND_SERVICED, KIND_CLAIM, KIND_THREAT = range(1, 7)
+KIND_INTENT, KIND_MOVE, KIND_SERVICED_AT = range(7, 10)
+#: a cell the planner leaves empty ((-1, -1): none) travels as (0xFFFF, 0xFFFF)
+NO_CELL_WIRE = (0xFFFF, 0xFFFF)
+NOT_FLYING = 0x80  # the state's heading byte: bit 7 set, the UAV is done (home) or unreachable
+NO_BLOCKER = 0xFF
 MAX_RECORDS = 255  # per section; more records of a kind go into further sections
 
 
@@ -68,6 +78,7 @@ class NodeState:
     x_km: float
     y_km: float
     coop_radius_km: float
+    flying: bool = True  # False: done (home) or unreachable; it holds its cell
 
 
 @dataclass(frozen=True)
@@ -102,6 +113,27 @@ class Claim:
 
 
 @dataclass(frozen=True)
+class Intent:
+    """The cell a UAV goes for (``NO_CELL_WIRE``: none) and its C_c priority (smaller claims
+    first), ``planner.swarm_messages.TrackIntent``."""
+
+    track: tuple[int, int]
+    priority: int
+
+
+@dataclass(frozen=True)
+class MoveClaim:
+    """The cell a UAV takes next with its heading after the move, its other allowed cells in
+    its order of preference, and a request to a blocker to step aside (``displace``: (blocker
+    UAV, cell it is asked to take) or None), ``planner.swarm_messages.CellClaim``."""
+
+    cell: tuple[int, int]
+    heading: int
+    alternatives: tuple[tuple[int, int], ...] = ()
+    displace: tuple[int, tuple[int, int]] | None = None
+
+
+@dataclass(frozen=True)
 class ThreatReport:
     """A threat zone the UAV has found or heard of (km; sent in whole metres)."""
 
@@ -123,6 +155,9 @@ class SwarmReport:
     serviced: tuple[int, ...] = ()
     claims: tuple[Claim, ...] = ()
     threats: tuple[ThreatReport, ...] = ()
+    intent: Intent | None = None
+    moves: tuple[MoveClaim, ...] = ()
+    serviced_at: tuple[tuple[int, tuple[int, int]], ...] = ()  # (target id, cell engaged at)
 
 
 # ---------------------------------------------------------------------- body encoding
@@ -151,11 +186,14 @@ def _records(report: SwarmReport) -> list[tuple[int, list[bytes]]]:
         if state is None
         else [
             STATE.pack(
-                *state.cell, state.heading, _metres(state.x_km), _metres(state.y_km),
-                state.coop_radius_km,
+                *state.cell, state.heading | (0 if state.flying else NOT_FLYING),
+                _metres(state.x_km), _metres(state.y_km), state.coop_radius_km,
             )
         ]
     )  # fmt: skip
+    intents = (
+        [] if report.intent is None else [INTENT.pack(*report.intent.track, report.intent.priority)]
+    )
     return [
         (KIND_STATE, states),
         (KIND_LOOK, [_look_bytes(look) for look in report.looks]),
@@ -175,7 +213,29 @@ def _records(report: SwarmReport) -> list[tuple[int, list[bytes]]]:
                 for t in report.threats
             ],
         ),
+        (KIND_INTENT, intents),
+        (KIND_MOVE, [_move_bytes(m) for m in report.moves]),
+        (KIND_SERVICED_AT, [SERVICED_AT.pack(t, *cell) for t, cell in report.serviced_at]),
     ]
+
+
+def _move_bytes(move: MoveClaim) -> bytes:
+    if not 0 <= move.heading <= 7 or len(move.alternatives) > 255:
+        raise WireError(f"a claim's heading must be 0-7 and its alternatives at most 255, got "
+                        f"{move.heading} and {len(move.alternatives)}")  # fmt: skip
+    blocker, asked = (NO_BLOCKER, NO_CELL_WIRE) if move.displace is None else move.displace
+    head = MOVE_HEAD.pack(*move.cell, move.heading, len(move.alternatives), blocker, *asked)
+    return head + b"".join(CELL.pack(*cell) for cell in move.alternatives)
+
+
+def _decode_move(body: bytes, pos: int) -> tuple[MoveClaim, int]:
+    x, y, heading, count, blocker, ax, ay = MOVE_HEAD.unpack_from(body, pos)
+    pos += MOVE_HEAD.size
+    if heading > 7:
+        raise WireError("a claim's heading beyond 7")
+    cells = tuple(CELL.unpack_from(body, pos + k * CELL.size) for k in range(count))
+    displace = None if blocker == NO_BLOCKER else (blocker, (ax, ay))
+    return MoveClaim((x, y), heading, cells, displace), pos + count * CELL.size
 
 
 def encode_report(report: SwarmReport) -> bytes:
@@ -214,11 +274,27 @@ def _decode_record(kind: int, body: bytes, pos: int, parts: dict) -> int:
         parts["looks"].append(look)
         return pos
     if kind == KIND_STATE:
-        x, y, heading, xm, ym, radius = STATE.unpack_from(body, pos)
+        x, y, flags, xm, ym, radius = STATE.unpack_from(body, pos)
+        heading = flags & ~NOT_FLYING
         if parts["state"] is not None or heading > 7:
             raise WireError("a second state, or a heading beyond 7")
-        parts["state"] = NodeState((x, y), heading, xm / 1000.0, ym / 1000.0, radius)
+        flying = not flags & NOT_FLYING
+        parts["state"] = NodeState((x, y), heading, xm / 1000.0, ym / 1000.0, radius, flying)
         return pos + STATE.size
+    if kind == KIND_INTENT:
+        x, y, priority = INTENT.unpack_from(body, pos)
+        if parts["intent"] is not None:
+            raise WireError("a second track intent")
+        parts["intent"] = Intent((x, y), priority)
+        return pos + INTENT.size
+    if kind == KIND_MOVE:
+        move, pos = _decode_move(body, pos)
+        parts["moves"].append(move)
+        return pos
+    if kind == KIND_SERVICED_AT:
+        target, x, y = SERVICED_AT.unpack_from(body, pos)
+        parts["serviced_at"].append((target, (x, y)))
+        return pos + SERVICED_AT.size
     if kind == KIND_ENGAGEMENT:
         target, x, y, step, flags = ENGAGEMENT.unpack_from(body, pos)
         parts["engagements"].append(Engagement(target, (x, y), step, bool(flags & 1)))
@@ -244,7 +320,7 @@ def decode_report(body: bytes) -> SwarmReport:
         pos = BODY_HEADER.size
         parts: dict = {
             "state": None, "looks": [], "engagements": [], "serviced": [], "claims": [],
-            "threats": [],
+            "threats": [], "intent": None, "moves": [], "serviced_at": [],
         }  # fmt: skip
         while pos < len(body):
             kind, count = SECTION_HEADER.unpack_from(body, pos)
@@ -256,6 +332,7 @@ def decode_report(body: bytes) -> SwarmReport:
     return SwarmReport(
         uav, step, parts["state"], tuple(parts["looks"]), tuple(parts["engagements"]),
         tuple(parts["serviced"]), tuple(parts["claims"]), tuple(parts["threats"]),
+        parts["intent"], tuple(parts["moves"]), tuple(parts["serviced_at"]),
     )  # fmt: skip
 
 
@@ -420,35 +497,3 @@ class SwarmReassembler:
                 break
             del self._pending[key]
             self.stats.incomplete += 1
-
-
-# ---------------------------------------------------------------------- budget
-
-
-def wire_bytes(report: SwarmReport, signed: bool) -> int:
-    """Bytes on the radio of ``report``: its TUNNEL frames as MAVLink 2 packs them."""
-    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=mavlink.MAV_COMP_ID_ONBOARD_COMPUTER)
-    if signed:
-        mav.signing.secret_key = bytes(32)
-        mav.signing.sign_outgoing = True
-    return sum(len(f) for f in SwarmSender(report.uav).frames(report, mav))
-
-
-def worst_case_report(
-    uavs: int, footprint_cells: int, targets: int, threats: int, looks: int = 1
-) -> SwarmReport:
-    """The largest report a node of a swarm of ``uavs`` sends in one step: its state, ``looks``
-    looks with every footprint bit set (1: its own; ``uavs``: relaying every other's too), one
-    engagement outcome, every target serviced, one claim, every threat, all with values that
-    MAVLink 2 cannot trim."""
-    cell = (0xFFFF, 0xFFFF)
-    return SwarmReport(
-        uav=uavs - 1,
-        step=0xFFFF,
-        state=NodeState(cell, 7, 999.999, 999.999, 50.0),
-        looks=tuple(Look(k % 256, 0xFFFF, cell, (True,) * footprint_cells) for k in range(looks)),
-        engagements=(Engagement(0xFFFF, cell, 0xFFFF, True),),
-        serviced=tuple(range(1, targets + 1)),
-        claims=(Claim(cell, 255),),
-        threats=(ThreatReport(999.999, 999.999, 99.999),) * threats,
-    )

@@ -27,6 +27,7 @@ SUBCOMMANDS = (
     ("sim", "swarmplan.sim_command"),
     ("payload", "swarmplan.payload_command"),
     ("daemon", "swarmplan.daemon_command"),
+    ("node", "swarmplan.node_command"),
     ("export", "swarmplan.export_command"),
     ("account", "swarmplan.account_command"),
     ("experiment", "swarmplan.experiment_command"),

@@ -41,11 +41,12 @@ from planner.errors import UserError
 from planner.metrics import format_summary
 from planner.scenario import Scenario, load_scenario
 from sim_gateway.target_account import account_of_ground_station, format_account
-from swarmplan import option_groups
+from swarmplan import onboard_demo, option_groups
 from swarmplan.arguments import positive_float, writable_folder
 from swarmplan.daemon_command import write_mission_outputs
 from swarmplan.interrupts import MissionSignals
 from swarmplan.run_command import progress_bar, written_line
+from swarmplan.sim_log import simulator_summary
 
 HELP = "fly a scenario end to end: the MAVLink simulator and the planner daemon on loopback UDP"
 
@@ -68,6 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "lockstep (default: lockstep, as fast as possible and repeatable for a seed)",
     )
     option_groups.add_out_option(parser, "runs/<scenario>-seed<S>-demo")
+    onboard_demo.add_arguments(parser)
     option_groups.add_leg_timing_option(parser)
     signing = parser.add_mutually_exclusive_group()
     signing.add_argument(
@@ -159,21 +161,6 @@ def join_target_account(
         say(f"warning: no target account: the simulator's truth is unreadable ({exc})")
         return
     result["target_account"] = account_of_ground_station(truth, result, step_s)
-
-
-def simulator_summary(path: Path) -> dict | None:
-    """The simulator's JSON summary (the last JSON line of its log), if it wrote one."""
-    try:
-        lines = path.read_text(errors="replace").splitlines()
-    except OSError:
-        return None
-    for line in reversed(lines):
-        if line.startswith("{"):
-            try:
-                return json.loads(line)
-            except ValueError:
-                return None
-    return None
 
 
 class DemoDisplay:
@@ -364,6 +351,11 @@ def main(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     steps = args.steps or scenario.steps
     out = writable_folder(args.out or Path("runs") / f"{scenario.name}-seed{args.seed}-demo")
+    if not args.onboard and (args.radio_range_km is not None or args.radio_loss or args.join):
+        raise UserError("--radio-range-km, --radio-loss and --join need --onboard (the swarm "
+                        "without a centre); add --onboard")  # fmt: skip
+    if args.onboard:
+        return onboard_demo.main(args, scenario, out, demo_key(args))
     display = DemoDisplay(steps, f"{scenario.name} over MAVLink", quiet=args.json)
     signing_key = demo_key(args)
     daemon = MissionDaemon(scenario, demo_options(args, steps, out, signing_key, display))

@@ -46,7 +46,9 @@ def quadrant_copies(paper: dict) -> tuple[list[dict], list[dict]]:
     return targets, threats
 
 
-def edge_starts(count: int, threats: list[dict], clearance_km: float) -> list[tuple[float, float, float]]:
+def edge_starts(
+    count: int, threats: list[dict], clearance_km: float
+) -> list[tuple[float, float, float]]:
     """``count`` starts (x, y, heading deg) spread evenly over the rings, heading to the
     centre (rounded to the grid's 45 degrees), at cell centres, clear of every threat."""
     rings = RINGS_KM[: 1 if count <= 150 else 2]
@@ -100,7 +102,13 @@ def scenario_text(count: int, paper: dict) -> str:
         "random_start = false",
     ]  # fmt: skip
     for x, y, heading in edge_starts(count, threats, clearance):
-        lines += ["", "[[uavs.start]]", f"x_km = {x:g}", f"y_km = {y:g}", f"heading_deg = {heading:g}"]
+        lines += [
+            "",
+            "[[uavs.start]]",
+            f"x_km = {x:g}",
+            f"y_km = {y:g}",
+            f"heading_deg = {heading:g}",
+        ]
     for t in targets:
         lines += ["", "[[targets]]", *(f"{k} = {_toml(v)}" for k, v in t.items())]
     for z in threats:
@@ -109,7 +117,13 @@ def scenario_text(count: int, paper: dict) -> str:
 
 
 def _toml(value: object) -> str:
-    return f'"{value}"' if isinstance(value, str) else f"{value:g}" if isinstance(value, float) else str(value)
+    return (
+        f'"{value}"'
+        if isinstance(value, str)
+        else f"{value:g}"
+        if isinstance(value, float)
+        else str(value)
+    )
 
 
 def main() -> None:

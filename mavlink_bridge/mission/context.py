@@ -55,10 +55,13 @@ class MissionContext:
         self.options = options
         cfg = scenario.config
         self.grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
-        self.n = options.expect or scenario.uav_count
+        fleet = options.fleet or tuple(range(options.expect or scenario.uav_count))
+        self.n = len(fleet)
         if self.n <= 0:
             raise UserError("--expect must be at least 1")
-        self.system_ids = list(range(1, self.n + 1))
+        #: the scenario's UAV of each vehicle flown (index = the daemon's UAV index)
+        self.fleet = tuple(fleet)
+        self.system_ids = [uav + 1 for uav in fleet]
         self.steps = options.steps or scenario.steps
         self.account = MissionAccount()
         self.link: SwarmLink | None = None
@@ -99,7 +102,11 @@ class MissionContext:
         return self.link
 
     def vehicle(self, uav: int) -> VehicleState:
-        return self.require_link().vehicles[uav + 1]
+        return self.require_link().vehicles[self.system_ids[uav]]
+
+    def index_of(self, system_id: int) -> int:
+        """The daemon's UAV index of the vehicle of ``system_id`` (one of ``system_ids``)."""
+        return self.system_ids.index(system_id)
 
     def vehicles(self) -> list[VehicleState]:
         """The expected vehicles, index = UAV (each heard at least once)."""

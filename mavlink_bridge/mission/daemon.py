@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import time
+from collections.abc import Callable
 from typing import Any
 
 from mavlink_bridge.mission.context import MIN_RETRY_S, STEP_SENDS, MissionContext
@@ -138,6 +139,9 @@ class MissionDaemon:
         #: what an operator asks from the mission view (operator_actions.py): ``operator.inbox``
         self.operator = OperatorActions(ctx, self.home, self.loss)
         self.loop = DecisionLoop(ctx, self.home, self.audit, self.watch_links, self.operator)
+        #: the planner's factory ``(scenario, starts, seed)``, built once the link is up (None:
+        #: HAPF-ACO over the whole fleet); a planner node's plans its one UAV over the swarm link
+        self.planner_factory: Callable[[SwarmLink], Any] | None = None
 
     @property
     def options(self) -> DaemonOptions:
@@ -196,7 +200,9 @@ class MissionDaemon:
         if options.lockstep:
             ctx.clock = LockstepClock(link, ctx.scenario.config.step_s)
         link.listeners.append(
-            position_listener(self.audit, None if options.lockstep else ctx.time_scale)
+            position_listener(
+                self.audit, None if options.lockstep else ctx.time_scale, ctx.index_of
+            )
         )
         return link
 
@@ -209,7 +215,7 @@ class MissionDaemon:
     def gone(self, v: VehicleState) -> bool:
         """Vehicle ``v`` counts as gone (lost to silence or a closed link; a whole-swarm pause
         of a lockstep simulator is no one's silence): only then may its address move."""
-        return self.loss.reasons.get(v.system_id - 1, "").startswith(GONE)
+        return self.loss.reasons.get(self.ctx.index_of(v.system_id), "").startswith(GONE)
 
     def say_notices(self) -> None:
         """Say, once each, the lines the plausibility filter has to say (a clock restarted, an
@@ -227,7 +233,7 @@ class MissionDaemon:
         planner_cls, recorder_cls = _import_planner()
         fallback = self.scenario.starts_for_seed(self.options.seed)
         starts = tuple(
-            fallback[i] if i < len(fallback) else UavStart(0.5, 0.5, 0.0) for i in range(self.n)
+            fallback[u] if u < len(fallback) else UavStart(0.5, 0.5, 0.0) for u in self.ctx.fleet
         )
         state = self.loop.start_state(planner_cls, recorder_cls, starts, [-1] * self.n)
         counters = {name: getattr(self.account, name) for name in DAEMON_STATE}
@@ -275,8 +281,11 @@ class MissionDaemon:
             run_launch(self.launching, self.launch, self.enter, self.say_notices)
             self.enter("decisions")
             self.audit.set_phase("mission")
+            planner = HapfAcoPlanner
+            if self.planner_factory is not None:
+                planner = self.planner_factory(self.ctx.require_link())
             self.loop.run(
-                HapfAcoPlanner,
+                planner,
                 MissionRecorder,
                 self.resume_from,
                 self.take_back,

@@ -86,10 +86,10 @@ class DecisionLoop:
         ctx = self.ctx
         fallback = ctx.scenario.starts_for_seed(ctx.options.seed)
         starts = []
-        for i in range(ctx.n):
+        for i, u in enumerate(ctx.fleet):
             v = ctx.vehicle(i)
             if not v.has_position and v.home is None:
-                starts.append(fallback[i] if i < len(fallback) else UavStart(0.5, 0.5, 0.0))
+                starts.append(fallback[u] if u < len(fallback) else UavStart(0.5, 0.5, 0.0))
                 continue
             lat, lon = (v.home[0], v.home[1]) if v.home is not None else (v.lat_deg, v.lon_deg)
             cell = ctx.grid.cell_of(ctx.local_km(lat, lon))
@@ -97,8 +97,8 @@ class DecisionLoop:
             heading = course_heading(v)
             if heading is None:
                 heading = (
-                    int(heading_of_angle(math.radians(fallback[i].heading_deg)))
-                    if i < len(fallback)
+                    int(heading_of_angle(math.radians(fallback[u].heading_deg)))
+                    if u < len(fallback)
                     else 0
                 )
             starts.append(UavStart(float(centre[0]), float(centre[1]), heading * 45.0))

@@ -454,9 +454,10 @@ class DecisionStep:
         """Note accepted airspeeds. A vehicle that refuses one (outside its AIRSPEED_MIN/MAX)
         ends leg timing for the run: every plane is asked back to the scenario's speed."""
         refused = [c for c in commands if c.ack is not None and not c.accepted]
+        index = {id(v): i for i, v in enumerate(self.vehicles)}
         for cmd in commands:
             if cmd.accepted:
-                self.sent_speeds[cmd.vehicle.system_id - 1] = cmd.params[1]
+                self.sent_speeds[index[id(cmd.vehicle)]] = cmd.params[1]
         if not refused:
             return
         self.counters.refused_commands += len(refused)

@@ -17,6 +17,9 @@ class DaemonOptions:
     connect: list[str]
     seed: int = 0
     expect: int | None = None  # vehicles expected (system ids 1..N); default: the scenario's UAVs
+    #: the scenario's UAVs (0-based) this daemon flies, system ids UAV + 1; None: 0..expect-1.
+    #: A planner node (``swarmplan node --uav I``) flies one: (I,)
+    fleet: tuple[int, ...] | None = None
     steps: int | None = None  # decision steps; default: the scenario's
     discovery_timeout_s: float = 60.0
     ready_timeout_s: float = 120.0

@@ -102,6 +102,10 @@ class SwarmLink:
         #: called with (vehicle, message) after the vehicle's state took each message in
         #: (e.g. the continuous safety account, track_audit.py)
         self.listeners: list[Callable[[VehicleState, mavlink.MAVLink_message], None]] = []
+        #: called with every TUNNEL frame heard (signed, with signing on) instead of routing it
+        #: to a vehicle: the swarm link's frames, relayed by a plane's autopilot or radio from the
+        #: other planes' nodes (a planner node's, ``mavlink_bridge/mission/onboard_planner.py``)
+        self.tunnel_listeners: list[Callable[[mavlink.MAVLink_message], None]] = []
 
     @classmethod
     def open(
@@ -185,6 +189,10 @@ class SwarmLink:
         trust = self.plausibility
         if self.signature_check is not None and not is_signed(msg.get_msgbuf()):
             trust.counts.unsigned_ignored += 1  # authentic frames are signed: believe nothing
+            return
+        if self.tunnel_listeners and msg.get_type() == "TUNNEL":
+            for listen in self.tunnel_listeners:
+                listen(msg)
             return
         sysid, compid = msg.get_srcSystem(), msg.get_srcComponent()
         where = (id(endpoint), address)

@@ -47,6 +47,13 @@ CASES = [
     (["daemon", "--expect", "0"], "--expect"),
     (["daemon", "--steps", "two"], "--steps"),
     (["daemon", "--airspeed-range", "100:inf"], "--airspeed-range"),
+    (["demo", "--onboard", "--radio-loss", "nan"], "--radio-loss"),
+    (["node", "paper-2uav", "--connect", "udpin:127.0.0.1:0", "--uav", "-1"], "--uav"),
+    (["node", "paper-2uav", "--uav", "0"], "required: --connect"),
+    (
+        ["node", "paper-2uav", "--connect", "udpin:127.0.0.1:0", "--uav", "0", "--bogus"],
+        "unrecognized arguments: --bogus",
+    ),
     (["export", "--bogus", "x"], "unrecognized arguments: --bogus"),
     (["export"], "required: result"),
     (["export", "somewhere", "--format", "pdf"], "--format"),

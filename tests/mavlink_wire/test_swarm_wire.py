@@ -16,6 +16,7 @@ import pytest  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as ml  # noqa: E402
 
 from mavlink_wire.signing import SignatureCheck, mission_key, sign_outgoing  # noqa: E402
+from mavlink_wire.swarm_budget import wire_bytes, worst_case_report  # noqa: E402
 from mavlink_wire.swarm_wire import (  # noqa: E402
     FRAGMENT_HEADER,
     SWARM_PAYLOAD_TYPE,
@@ -32,8 +33,6 @@ from mavlink_wire.swarm_wire import (  # noqa: E402
     encode_report,
     fragment_payloads,
     tunnel_message,
-    wire_bytes,
-    worst_case_report,
 )
 from planner.grid import Grid  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402

@@ -1,0 +1,287 @@
+"""``swarmplan demo SCENARIO --onboard``: the swarm without a centre on one machine. Starts the
+simulator (paced, each vehicle with its own port, the radio between them), one ``swarmplan
+node`` process per UAV beside its vehicle, and this coordinator, which watches the nodes, then
+joins their parts (``node-I/result.json``) into the usual result folder and summary
+(``result.json``: ``architecture`` onboard and the link's figures).
+
+The simulator and the nodes run in sessions of their own: killing the coordinator (Ctrl-C in
+its terminal, SIGTERM, SIGKILL) stops neither; the nodes fly on and bring the planes home, each
+writing its own part, and the simulator stops itself after the mission's simulated time
+(``--duration-s``). Time is paced (``--speedup``), never lockstep: a lockstep simulator
+advances only on one ground station's grants, and a coordinator that may die cannot be that
+clock; each node follows its own vehicle's clock, as on real planes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from mavlink_wire.signing import key_environment
+from planner.scenario import Scenario
+from sim_gateway.sim_options import RadioOptions
+from swarmplan.arguments import finite_float
+from swarmplan.sim_log import simulator_summary
+
+#: the default pace of an onboard demo: each node must hear its neighbours and decide within a
+#: share of the decision period, N processes on the machine's cores
+ONBOARD_SPEEDUP = 4.0
+#: simulated seconds the simulator runs on beyond the mission's steps (boot, take-off, the
+#: flight home and its watch), after which it stops itself if no coordinator stopped it
+SIM_MARGIN_S = 600.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``swarmplan demo``'s options of the swarm without a centre."""
+    onboard = parser.add_argument_group(
+        "onboard", "one planner per UAV, no centre (docs/onboard.md): one `swarmplan node` "
+        "process per UAV beside its vehicle, a coordinator that only watches and joins"
+    )  # fmt: skip
+    onboard.add_argument(
+        "--onboard", action="store_true",
+        help="fly the swarm without a centre (paced: --speedup, default 4)",
+    )  # fmt: skip
+    onboard.add_argument(
+        "--radio-range-km",
+        type=finite_float,
+        default=None,
+        metavar="KM",
+        help="--onboard: the swarm radio's range (default unlimited)",
+    )
+    onboard.add_argument(
+        "--radio-loss",
+        type=finite_float,
+        default=0.0,
+        metavar="P",
+        help="--onboard: each receiver loses each frame with probability P",
+    )
+    onboard.add_argument(
+        "--join", action="store_true",
+        help="--onboard: fly nothing, join the nodes' parts already in --out (after the "
+        "coordinator was killed and the nodes finished) into result.json",
+    )  # fmt: skip
+
+
+def free_port_block(count: int, host: str = "127.0.0.1") -> int:
+    """A base port with ``count`` consecutive free UDP ports from it (checked by binding)."""
+    for _ in range(200):
+        probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        probe.bind((host, 0))
+        base = probe.getsockname()[1]
+        probe.close()
+        if base + count > 65535:
+            continue
+        held = []
+        try:
+            for port in range(base, base + count):
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                held.append(s)
+                s.bind((host, port))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in held:
+                s.close()
+    raise OSError(f"no {count} consecutive free UDP ports on {host}")
+
+
+def _python(*args: str) -> list[str]:
+    return [sys.executable, "-m", "swarmplan", *args]
+
+
+def _start(command: list[str], log: Path, key: bytes | None) -> subprocess.Popen:
+    """A process in a session of its own (a signal to the coordinator does not reach it)."""
+    with open(log, "wb") as sink:
+        return subprocess.Popen(
+            command, stdout=sink, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            env={**os.environ, **key_environment(key)}, start_new_session=True,
+        )  # fmt: skip
+
+
+def start_swarm(
+    args: Any, scenario: Scenario, steps: int, out: Path, key: bytes | None
+) -> tuple[subprocess.Popen, list[subprocess.Popen], float]:
+    """The simulator and one node per UAV; returns them and the speedup."""
+    radio = RadioOptions(
+        math.inf if args.radio_range_km is None else args.radio_range_km, args.radio_loss
+    )
+    radio.validate()
+    speedup = args.speedup or ONBOARD_SPEEDUP
+    n = scenario.uav_count
+    base = free_port_block(n)
+    duration = steps * scenario.config.step_s + SIM_MARGIN_S
+    sim_cmd = _python(
+        "sim", "--scenario", args.scenario, "--seed", str(args.seed), "--speedup", f"{speedup:g}",
+        "--per-vehicle-ports", str(base), "--radio-loss", f"{radio.loss:g}", "--quiet",
+        "--duration-s", f"{duration:g}", "--target-account", str(out / "target_truth.json"),
+        *([] if math.isinf(radio.range_km) else ["--radio-range-km", f"{radio.range_km:g}"]),
+    )  # fmt: skip
+    sim = _start(sim_cmd, out / "sim.log", key)
+    nodes = []
+    for i in range(n):
+        folder = out / f"node-{i}"
+        folder.mkdir(parents=True, exist_ok=True)
+        node_cmd = _python(
+            "node", args.scenario, "--connect", f"udpin:127.0.0.1:{base + i}", "--uav", str(i),
+            "--seed", str(args.seed), "--steps", str(steps), "--time-scale", f"{speedup:g}",
+            "--out", str(folder),
+            *([] if args.leg_timing else ["--no-leg-timing"]),
+        )  # fmt: skip
+        nodes.append(_start(node_cmd, folder / "node.log", key))
+    return sim, nodes, speedup
+
+
+def node_step(log: Path) -> int:
+    """The last decision step a node's log says it flew (-1: none yet)."""
+    try:
+        text = log.read_bytes()[-4000:].decode(errors="replace")
+    except OSError:
+        return -1
+    for line in reversed(text.splitlines()):
+        parts = line.split()
+        if len(parts) > 3 and parts[2] == "step" and "/" in parts[3]:
+            return int(parts[3].split("/")[0])
+    return -1
+
+
+def watch(nodes: Sequence[subprocess.Popen], out: Path, steps: int, quiet: bool) -> None:
+    """Until every node has exited: the slowest node's step, said when it changes."""
+    said = None
+    while any(p.poll() is None for p in nodes):
+        slowest = min(node_step(out / f"node-{i}" / "node.log") for i in range(len(nodes)))
+        running = sum(p.poll() is None for p in nodes)
+        line = f"coordinator: step {max(slowest, 0)}/{steps} (slowest node), {running} nodes flying"
+        if line != said and not quiet:
+            print(line, file=sys.stderr, flush=True)
+            said = line
+        time.sleep(0.5)
+
+
+def stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+
+
+def _sum_dicts(rows: list[dict[str, int]]) -> dict[str, int]:
+    total: dict[str, int] = {}
+    for row in rows:
+        for name, value in row.items():
+            total[name] = total.get(name, 0) + int(value)
+    return total
+
+
+def join_parts(out: Path, scenario: Scenario, seed: int, sim_summary: dict | None) -> dict:
+    """The swarm's result from the nodes' parts (a missing part is said, not guessed)."""
+    parts, missing = {}, []
+    for i in range(scenario.uav_count):
+        try:
+            parts[i] = json.loads((out / f"node-{i}" / "result.json").read_text())
+        except (OSError, ValueError):
+            missing.append(i)
+    uavs, engagements, observed = [], [], set()
+    for i, part in parts.items():
+        for row in part.get("uavs", []):
+            uavs.append({**row, "id": i})
+        engagements += [{**e, "uav": i, "system_id": i + 1} for e in part.get("engagements", [])]
+        observed |= set(part.get("observed_cells", []))
+    cfg = scenario.config
+    links = {i: p.get("link", {}) for i, p in parts.items()}
+    sent = [b for link in links.values() for b in link.get("bytes_sent", [])]
+    cpu = [link.get("cpu_s_per_step", {}).get("mean", 0.0) for link in links.values()]
+    result: dict[str, Any] = {
+        "scenario": scenario.name, "seed": seed, "architecture": "onboard",
+        "algorithm": "hapf-aco-onboard", "uav_count": scenario.uav_count,
+        "steps": max((p.get("steps", 0) for p in parts.values()), default=0),
+        "nodes_missing": missing,
+        "ended": {i: p.get("ended") for i, p in parts.items()},
+        "coverage": len(observed) / float(cfg.grid_nx * cfg.grid_ny),
+        "engagements": sorted(engagements, key=lambda e: (e.get("step", 0), e["uav"])),
+        "engaged_count": len({e.get("target_id") for e in engagements}),
+        "returned_count": sum(int(p.get("returned_count", 0)) for p in parts.values()),
+        "violations": _sum_dicts([p.get("violations", {}) for p in parts.values()]),
+        "uavs": uavs,
+        "link": {
+            "bytes_sent_per_uav_per_step": {
+                "mean": round(sum(sent) / max(len(sent), 1), 1), "max": max(sent, default=0)},
+            "messages_missed": sum(k.get("messages_missed", 0) for k in links.values()),
+            "claim_deadlines": _sum_dicts([k.get("claim_deadlines", {}) for k in links.values()]),
+            "phase_timeouts": _sum_dicts([k.get("phase_timeouts", {}) for k in links.values()]),
+            "cpu_s_per_node_step_mean": round(sum(cpu) / max(len(cpu), 1), 4),
+            "radio": None if sim_summary is None else sim_summary.get("radio"),
+            "nodes": links,
+        },
+    }  # fmt: skip
+    if sim_summary is not None and "safety" in sim_summary:
+        result["simulator_truth"] = sim_summary["safety"]
+    return result
+
+
+def summary_lines(result: dict, out: Path) -> list[str]:
+    link, truth = result["link"], result.get("simulator_truth") or {}
+    deadlines = link["claim_deadlines"]
+    radio = link.get("radio") or {}
+    return [
+        f"architecture    onboard: {result['uav_count']} nodes, no ground station needed",
+        f"steps           {result['steps']}",
+        f"coverage        {result['coverage'] * 100:.1f}% (union of the nodes' looks)",
+        f"engaged         {result['engaged_count']}",
+        f"at home         {result['returned_count']} of {result['uav_count']}",
+        f"violations      {', '.join(f'{k} {v}' for k, v in result['violations'].items())}",
+        f"  simulator     threat entries {truth.get('threat_entries')}, separation "
+        f"{truth.get('separation_breaches')}, min separation {truth.get('min_separation_km')} km",
+        f"link            {link['bytes_sent_per_uav_per_step']['mean']:g} B per UAV per step "
+        f"(max {link['bytes_sent_per_uav_per_step']['max']}); radio lost to range "
+        f"{radio.get('lost_to_range', 0)}, to loss {radio.get('lost_to_loss', 0)}; "
+        f"messages missed {link['messages_missed']}",
+        f"claim deadlines missed {deadlines.get('missed', 0)}: avoided "
+        f"{deadlines.get('avoided', 0)}, held {deadlines.get('held', 0)}",
+        f"nodes missing   {result['nodes_missing'] or 'none'}",
+        f"files in        {out}/ (result.json, node-I/result.json, sim.log)",
+    ]
+
+
+def main(args: Any, scenario: Scenario, out: Path, key: bytes | None) -> int:
+    """Start the swarm, watch it, join the parts (``swarmplan demo --onboard``)."""
+    if args.join:
+        return write_joined(args, scenario, out, {})
+    steps = args.steps or scenario.steps
+    started = time.monotonic()
+    sim, nodes, speedup = start_swarm(args, scenario, steps, out, key)
+    # (said also with --json: the pids are how to reach the processes it leaves running)
+    print(f"coordinator: simulator pid {sim.pid} ({scenario.uav_count} vehicles, {speedup:g}x, "
+          f"radio range {args.radio_range_km or 'unlimited'} km, loss {args.radio_loss:g}, "
+          f"{'unsigned' if key is None else 'signed'})", file=sys.stderr)  # fmt: skip
+    print(f"coordinator: node pids {' '.join(str(p.pid) for p in nodes)} (node i flies system "
+          f"id i+1; its log: {out}/node-i/node.log)", file=sys.stderr, flush=True)  # fmt: skip
+    watch(nodes, out, steps, args.json)
+    stop(sim)  # (its summary, with the radio's count and the truth of what flew, is in sim.log)
+    return write_joined(args, scenario, out, {
+        "wall_time_s": round(time.monotonic() - started, 1), "speedup": speedup})  # fmt: skip
+
+
+def write_joined(args: Any, scenario: Scenario, out: Path, extra: dict[str, Any]) -> int:
+    """Join the parts in ``out`` (with the simulator's summary, when it wrote one), write
+    result.json, say the summary; exit status 1 when a node's part is missing."""
+    result = join_parts(out, scenario, args.seed, simulator_summary(out / "sim.log"))
+    result.update(extra)
+    (out / "result.json").write_text(json.dumps(result, indent=1, default=float))
+    if args.json:
+        print(json.dumps(result, default=float))
+    else:
+        print("\n".join(summary_lines(result, out)))
+    return 0 if not result["nodes_missing"] else 1
