@@ -12,7 +12,7 @@ from collections.abc import Callable
 from typing import Any
 
 from mavlink_bridge.results.mission_result import StepRecord
-from mavlink_wire.protocol import mode_name
+from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
 from mission_view.view_model import StepView, TimelineEvent, VehicleView
 from mission_view.view_session import ViewSession
 from planner.planner_interface import MODES
@@ -84,7 +84,7 @@ class DaemonViewFeed:
                     course,
                     active=bool(record.active[i]),
                     target_km=(float(record.aims_km[i, 0]), float(record.aims_km[i, 1])),
-                    mode=mode_name(v.custom_mode) if v.custom_mode >= 0 else "",
+                    mode=autopilot_for(v).mode_name(v.custom_mode) if v.custom_mode >= 0 else "",
                     planner_mode=mode,
                     ground_speed_mps=v.speed_mps,
                     airspeed_mps=float(record.speeds_mps[i]),

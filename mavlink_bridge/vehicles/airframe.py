@@ -32,29 +32,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
-from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, mavlink
+from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID
 from planner.config import PlannerConfig
 from planner.errors import UserError
 
-#: field -> the parameter names that may hold it, newest first, with the scale to SI units
-ARDUPILOT_NAMES: dict[str, tuple[tuple[str, float], ...]] = {
-    "min_airspeed_mps": (("AIRSPEED_MIN", 1.0), ("ARSPD_FBW_MIN", 1.0)),
-    "cruise_mps": (("AIRSPEED_CRUISE", 1.0), ("TRIM_ARSPD_CM", 0.01)),
-    "max_airspeed_mps": (("AIRSPEED_MAX", 1.0), ("ARSPD_FBW_MAX", 1.0)),
-    "bank_limit_deg": (("ROLL_LIMIT_DEG", 1.0), ("LIM_ROLL_CD", 0.01)),
-    "wp_loiter_radius_m": (("WP_LOITER_RAD", 1.0),),
-    "capture_radius_m": (("WP_RADIUS", 1.0),),
-}
-PX4_NAMES: dict[str, tuple[tuple[str, float], ...]] = {
-    "min_airspeed_mps": (("FW_AIRSPD_MIN", 1.0),),
-    "cruise_mps": (("FW_AIRSPD_TRIM", 1.0),),
-    "max_airspeed_mps": (("FW_AIRSPD_MAX", 1.0),),
-    "bank_limit_deg": (("FW_R_LIM", 1.0),),
-    "wp_loiter_radius_m": (("NAV_LOITER_RAD", 1.0),),
-    "capture_radius_m": (("NAV_ACC_RAD", 1.0),),
-}
 #: how long to wait for the answers, and how often to ask again for the missing ones (wall s)
 READ_WINDOW_S = 4.0
 RESEND_S = 0.5
@@ -93,8 +77,8 @@ class Airframe:
 
 
 def names_for(vehicle: VehicleState) -> dict[str, tuple[tuple[str, float], ...]]:
-    """The parameter names of the vehicle's autopilot (PX4 by its HEARTBEAT, else ArduPilot)."""
-    return PX4_NAMES if vehicle.autopilot == mavlink.MAV_AUTOPILOT_PX4 else ARDUPILOT_NAMES
+    """The parameter names of the vehicle's autopilot (``autopilot_adapter.py``)."""
+    return dict(autopilot_for(vehicle).airframe_names)
 
 
 def default_airframe(system_id: int, cfg: PlannerConfig) -> dict[str, float]:
