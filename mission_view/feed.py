@@ -41,7 +41,8 @@ class ViewFeed:
         self.drop_beliefs = drop_beliefs
         self._cond = threading.Condition()
         self._views: deque[StepView] = deque()
-        self._phases: deque[str] = deque()
+        self._phases: deque[tuple[int, str]] = deque()  # (step, text)
+        self._last_step = -1  # the newest step posted (-1: none yet)
         self._pending: BeliefSnapshot | None = None
         self._free: list[BeliefSnapshot | None] = [None] * BUFFERS
         self._closing = False
@@ -57,6 +58,7 @@ class ViewFeed:
         thread, and never changed)."""
         slot: list[BeliefSnapshot | None] = []  # the buffer this step may copy into
         with self._cond:
+            self._last_step = view.step
             self._views.append(view)  # turned into JSON in the feed's thread
             if planner is not None:
                 if not self.drop_beliefs:  # recording every step: wait for the thread
@@ -85,10 +87,11 @@ class ViewFeed:
                 self._pending = snapshot
             self._cond.notify_all()
 
-    def phase(self, text: str) -> None:
-        """A line about the mission's phase (discovery, take-off, ...) or a warning."""
+    def phase(self, text: str, step: int | None = None) -> None:
+        """A line about the mission's phase (launch, search, return), from ``step`` on (None:
+        the newest step posted; -1 before the first)."""
         with self._cond:
-            self._phases.append(text)
+            self._phases.append((self._last_step if step is None else step, text))
             self._cond.notify_all()
 
     def close(self) -> None:
@@ -128,13 +131,16 @@ class ViewFeed:
                         self._cond.notify_all()
 
     def _process(
-        self, step_views: list[StepView], phases: list[str], snapshot: BeliefSnapshot | None
+        self,
+        step_views: list[StepView],
+        phases: list[tuple[int, str]],
+        snapshot: BeliefSnapshot | None,
     ) -> None:
         views = [view.to_json() for view in step_views]
-        for text in phases:
-            self.store.set_phase(text)
+        for step, text in phases:
+            self.store.set_phase(text, step)
             if self.writer is not None:
-                self.writer.write_phase(text)
+                self.writer.write_phase(text, step)
         if views:
             self.store.add_steps(views)
             if self.writer is not None:

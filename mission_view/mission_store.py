@@ -1,6 +1,7 @@
 """Everything the page can ask for about one mission, shared between the thread that feeds it
 and the server's thread: the layout, the step views so far, the quantised belief layers by step,
-the phase line and whether the mission is over. Readers are told of changes by callbacks."""
+the phase lines (each from the step it was said at) and whether the mission is over. Readers
+are told of changes by callbacks."""
 
 from __future__ import annotations
 
@@ -19,7 +20,9 @@ class MissionStore:
         self._steps: list[dict[str, Any]] = []
         self._belief_steps: list[int] = []  # sorted
         self._beliefs: dict[int, np.ndarray] = {}  # step -> (layers, bx, by) uint8
-        self.phase = ""
+        #: the phase lines so far, ``{"step": k, "text": ...}`` (k: the step it holds from, -1
+        #: before the first), in the order said
+        self.phases: list[dict[str, Any]] = []
         self.ended = False
         self._listeners: list[Callable[[], None]] = []
 
@@ -48,9 +51,19 @@ class MissionStore:
             self._beliefs[step] = layers
         self._changed()
 
-    def set_phase(self, text: str) -> None:
-        self.phase = text
+    def set_phase(self, text: str, step: int = -1) -> None:
+        with self._lock:
+            self.phases.append({"step": int(step), "text": text})
         self._changed()
+
+    @property
+    def phase(self) -> str:
+        """The newest phase line ("" before any)."""
+        return self.phases[-1]["text"] if self.phases else ""
+
+    def phases_from(self, start: int) -> list[dict[str, Any]]:
+        with self._lock:
+            return self.phases[start:]
 
     def end(self) -> None:
         self.ended = True

@@ -7,7 +7,8 @@ view`` needs to show it again. One JSON object a line, gzip-compressed:
   (``belief_layers``), as the byte-wise difference (mod 256) from the previous beliefs line,
   zlib-compressed, base64 (consecutive steps differ in few cells: ~2 MB for the paper's 10-UAV
   mission of 250 steps); ``"key": true`` marks whole layers (a writer's first line);
-* ``{"type": "phase", "text": ...}`` and ``{"type": "end"}``.
+* ``{"type": "phase", "step": k, "text": ...}`` (the phase line from step k on; -1: before the
+  first) and ``{"type": "end"}`` (absent when the mission was cut short: the page says so).
 
 Lines are written as they come, so a mission cut short leaves a file that reads up to its last
 complete line. A daemon resumed from its checkpoint appends a gzip member of its own (layout,
@@ -60,8 +61,8 @@ class ReplayWriter:
         doc = {"type": "beliefs", "step": step, "shape": list(layers.shape), "data": data}
         self._write({**doc, "key": True} if key else doc)
 
-    def write_phase(self, text: str) -> None:
-        self._write({"type": "phase", "text": text})
+    def write_phase(self, text: str, step: int = -1) -> None:
+        self._write({"type": "phase", "step": step, "text": text})
 
     def close(self, ended: bool = True) -> None:
         if self._file.closed:
@@ -89,6 +90,7 @@ def load_replay(result_dir: Path) -> MissionStore:
     store: MissionStore | None = None
     previous: np.ndarray | None = None
     steps: dict[int, dict[str, Any]] = {}
+    last_step, ended = -1, False
     try:
         with gzip.open(path, "rt", encoding="utf-8") as lines:
             for number, line in enumerate(_complete_lines(lines), start=1):
@@ -101,7 +103,8 @@ def load_replay(result_dir: Path) -> MissionStore:
                 elif kind == "mission":  # a resumed daemon appended its part: same mission
                     continue
                 elif kind == "step":
-                    steps[int(doc["step"])] = doc  # a step flown again after a resume: the later
+                    last_step, ended = int(doc["step"]), False
+                    steps[last_step] = doc  # a step flown again after a resume: the later
                 elif kind == "beliefs":
                     raw = zlib.decompress(base64.b64decode(doc["data"]))
                     delta = np.frombuffer(raw, dtype=np.uint8).reshape(doc["shape"])
@@ -109,10 +112,10 @@ def load_replay(result_dir: Path) -> MissionStore:
                     layers = delta.copy() if key else previous + delta
                     previous = layers
                     store.add_beliefs(int(doc["step"]), layers)
-                elif kind == "phase":
-                    store.phase = str(doc.get("text", ""))
+                elif kind == "phase":  # (files before phase steps: the step read last)
+                    store.set_phase(str(doc.get("text", "")), int(doc.get("step", last_step)))
                 elif kind == "end":
-                    store.ended = True
+                    ended = True
                 else:
                     raise ValueError(f"line {number} has an unknown type {kind!r}")
     except (OSError, EOFError, ValueError, KeyError, TypeError, zlib.error) as exc:
@@ -120,6 +123,8 @@ def load_replay(result_dir: Path) -> MissionStore:
     if store is None:
         raise UserError(f"{path} is empty; fly the mission again")
     store.add_steps([steps[k] for k in sorted(steps)])
+    # no end line after the last step: the recording stops there (kill -9, power cut)
+    store.layout["cut_short"] = not ended
     store.ended = True
     return store
 

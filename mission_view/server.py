@@ -6,7 +6,9 @@ skipped), the phase line, and the heat layer the page asked for (only the newest
 skips the layers in between instead of queueing them). The thread that feeds the store only
 schedules a wake-up on the loop (``call_soon_threadsafe``), so it never waits for a page.
 
-Messages to the page: ``mission`` (the layout), ``steps``, ``phase``, ``layer`` (``data``: the
+Messages to the page: ``mission`` (the layout, with ``tiles``: the map backdrop's URL template
+or null), ``steps``, ``phase`` (``{"step": k, "text": ...}``: a phase line, from step k on; sent
+in order, each once), ``layer`` (``data``: the
 layer's bytes, base64, column-major cells (x, y) as ``belief_layers`` keeps them), ``end``. From
 the page: ``{"type": "view", "kind": "coverage"|"tpm"|"pheromone", "uav": i, "step": k|null}``
 (null: follow the newest step).
@@ -38,7 +40,7 @@ class _Page:
     ws: web.WebSocketResponse
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     sent_steps: int = 0
-    phase: str | None = None
+    sent_phases: int = 0
     kind: str = "coverage"
     uav: int = 0
     step: int | None = None  # None: follow the newest
@@ -47,12 +49,24 @@ class _Page:
 
 
 class ViewServer:
-    """Serves ``store`` at ``http://HOST:PORT/`` (port 0: a free one) until ``stop``."""
+    """Serves ``store`` at ``http://HOST:PORT/`` (port 0: a free one) until ``stop``.
+    ``tiles``: an XYZ tile URL template the page draws under the mission (None: no backdrop);
+    ``port_option``: the option a port in use is to be changed with, in its error line."""
 
-    def __init__(self, store: MissionStore, host: str = "127.0.0.1", port: int = 0) -> None:
+    def __init__(
+        self,
+        store: MissionStore,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        *,
+        tiles: str | None = None,
+        port_option: str = "--view-port, or --no-view",
+    ) -> None:
         self.store = store
         self.host = host
         self.port = port
+        self.tiles = tiles
+        self.port_option = port_option
         self._pages: set[_Page] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._runner: web.AppRunner | None = None
@@ -79,7 +93,7 @@ class ViewServer:
             reason = getattr(exc, "strerror", None) or str(exc)
             raise UserError(
                 f"cannot serve the view on {self.host}:{self.port} ({reason}); choose another "
-                "--view-port, or --no-view"
+                f"{self.port_option}"
             )
         return self.url
 
@@ -182,14 +196,14 @@ class ViewServer:
     async def _send_loop(self, page: _Page) -> None:
         store, ws = self.store, page.ws
         try:
-            await ws.send_str(json.dumps(store.layout))
+            await ws.send_str(json.dumps({**store.layout, "tiles": self.tiles}))
             page.wake.set()
             while not ws.closed:
                 await page.wake.wait()
                 page.wake.clear()
-                if store.phase != page.phase:
-                    page.phase = store.phase
-                    await ws.send_str(json.dumps({"type": "phase", "text": store.phase}))
+                for phase in store.phases_from(page.sent_phases):
+                    page.sent_phases += 1
+                    await ws.send_str(json.dumps({"type": "phase", **phase}))
                 new = store.steps_from(page.sent_steps)
                 if new:
                     page.sent_steps += len(new)

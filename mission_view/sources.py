@@ -31,10 +31,13 @@ class OfflineViews:
         self.grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
         self.engaged = 0
         self.engaged_value = 0.0
+        self.homes: list[tuple[float, float]] | None = None  # the starts (first record)
 
     def view(self, record: Any) -> StepView:
         k, decision = record.step, record.decision
         positions = np.asarray(record.positions_km, dtype=float)
+        if self.homes is None:
+            self.homes = [(float(x), float(y)) for x, y in positions.tolist()]
         events = []
         for i, outcome in record.engagements:
             x, y = (float(c) for c in positions[i])
@@ -63,6 +66,7 @@ class OfflineViews:
                     planner_mode=_mode_name(decision, i),
                     ground_speed_mps=None,
                     done=done,
+                    home_km=self.homes[i],
                 )  # fmt: skip
             )
         truth = [[int(t[0]), round(float(t[1]), 3), round(float(t[2]), 3), int(t[3])]

@@ -40,6 +40,13 @@ class VehicleView:
     last_heard_s: float | None = None  # seconds since the vehicle was last heard
     signed: bool | None = None  # MAVLink 2 signing on its link (None: no link)
     done: bool = False
+    # what the autopilot reports, where it does (None: not reported, or offline)
+    alt_m: float | None = None  # above home (GLOBAL_POSITION_INT relative_alt)
+    battery_pct: int | None = None  # SYS_STATUS battery_remaining
+    gps_fix: int | None = None  # GPS_RAW_INT fix_type (GPS_FIX_TYPE_*)
+    home_km: tuple[float, float] | None = None  # its home (HOME_POSITION; offline: its start)
+    last_look: int | None = None  # index of its newest sensor look
+    last_look_s: float | None = None  # seconds since that look arrived
 
 
 @dataclass
@@ -75,11 +82,12 @@ class StepView:
         for v in doc["vehicles"]:
             v["x_km"], v["y_km"] = round(v["x_km"], 4), round(v["y_km"], 4)
             v["heading_deg"] = round(v["heading_deg"], 1)
-            for key in ("ground_speed_mps", "airspeed_mps", "last_heard_s"):
+            for key in ("ground_speed_mps", "airspeed_mps", "last_heard_s", "alt_m", "last_look_s"):
                 if v[key] is not None:
                     v[key] = round(v[key], 2)
-            if v["target_km"] is not None:
-                v["target_km"] = [round(c, 4) for c in v["target_km"]]
+            for key in ("target_km", "home_km"):
+                if v[key] is not None:
+                    v[key] = [round(c, 4) for c in v[key]]
         return doc
 
 
@@ -118,6 +126,23 @@ def graticule(scenario: Scenario) -> list[dict[str, Any]]:
     return lines
 
 
+def geo_grid(scenario: Scenario, samples: int = 17, margin: float = 0.5) -> dict[str, Any]:
+    """Latitude and longitude of a ``samples`` x ``samples`` grid of mission-frame points over
+    the area and ``margin`` of it around: the page interpolates them (bilinearly: within ~2 m over
+    the paper's 100 km area) for its cursor readout and to place map tiles."""
+    w, h = scenario.config.area_km
+    xs = np.linspace(-margin * w, (1 + margin) * w, samples)
+    ys = np.linspace(-margin * h, (1 + margin) * h, samples)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")  # [ix][iy]
+    lat, lon = local_km_to_geodetic(gx, gy, scenario.origin)
+    return {
+        "x_km": [round(float(x), 4) for x in xs],
+        "y_km": [round(float(y), 4) for y in ys],
+        "lat": np.round(lat, 8).tolist(),
+        "lon": np.round(lon, 8).tolist(),
+    }
+
+
 def mission_layout(
     scenario: Scenario,
     *,
@@ -150,6 +175,7 @@ def mission_layout(
         ],
         "targets": {str(t.id): {"value": t.value, "kind": t.kind} for t in scenario.targets},
         "graticule": graticule(scenario),
+        "geo_grid": geo_grid(scenario),
         "layer_shape": list(layer_shape),
         "layer_scales": layer_scales,
     }

@@ -19,11 +19,12 @@ from planner.scenario import Scenario
 @dataclass(frozen=True)
 class ViewOptions:
     """Whether and where a live view is served (``swarmplan daemon`` and ``demo`` take them
-    from ``--no-view``, ``--view-host`` and ``--view-port``)."""
+    from ``--no-view``, ``--view-host``, ``--view-port`` and ``--tiles``)."""
 
     serve: bool = True
     host: str = "127.0.0.1"
     port: int = 0  # 0: a free port, printed at start
+    tiles: str | None = None  # an XYZ tile URL template for the map's backdrop (None: none)
 
 
 class ViewSession:
@@ -59,7 +60,9 @@ class ViewSession:
         if self.options.serve:
             from mission_view.server import ViewServer
 
-            self.server = ViewServer(self.store, self.options.host, self.options.port)
+            self.server = ViewServer(
+                self.store, self.options.host, self.options.port, tiles=self.options.tiles
+            )
             try:
                 self.url = self.server.start()
             except UserError:
@@ -72,8 +75,8 @@ class ViewSession:
     def post(self, view: StepView, planner: Any = None) -> None:
         self.feed.post(view, planner)
 
-    def phase(self, text: str) -> None:
-        self.feed.phase(text)
+    def phase(self, text: str, step: int | None = None) -> None:
+        self.feed.phase(text, step)
 
     def close(self) -> None:
         """The mission is over: record what is pending and close the replay file (the server,

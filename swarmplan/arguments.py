@@ -99,6 +99,18 @@ def port_number(text: str) -> int:
     )
 
 
+def tile_template(text: str) -> str:
+    """An XYZ tile server's URL template (``https://host/{z}/{x}/{y}.png``) for the view."""
+    if not text.startswith(("http://", "https://")) or not all(
+        part in text for part in ("{z}", "{x}", "{y}")
+    ):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a tile URL template: give http(s)://HOST/PATH with {{z}}, {{x}} "
+            "and {y}, e.g. http://localhost:8080/tile/{z}/{x}/{y}.png"
+        )
+    return text
+
+
 def planner_name(text: str) -> str:
     """The name of a planner that can be built (built in, or registered by a plug-in)."""
     try:

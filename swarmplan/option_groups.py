@@ -32,6 +32,7 @@ from swarmplan.arguments import (
     positive_float,
     positive_int,
     seed_int,
+    tile_template,
 )
 
 if TYPE_CHECKING:
@@ -154,10 +155,25 @@ def add_view_options(parser: Options) -> None:
         default=0,
         help="port of the live view (default 0: a free one; the URL is printed at start)",
     )
+    add_tiles_option(parser)
+
+
+def add_tiles_option(parser: Options) -> None:
+    """``--tiles``: a map backdrop for the view (``swarmplan view``, ``demo``, ``daemon``)."""
+    parser.add_argument(
+        "--tiles",
+        type=tile_template,
+        default=None,
+        metavar="URL_TEMPLATE",
+        help="draw the map over an XYZ tile server you have (e.g. "
+        "http://localhost:8080/{z}/{x}/{y}.png); default: no backdrop and no network",
+    )
 
 
 def view_options(args: argparse.Namespace) -> ViewOptions:
     """The view's options from ``--no-view``, ``--view-host`` and ``--view-port``."""
     from mission_view.view_session import ViewOptions
 
-    return ViewOptions(serve=not args.no_view, host=args.view_host, port=args.view_port)
+    return ViewOptions(
+        serve=not args.no_view, host=args.view_host, port=args.view_port, tiles=args.tiles
+    )

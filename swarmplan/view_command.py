@@ -13,6 +13,7 @@ from pathlib import Path
 from mission_view.replay_file import load_replay
 from mission_view.server import ViewServer
 from swarmplan.arguments import port_number
+from swarmplan.option_groups import add_tiles_option
 
 HELP = "replay a finished mission in the browser (time slider, beliefs as heat layers)"
 
@@ -25,11 +26,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--port", type=port_number, default=0, help="port (default 0: a free one, printed)"
     )
+    add_tiles_option(parser)
 
 
 def main(args: argparse.Namespace) -> int:
     store = load_replay(args.result_dir)
-    server = ViewServer(store, args.host, args.port)
+    server = ViewServer(
+        store, args.host, args.port, tiles=args.tiles, port_option="--port (0: a free one)"
+    )
     url = server.start()
     steps = store.step_count
     print(

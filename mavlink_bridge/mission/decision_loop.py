@@ -346,6 +346,7 @@ class DecisionLoop:
                 if e["step"] == inputs.step
             ),
             modes=np.asarray(plan.decision.modes).copy(),
+            overrides=tuple(flight.replaced),
         )
         for listener in ctx.options.step_listeners:
             listener(record)

@@ -215,6 +215,7 @@ class DecisionStep:
         )
         for reason, count in flight.overrides.items():
             self.counters.overrides[reason] += count
+        flight.replaced = [(o.uav, o.reason) for o in checked.overrides] + flight.replaced
         return flight
 
     def choose_flight(

@@ -57,6 +57,8 @@ class StepRecord:
     #: and table
     engagements: tuple[tuple[int, int, float], ...] = ()
     modes: np.ndarray | None = None
+    #: the envelope's replacements this step: (UAV, reason)
+    overrides: tuple[tuple[int, str], ...] = ()
 
 
 StepListener = Callable[[StepRecord], None]

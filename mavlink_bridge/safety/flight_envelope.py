@@ -69,6 +69,9 @@ class FlightChoice:
     next_headings: np.ndarray  # (N,)
     speeds_mps: np.ndarray  # (N,) airspeed to fly the leg at
     overrides: dict[str, int] = field(default_factory=dict)
+    #: (UAV, reason) of each replacement counted in ``overrides`` (and, after the cell
+    #: envelope, of its overrides too): the mission view's timeline names the UAV
+    replaced: list[tuple[int, str]] = field(default_factory=list)
     min_separation_km: float = np.inf  # predicted, between the accepted paths
     #: the same over every lossy-link variant of each (paced time; as predicted in lockstep)
     min_separation_lossy_km: float = np.inf
@@ -320,6 +323,7 @@ class FlightEnvelope:
                 first = row_of[(i, 0)]
                 broken = "predicted_separation" if threat_ok[first] else "predicted_threat"
                 out.overrides[broken] += 1
+                out.replaced.append((int(i), broken))
             out.aims_km[i] = cand.aim
             out.speeds_mps[i] = table.commanded_mps[r]
             if cand.derived:

@@ -18,6 +18,7 @@ from mission_view.mission_store import MissionStore
 from mission_view.replay_file import ReplayWriter, load_replay, replay_path
 from mission_view.server import ViewServer
 from mission_view.sources import OfflineViews
+from mission_view.view_model import StepView
 from mission_view.view_session import ViewSession
 from planner.belief_snapshot import belief_snapshot
 from planner.errors import UserError
@@ -188,3 +189,42 @@ def test_a_resumed_daemon_appends_to_the_replay(tmp_path):
         found, layer = store.layer(k, 2)
         expected = layers[k] if k >= 4 else layers[k] // 2
         assert found == k and np.array_equal(layer, expected[2]), k
+
+
+def test_swarmplan_view_on_a_port_in_use_names_its_own_port_option(recorded):
+    """``swarmplan view --port BUSY`` is one line naming ``--port``, not the daemon's options."""
+    out, _, _ = recorded
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        done = run_swarmplan(["view", str(out), "--port", str(port)], timeout=60)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    line = done.stderr.strip()
+    assert line.splitlines() == [line] and f"127.0.0.1:{port}" in line
+    assert "--port" in line and "--view-port" not in line and "--no-view" not in line, line
+
+
+def test_replay_keeps_each_phase_line_with_its_step_and_marks_a_cut(tmp_path):
+    """Phase lines are read back with the step they began at (the page shows the one that held
+    at the step viewed); a file without its end line is marked cut short."""
+    layout = {"type": "mission", "uav_count": 1, "steps": 8}
+    store = MissionStore(layout)
+    feed = ViewFeed(store, load_scenario("paper-2uav").config,
+                    ReplayWriter(replay_path(tmp_path), layout), drop_beliefs=True)  # fmt: skip
+    feed.phase("launch (take off): airborne, GUIDED")
+    for k in range(4):
+        if k == 0:
+            feed.phase("search: the planner flies the swarm", 0)
+        feed.post(StepView(k, []))
+    feed.phase("return: RTL sent to vehicles 1")
+    feed.close()
+    said = [(p["step"], p["text"].split(":")[0]) for p in load_replay(tmp_path).phases]
+    assert said == [(-1, "launch (take off)"), (0, "search"), (3, "return")]
+    assert load_replay(tmp_path).layout["cut_short"] is False
+    # the same mission cut short: no end line
+    with gzip.open(replay_path(tmp_path), "rt") as lines:
+        kept = [line for line in lines if '"type":"end"' not in line]
+    with gzip.open(replay_path(tmp_path), "wt") as lines:
+        lines.writelines(kept)
+    assert load_replay(tmp_path).layout["cut_short"] is True

@@ -73,6 +73,7 @@ def test_live_view_of_a_running_demo(chromium, demo_out):
         assert rendered == sorted(rendered) and len(set(rendered)) >= 3, rendered
         assert rendered[-1] == STEPS
         assert page.inner_text("#stepinfo") == f"step {STEPS} / {STEPS}"
+        assert page.inner_text("#phase").startswith("return: RTL sent"), page.inner_text("#phase")
         # the simulator's true targets, drawn and marked as truth
         assert page.evaluate("() => missionView.layout.truth")
         assert len(page.query_selector_all("path.truth")) == 16  # the paper's targets
@@ -99,10 +100,14 @@ def test_replay_slider_moves_the_vehicles_and_layers_change_the_picture(chromium
     server = start_swarmplan(["view", str(demo_out)], log)
     try:
         page, errors = open_page(chromium, wait_for_url(log, 30, server))
-        page.wait_for_function(f"() => missionView.current === {STEPS}")
+        page.wait_for_function("() => missionView.current === 0")  # it opens at the start
         assert not page.evaluate("() => missionView.layout.live")
-        at_end = vehicle_positions(page)
+        assert page.inner_text("#phase").startswith("search"), page.inner_text("#phase")
         page.focus("#slider")
+        page.keyboard.press("End")
+        page.wait_for_function(f"() => missionView.current === {STEPS}")
+        assert page.inner_text("#phase").startswith("return"), page.inner_text("#phase")
+        at_end = vehicle_positions(page)
         page.keyboard.press("Home")
         page.wait_for_function("() => missionView.current === 0")
         at_start = vehicle_positions(page)
