@@ -249,6 +249,7 @@ class DecisionStep:
                     self.grid.centre_km(next_cells),
                     speeds,
                     self.scenario.config.step_s,
+                    np.arange(n),
                 )
             else:
                 speeds[:] = self.plane.speed_mps
