@@ -23,7 +23,7 @@ from planner.errors import UserError
 #: The four kinds of time-sensitive target of section 3.1.1, by what the swarm knows of them.
 TARGET_KINDS = ("unknown_position", "known_position", "known_speed", "known_velocity")
 
-BUILTIN_SCENARIOS = ("paper-2uav", "paper-10uav", "paper-20uav", "arduplane-3uav")
+BUILTIN_SCENARIOS = ("paper-2uav", "paper-10uav", "paper-20uav", "arduplane-3uav", "px4-3uav")
 
 #: Bounds that keep a scenario runnable (memory, time): the paper's grid is 10,000 cells, 250
 #: steps, 20 UAVs; MAVLink system ids leave room for at most 200 vehicles.

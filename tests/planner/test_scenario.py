@@ -36,7 +36,13 @@ def test_builtin_scenarios_match_the_paper():
         "known_velocity",
     }
     assert load_scenario("paper-20uav").uav_count == 20
-    assert set(BUILTIN_SCENARIOS) == {"paper-2uav", "paper-10uav", "paper-20uav", "arduplane-3uav"}
+    assert set(BUILTIN_SCENARIOS) == {
+        "paper-2uav",
+        "paper-10uav",
+        "paper-20uav",
+        "arduplane-3uav",
+        "px4-3uav",
+    }
 
 
 def test_random_starts_are_reproducible_and_safe():

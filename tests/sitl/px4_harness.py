@@ -24,6 +24,12 @@ How an instance is started (../shared/sitl/px4/README.md):
   is system id i + 1 whatever its instance number N, so instance numbers are taken free at
   start (a lock file per number, and the UDP ports 18570+N, 14580+N, 14280+N, 13030+N and
   19450+N free), never assumed.
+* The hooks folder's ``px4-rc.mavlink`` (sourced by rcS in place of PX4's) starts the GCS link
+  (18570+N) and the onboard link (14580+N) in PX4's Normal mode at its default rates, as over a
+  telemetry radio (GLOBAL_POSITION_INT 5 Hz, ATTITUDE 15 Hz of the vehicle's clock), and no
+  SIH display or gimbal link: PX4's SITL script adds 50 Hz streams (GLOBAL_POSITION_INT,
+  ATTITUDE, ...) and a 200 Hz actuator stream, ~1750 messages a second per plane at 5x; with
+  three planes the daemon's step computation took 12.7 s instead of 0.4 and it refused 5x.
 * PX4 starts every MAVLink instance with ``-f`` (forwarding on): what the payload simulator
   says on the onboard link (14580+N; the camera, component 100) reaches the daemon on the GCS
   link (18570+N), and the daemon's capture requests reach the camera.
@@ -49,6 +55,13 @@ ENV_VAR = "PX4_SITL"
 MAX_INSTANCE = 200
 FIRST_INSTANCE = 10  # leave 0..9 to people starting PX4 by hand with the README's numbers
 PORT_BASES = (18570, 14580, 14280, 13030, 19450)
+#: the MAVLink links an instance opens (sourced by PX4's rcS with ``px4_instance`` set)
+RC_MAVLINK = """#!/bin/sh
+# harness hook: found via PATH before etc/init.d-posix (tests/sitl/px4_harness.py)
+gcs=$((18570+px4_instance))
+mavlink start -x -u $gcs -r 400000 -f
+mavlink start -x -u $((14580+px4_instance)) -r 400000 -f -o $((14540+px4_instance))
+"""
 
 
 def px4_root_from_env() -> Path | None:
@@ -243,6 +256,7 @@ class Px4Swarm:
             (hooks / "px4-rc.params").write_text(
                 "".join(f"param set {k} {v:g}\n" for k, v in settings.items())
             )
+            (hooks / "px4-rc.mavlink").write_text(RC_MAVLINK)
             env = dict(os.environ)
             env.update(
                 PATH=f"{hooks}:{env.get('PATH', '/usr/bin:/bin')}",
