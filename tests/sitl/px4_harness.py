@@ -152,9 +152,12 @@ class Px4Vehicle:
     index: int
     instance: int
     workdir: Path
-    process: subprocess.Popen
     home: Home
     _lock: _InstanceLock = field(repr=False)
+    command: list[str] = field(default_factory=list, repr=False)
+    env: dict[str, str] = field(default_factory=dict, repr=False)
+    process: subprocess.Popen | None = None  # None until launched
+    niceness: int = 0
 
     @property
     def system_id(self) -> int:
@@ -175,7 +178,16 @@ class Px4Vehicle:
         return self.workdir / "px4.log"
 
     def alive(self) -> bool:
-        return self.process.poll() is None
+        return self.process is not None and self.process.poll() is None
+
+    def launch(self) -> None:
+        """Start the instance in its own process group (its output to ``log_path``)."""
+        with open(self.log_path, "w") as log:
+            self.process = subprocess.Popen(
+                self.command, cwd=self.workdir, env=self.env, stdout=log,
+                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
+                preexec_fn=(lambda: os.nice(self.niceness)) if self.niceness else None,
+            )  # fmt: skip
 
     def log_tail(self, lines: int = 15) -> str:
         try:
@@ -207,7 +219,8 @@ class Px4Vehicle:
 class Px4Swarm:
     """N PX4 SIH airplanes, vehicle i with system id ``first_system_id + i`` at ``homes[i]``.
 
-    ``params`` (name -> value) are set by the hook after PX4's defaults. ``workdir`` (default: a
+    ``params`` (name -> value) are set by the hook after PX4's defaults; ``niceness`` lowers
+    the instances' CPU priority (``os.nice``). ``workdir`` (default: a
     fresh temporary folder, removed at stop) holds the runtime bin and one folder per vehicle.
     """
 
@@ -220,8 +233,10 @@ class Px4Swarm:
         params: dict[str, float] | None = None,
         workdir: Path | None = None,
         first_system_id: int = 1,
+        niceness: int = 0,
     ) -> None:
         self.root = Path(root)
+        self.niceness = niceness
         self.homes = list(homes)
         self.speedup = speedup
         self.params = dict(params or {})
@@ -244,6 +259,20 @@ class Px4Swarm:
     def start(self) -> None:
         """Start every instance (each in its own process group); returns at once: PX4 answers
         its first HEARTBEAT about 1.3 s after start and can arm about 5.4 s after."""
+        self.claim()
+        self.launch()
+
+    def launch(self) -> None:
+        """Start the instances :meth:`claim` prepared."""
+        for vehicle in self.vehicles:
+            if vehicle.process is None:
+                vehicle.launch()
+
+    def claim(self) -> None:
+        """Take an instance number (and so its ports: ``connect_args``, ``payload_args``) and a
+        work folder for every vehicle, without starting PX4 yet (:meth:`launch`): a client
+        such as the daemon can be started first, e.g. so that it measures its own pace before
+        the PX4 instances take the machine's CPU."""
         bin_dir = runtime_bin(self.root, self.workdir)
         for index, home in enumerate(self.homes):
             lock = _claim_instance(FIRST_INSTANCE if not self.vehicles else
@@ -270,13 +299,12 @@ class Px4Swarm:
                 env["PX4_SIM_SPEED_FACTOR"] = f"{self.speedup:g}"
             command = [str(bin_dir / "px4"), "-d", "-i", str(lock.number), "-w",
                        str(folder / "work"), str(self.root.resolve() / "etc")]  # fmt: skip
-            with open(folder / "px4.log", "w") as log:
-                process = subprocess.Popen(
-                    command, cwd=folder, env=env, stdout=log, stderr=subprocess.STDOUT,
-                    stdin=subprocess.DEVNULL, start_new_session=True,
+            self.vehicles.append(
+                Px4Vehicle(
+                    sysid - 1, lock.number, folder, home, lock, command, env,
+                    niceness=self.niceness,
                 )  # fmt: skip
-            vehicle = Px4Vehicle(sysid - 1, lock.number, folder, process, home, lock)
-            self.vehicles.append(vehicle)
+            )
 
     def connect_args(self) -> list[str]:
         """``--connect`` options for ``swarmplan daemon``: every vehicle's GCS link."""
@@ -290,6 +318,8 @@ class Px4Swarm:
         """Send ``sig`` (default SIGKILL) to vehicle ``index``'s instance and wait for its end."""
         vehicle = self.vehicles[index]
         vehicle.signal(sig)
+        if vehicle.process is None:
+            return
         try:
             vehicle.process.wait(STOP_GRACE_S)
         except subprocess.TimeoutExpired:

@@ -1,13 +1,16 @@
 """A whole mission against PX4 SITL (and ArduPlane SITL beside it), for tests and benchmarks.
 
 ``fly_px4_mission`` starts the scenario's planes: the first ``arduplane`` of them as ArduPlane
-SITL instances (``sitl_harness.SitlSwarm``, system ids 1..a), the rest as PX4 SIH airplanes
-(``px4_harness.Px4Swarm``, system ids a+1..n), each at its start cell; then the payload
-simulator (``swarmplan payload``) on every plane's second link (ArduPlane's SERIAL1, PX4's
-onboard link, which PX4 forwards to its GCS link) and the daemon (``swarmplan daemon``) on
-every plane's GCS link. ``during(run, swarms)``, when given, runs in a thread while the daemon
-flies (e.g. to kill a plane at a step). Waits (bounded) for the daemon's end and returns a
-``sitl_mission.SitlMissionRun``; every process it started is stopped on the way out.
+SITL instances (``sitl_harness.SitlSwarm``, system ids 1..a; idle until a client connects),
+the rest as PX4 SIH airplanes (``px4_harness.Px4Swarm``, system ids a+1..n), each at its start
+cell; the payload simulator (``swarmplan payload``) on every plane's second link (ArduPlane's
+SERIAL1, PX4's onboard link, which PX4 forwards to its GCS link) and the daemon (``swarmplan
+daemon``) on every plane's GCS link. PX4 (and then the payload simulator, which speaks to PX4
+only once PX4 is there to answer) is launched once the daemon listens, i.e. after it has
+measured its own pace on this machine. ``during(run, swarms)``, when given, runs in a thread
+while the daemon flies (e.g. to kill a plane at a step). Waits (bounded) for the daemon's end
+and returns a ``sitl_mission.SitlMissionRun``; every process it started is stopped on the way
+out.
 
 ``modes_seen`` reads, from the daemon's tlog (what came over the wire), the modes each plane's
 autopilot reported in its heartbeats, by name (the autopilot's adapter names them).
@@ -89,17 +92,15 @@ def fly_px4_mission(
                 arduplane_binary, homes[:arduplane], speedup=speedup, params=fence,
                 workdir=workdir / "arduplane",
             )))  # fmt: skip
-        swarms.append(stack.enter_context(Px4Swarm(
+        px4 = Px4Swarm(
             px4_root, homes[arduplane:], speedup=speedup, workdir=workdir / "px4",
             first_system_id=arduplane + 1,
-        )))  # fmt: skip
+        )  # fmt: skip
+        stack.callback(px4.stop)
+        px4.claim()
+        swarms.append(px4)
         procs, readers = [], []
         try:
-            if with_payload:
-                links = [a for s in swarms for a in s.payload_args()]
-                payload = _start(["payload", "--scenario", scenario, "--seed", str(seed), *links])
-                procs.append(payload)
-                readers.append(_read_lines(payload, run.payload_printed, started))
             daemon = _start(
                 ["daemon", "--scenario", scenario, "--seed", str(seed), "--time-scale",
                  f"{speedup:g}", "--out", str(out), "--no-view",
@@ -108,6 +109,19 @@ def fly_px4_mission(
             )  # fmt: skip
             procs.append(daemon)
             readers.append(_read_lines(daemon, run.daemon, started))
+            # PX4 once the daemon has measured its own pace (``keeping_up.py``): three PX4
+            # instances booting at 5x took that measure from 0.4 s a step to 3.8 and more
+            deadline = time.monotonic() + timeout_s
+            while daemon.poll() is None and time.monotonic() < deadline:
+                if any("listening on" in line for _, line in list(run.daemon.lines)):
+                    break
+                time.sleep(0.1)
+            px4.launch()
+            if with_payload:
+                links = [a for s in swarms for a in s.payload_args()]
+                payload = _start(["payload", "--scenario", scenario, "--seed", str(seed), *links])
+                procs.append(payload)
+                readers.append(_read_lines(payload, run.payload_printed, started))
             if during is not None:
                 threading.Thread(target=during, args=(run, swarms), daemon=True).start()
             try:

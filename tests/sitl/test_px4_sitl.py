@@ -60,7 +60,7 @@ def test_two_px4_planes_at_real_time_arm_take_off_fly_two_steps_and_go_home(px4_
 @pytest.mark.timeout(200)
 def test_three_px4_planes_look_and_engage_with_no_violation(px4_sitl, tmp_path):
     run = fly_px4_mission(
-        px4_sitl, tmp_path, "px4-3uav", speedup=SPEEDUP, steps=5, timeout_s=170,
+        px4_sitl, tmp_path, "px4-3uav", speedup=SPEEDUP, steps=8, timeout_s=170,
         daemon_args=RTL_WATCH,
     )  # fmt: skip
     print(f"wall {run.wall_s:.0f} s")
@@ -69,7 +69,7 @@ def test_three_px4_planes_look_and_engage_with_no_violation(px4_sitl, tmp_path):
     assert result is not None and payload is not None, run.explain()
     # the SIH airframe capped to what it flies (FW_AIRSPD_MAX says 20)
     assert "FW_AIRSPD_MAX 20 capped to 13.5 m/s" in run.daemon.text(), run.explain()
-    assert result["steps"] == 5 and result["uavs_without_camera"] == [], run.explain()
+    assert result["steps"] == 8 and result["uavs_without_camera"] == [], run.explain()
     assert all(n >= 1 for n in payload["looks_per_vehicle"]), payload
     assert result["engaged_count"] >= 1, run.explain()
     assert no_violations(result), run.explain()
