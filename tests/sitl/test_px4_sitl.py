@@ -4,7 +4,9 @@ mixed fleet (``ARDUPLANE_SITL``), ``swarmplan payload`` on their second links (P
 camera, component 100, from its onboard link to its GCS link) and ``swarmplan daemon`` on their
 GCS links (tests/sitl/px4_mission.py). What each autopilot did is read from its own heartbeats
 in the daemon's tlog. Lean on purpose: the built-in px4-3uav (0.4 km cells, 43 s steps) at 5x,
-a few steps each, and a short watch of the flight home (RTL sent and flown in AUTO.RTL).
+a few steps each (8 for an engagement: PX4 circles its take-off point, so the planes set off on
+any course), and a short watch of the flight home (RTL sent and flown in AUTO.RTL). Wall times
+on the shared 2-core machine (load 9-15): 90, 155, ~55 and 95 s (docs/px4.md).
 """
 
 from __future__ import annotations
@@ -57,10 +59,10 @@ def test_two_px4_planes_at_real_time_arm_take_off_fly_two_steps_and_go_home(px4_
     flew_and_returned(run, [1, 2], "AUTO.LOITER", "AUTO.RTL")
 
 
-@pytest.mark.timeout(200)
+@pytest.mark.timeout(280)
 def test_three_px4_planes_look_and_engage_with_no_violation(px4_sitl, tmp_path):
     run = fly_px4_mission(
-        px4_sitl, tmp_path, "px4-3uav", speedup=SPEEDUP, steps=8, timeout_s=170,
+        px4_sitl, tmp_path, "px4-3uav", speedup=SPEEDUP, steps=8, timeout_s=240,
         daemon_args=RTL_WATCH,
     )  # fmt: skip
     print(f"wall {run.wall_s:.0f} s")
