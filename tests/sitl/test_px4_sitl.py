@@ -6,7 +6,7 @@ GCS links (tests/sitl/px4_mission.py). What each autopilot did is read from its 
 in the daemon's tlog. Lean on purpose: the built-in px4-3uav (0.4 km cells, 43 s steps) at 5x,
 a few steps each (8 for an engagement: PX4 circles its take-off point, so the planes set off on
 any course), and a short watch of the flight home (RTL sent and flown in AUTO.RTL). Wall times
-on the shared 2-core machine (load 9-15): 90, 155, ~55 and 95 s (docs/px4.md).
+on the shared 2-core machine (load 9-17): 90, 155, 81 and 95-172 s (docs/px4.md).
 """
 
 from __future__ import annotations
