@@ -7,6 +7,12 @@ figures of docs/sitl.md (5 planes over arduplane-3uav's 40 steps; at 5x ~9-10 mi
     ARDUPLANE_SITL=../shared/sitl/arduplane nice -n 10 python benchmarks/bench_sitl.py \\
         --planes 5 --speedup 5
 
+PX4 SITL's SIH airplanes instead (``PX4_SITL``; ../shared/sitl/px4 here), on the built-in
+``px4-3uav`` with its own three planes (docs/px4.md)::
+
+    PX4_SITL=../shared/sitl/px4 nice -n 10 python benchmarks/bench_sitl.py --autopilot px4 \
+        --speedup 5
+
 Prints one line per number: time to ready, coverage, engaged, violations, minimum separation
 (from the telemetry at the decision steps), distance from the planned cell centre at the next
 decision (mean / 95th percentile / worst), looks, late steps, decision-step length on the
@@ -29,15 +35,18 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(REPO / "tests"), str(REPO / "tests" / "sitl")]
 
+import px4_harness  # noqa: E402
+from px4_mission import fly_px4_mission  # noqa: E402
 from sitl_harness import sitl_binary_from_env, skip_reason  # noqa: E402
 from sitl_mission import fly_sitl_mission, measure  # noqa: E402
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--planes", type=int, default=5)
+    parser.add_argument("--autopilot", choices=("arduplane", "px4"), default="arduplane")
+    parser.add_argument("--planes", type=int, default=5, help="ArduPlane; PX4: the scenario's")
     parser.add_argument("--speedup", type=float, default=10.0, help="SITL --speedup (1: real time)")
-    parser.add_argument("--scenario", default="arduplane-3uav")
+    parser.add_argument("--scenario", default=None, help="default arduplane-3uav / px4-3uav")
     parser.add_argument("--steps", type=int, default=None, help="default: the scenario's")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--timeout", type=float, default=None, help="wall s (default: ample)")
@@ -47,9 +56,12 @@ def main() -> int:
     )  # fmt: skip
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
-    binary = sitl_binary_from_env()
+    px4 = args.autopilot == "px4"
+    args.scenario = args.scenario or ("px4-3uav" if px4 else "arduplane-3uav")
+    binary = px4_harness.px4_root_from_env() if px4 else sitl_binary_from_env()
     if binary is None:
-        print(f"bench_sitl: {skip_reason()}", file=sys.stderr)
+        why = px4_harness.skip_reason() if px4 else skip_reason()
+        print(f"bench_sitl: {why}", file=sys.stderr)
         return 2
     from planner.scenario import load_scenario
 
@@ -66,10 +78,16 @@ def main() -> int:
     threading.Thread(target=sample_load, daemon=True).start()
     with tempfile.TemporaryDirectory(prefix="bench-sitl-") as tmp:
         workdir = args.keep or Path(tmp)
-        run = fly_sitl_mission(
-            binary, workdir, planes=args.planes, speedup=args.speedup, scenario=args.scenario,
-            steps=args.steps, seed=args.seed, timeout_s=timeout,
-        )  # fmt: skip
+        if px4:
+            run = fly_px4_mission(
+                binary, workdir, args.scenario, speedup=args.speedup, steps=args.steps,
+                seed=args.seed, timeout_s=timeout,
+            )  # fmt: skip
+        else:
+            run = fly_sitl_mission(
+                binary, workdir, planes=args.planes, speedup=args.speedup,
+                scenario=args.scenario, steps=args.steps, seed=args.seed, timeout_s=timeout,
+            )  # fmt: skip
         numbers = measure(run)
     done.set()
     loads.append(os.getloadavg()[0])

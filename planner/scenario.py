@@ -24,7 +24,8 @@ from planner.errors import UserError
 TARGET_KINDS = ("unknown_position", "known_position", "known_speed", "known_velocity")
 
 BUILTIN_SCENARIOS = (
-    "paper-2uav", "paper-10uav", "paper-20uav", "arduplane-3uav", "swarm-100uav", "swarm-500uav",
+    "paper-2uav", "paper-10uav", "paper-20uav", "arduplane-3uav", "px4-3uav", "swarm-100uav",
+    "swarm-500uav",
 )  # fmt: skip
 
 #: Bounds that keep a scenario runnable (memory, time): the paper's grid is 10,000 cells, 250

@@ -33,13 +33,13 @@ from mavlink_bridge.mission.loop_state import LoopState, course_heading
 from mavlink_bridge.results.mission_result import MissionAccount
 from mavlink_bridge.safety.flight_envelope import FlightChoice, FlightEnvelope
 from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
+from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel, leg_speed_mps, predict_paths
 from mavlink_bridge.vehicles.guided_commands import (
     Command,
     CommandRefusedError,
     change_speed_command,
     engagement_command,
-    reposition_command,
 )
 from mavlink_bridge.vehicles.sensor_looks import look_report
 from mavlink_bridge.vehicles.vehicle_state import Look, VehicleState
@@ -249,6 +249,7 @@ class DecisionStep:
                     self.grid.centre_km(next_cells),
                     speeds,
                     self.scenario.config.step_s,
+                    np.arange(n),
                 )
             else:
                 speeds[:] = self.plane.speed_mps
@@ -357,7 +358,9 @@ class DecisionStep:
             aim = (round(float(aims[i, 0]), 3), round(float(aims[i, 1]), 3))
             if aim == state.last_target[i] and step % 5:
                 continue  # already flying there (re-sent every 5 steps all the same)
-            cmd = reposition_command(v, float(lat[i]), float(lon[i]), self.scenario.altitude_m)
+            cmd = autopilot_for(v).reposition_command(
+                v, float(lat[i]), float(lon[i]), self.scenario.altitude_m
+            )
             moves.append((i, aim, cmd))
         return CommandBatch(requests, moves, self.speed_commands(flight.speeds_mps, active))
 

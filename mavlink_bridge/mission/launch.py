@@ -18,16 +18,13 @@ from typing import TYPE_CHECKING
 
 from mavlink_bridge.mission.resume_takeback import TakeBack, flying, judge_fleet, send_home
 from mavlink_bridge.vehicles.airframe import read_airframes, scenario_warnings
+from mavlink_bridge.vehicles.autopilot_adapter import ArduPilot, autopilot_for
 from mavlink_bridge.vehicles.discovery import wait_for_vehicles, wait_until_ready
 from mavlink_bridge.vehicles.fence_upload import FenceCircle, upload_fence
 from mavlink_bridge.vehicles.gcs_failsafe import MISSION_FAILSAFE, set_gcs_failsafe
-from mavlink_bridge.vehicles.guided_commands import (
-    request_message_command,
-    require_accepted,
-    set_mode_command,
-)
+from mavlink_bridge.vehicles.guided_commands import request_message_command, require_accepted
 from mavlink_bridge.vehicles.readiness import arm_when_ready
-from mavlink_wire.protocol import PLANE_MODE_GUIDED, PLANE_MODE_TAKEOFF, mavlink
+from mavlink_wire.protocol import mavlink
 from planner.errors import UserError
 from planner.geodesy import local_km_to_geodetic
 
@@ -35,6 +32,7 @@ if TYPE_CHECKING:
     from mavlink_bridge.mission.context import MissionContext
     from mavlink_bridge.results.checkpoint import Checkpoint
     from mavlink_bridge.vehicles.vehicle_loss import LossWatch
+    from mavlink_bridge.vehicles.vehicle_state import VehicleState
     from mavlink_bridge.way_home.flight_home import FlightHomePhase
 
 
@@ -103,14 +101,19 @@ def fence(launch: Launch) -> None:
 
 
 def failsafe(launch: Launch) -> None:
-    """Every vehicle's GCS failsafe: fly on to the last guided target (``gcs_failsafe.py``)."""
+    """Every vehicle's GCS-loss settings, its autopilot's (``autopilot_adapter.py``): fly on
+    to the last guided target (``gcs_failsafe.py``)."""
     ctx = launch.ctx
-    settings = MISSION_FAILSAFE
-    set_gcs_failsafe(ctx.require_link(), ctx.vehicles(), settings)
-    ctx.say(
-        f"GCS failsafe set: FS_GCS_ENABL {settings.enable}, FS_LONG_ACTN {settings.long_action} "
-        f"(continue: circle the last guided target), FS_LONG_TIMEOUT {settings.long_timeout_s:g} s"
+    vehicles = ctx.vehicles()
+    set_gcs_failsafe(
+        ctx.require_link(),
+        vehicles,
+        MISSION_FAILSAFE,
+        parameters_for=lambda v: autopilot_for(v).failsafe_parameters(),
+        refusal_fix=lambda v: autopilot_for(v).failsafe_fix,
     )
+    for autopilot in autopilots_of(vehicles):
+        ctx.say(f"GCS failsafe set: {autopilot.failsafe_summary()}")
 
 
 def airframe(launch: Launch) -> None:
@@ -172,7 +175,7 @@ def take_off(launch: Launch) -> None:
     link.pump_until(lambda: all(v.has_position for v in vehicles), 2.0)
     on_ground = [v for v in vehicles if not flying(v, climb)]
     require_accepted(
-        ctx.send([set_mode_command(v, PLANE_MODE_TAKEOFF) for v in on_ground], attempts)
+        ctx.send([autopilot_for(v).takeoff_command(v, climb) for v in on_ground], attempts)
     )
     guided: set[int] = set()
     while len(guided) < len(vehicles):
@@ -186,9 +189,14 @@ def take_off(launch: Launch) -> None:
                 f"{options.takeoff_timeout_s:g} s of TAKEOFF; check its takeoff setup"
             )
         up = [v for v in vehicles if v.system_id not in guided and v.relative_alt_m >= climb]
-        require_accepted(ctx.send([set_mode_command(v, PLANE_MODE_GUIDED) for v in up], attempts))
+        require_accepted(ctx.send([autopilot_for(v).guide_command(v) for v in up], attempts))
         guided.update(v.system_id for v in up)
-    ctx.say("airborne, GUIDED")
+    ctx.say(f"airborne, {' / '.join(a.guided_name for a in autopilots_of(vehicles))}")
+
+
+def autopilots_of(vehicles: list[VehicleState]) -> list[ArduPilot]:
+    """The adapters of the vehicles' autopilots, each once, ArduPilot first."""
+    return sorted({autopilot_for(v) for v in vehicles}, key=lambda a: a.name)
 
 
 def climb_m(ctx: MissionContext) -> float:

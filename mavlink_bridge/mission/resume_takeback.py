@@ -45,9 +45,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_bridge.way_home.around_threats import HomeRoutes
-from mavlink_wire.protocol import enum_name, mode_name
+from mavlink_wire.protocol import enum_name
 
 if TYPE_CHECKING:
     from mavlink_bridge.mission.context import MissionContext
@@ -146,7 +147,7 @@ class TakeBackJudge:
         flown: RangeAccount,
     ) -> TakeBack:
         """Continue or home, and why, for plane ``v`` at ``xy_km`` (mission frame)."""
-        mode, status = mode_name(v.custom_mode), state_name(v.system_status)
+        mode, status = autopilot_for(v).mode_name(v.custom_mode), state_name(v.system_status)
         flown_km = flown.flown_km
 
         def verdict(decision: str, why: str, way: float | None = None) -> TakeBack:
@@ -269,7 +270,7 @@ def judge_fleet(
     seconds = outage_s(ctx.options.checkpoint_path, ctx.time_scale)
     decisions = []
     for i, v in enumerate(ctx.vehicles()):
-        mode, status = mode_name(v.custom_mode), state_name(v.system_status)
+        mode, status = autopilot_for(v).mode_name(v.custom_mode), state_name(v.system_status)
         if not flying(v, climb_m):
             where = (
                 f"armed {v.relative_alt_m:.0f} m above home, below the take-off height "

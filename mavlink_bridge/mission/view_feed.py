@@ -14,7 +14,7 @@ from typing import Any
 
 from mavlink_bridge.mission.operator_actions import SENT_HOME
 from mavlink_bridge.results.mission_result import StepRecord
-from mavlink_wire.protocol import mode_name
+from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
 from mission_view.view_model import StepView, TimelineEvent, VehicleView
 from mission_view.view_session import ViewSession
 from planner.geodesy import geodetic_to_local_km
@@ -135,7 +135,7 @@ class DaemonViewFeed:
             x, y, course,
             active=bool(record.active[i]),
             target_km=(float(record.aims_km[i, 0]), float(record.aims_km[i, 1])),
-            mode=mode_name(v.custom_mode) if v.custom_mode >= 0 else "",
+            mode=autopilot_for(v).mode_name(v.custom_mode) if v.custom_mode >= 0 else "",
             planner_mode="" if record.modes is None else MODES[int(record.modes[i])],
             ground_speed_mps=v.speed_mps,
             airspeed_mps=float(record.speeds_mps[i]),

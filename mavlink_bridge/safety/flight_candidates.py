@@ -105,6 +105,7 @@ def candidate_rows(
         leg_from = grid.centre_km(np.array([cells[i] for i, _ in rows]))
         leg_to = grid.centre_km(np.array([candidates[i][k].cell for i, k in rows]))
         untimed = np.array([candidates[i][k].derived or candidates[i][k].cruise for i, k in rows])
-        timed = leg_speed_mps(model, starts, leg_from, leg_to, speeds_now, step_s)
+        uavs = np.array([i for i, _ in rows])
+        timed = leg_speed_mps(model, starts, leg_from, leg_to, speeds_now, step_s, uavs)
         commanded = np.where(untimed, commanded, timed)
     return CandidateRows(candidates, rows, aims, starts, speeds_now, commanded)

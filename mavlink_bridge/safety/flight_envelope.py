@@ -113,7 +113,7 @@ class FlightEnvelope:
         """Seconds a plane at its fastest needs to turn a quarter circle at its bank limit: how
         long a new target takes to turn it away from where it was heading (24 s at 150 m/s and
         45 deg; 2 s for ArduPlane's 30 m/s and 65 deg)."""
-        return float(np.pi / 2 / self.model.turn_rate_radps(self.model.max_speed_mps))
+        return float(np.pi / 2 / self.model.turn_rate_radps(self.model.fastest_leg_mps))
 
     @property
     def horizon_s(self) -> float:

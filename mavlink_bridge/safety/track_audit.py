@@ -48,8 +48,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
-from mavlink_wire.protocol import PLANE_MODE_GUIDED, PLANE_MODE_TAKEOFF, mavlink
+from mavlink_wire.protocol import mavlink
 from planner.constraints import segment_clearance
 
 #: phases in the order a segment shared by two of them is reported under (most telling first)
@@ -375,7 +376,7 @@ def position_listener(
         if v.relative_alt_m < 1.0:  # (not v.armed: the heartbeat saying so may come later)
             return
         failsafe = (
-            v.custom_mode not in (PLANE_MODE_GUIDED, PLANE_MODE_TAKEOFF)
+            not autopilot_for(v).flown(v.custom_mode)
             or v.system_status == mavlink.MAV_STATE_CRITICAL
         )
         arrival = None if time_scale is None else time.monotonic() * time_scale

@@ -12,13 +12,20 @@ daemon asks for it with PARAM_REQUEST_READ before take-off:
 * waypoint acceptance radius, m: WP_RADIUS, NAV_ACC_RAD
 
 (The PX4 names are those of its fixed-wing position controller and navigator parameter files.)
+The autopilot's adapter may then cap them to what the airframe really flies
+(``autopilot_adapter.ArduPilot.fly_limits``: PX4 SITL's SIH airplane reports FW_AIRSPD_MAX 20 but
+tops out at 13.6 m/s, so its cruise and fastest airspeed become 13.5 m/s).
 A name the vehicle does not answer within the read window falls back to the daemon's own
 assumption, and the airframe says so (``source``).
 
-The fleet flies one plane model (the prediction is vectorised over UAVs): the most restrictive
-of the vehicles' limits (smallest bank limit, narrowest airspeed range, largest loiter and
-acceptance radii). Its turn radius at airspeed v is ``v**2 / (g tan(bank))`` (ArduPlane's
-defaults: 22 m/s at 65 deg, 23 m; the loiter circle is then WP_LOITER_RAD, 80 m).
+The fleet's flight prediction uses one plane model (vectorised over UAVs): the most restrictive
+of the vehicles' limits (smallest bank limit, largest loiter and acceptance radii), so a mixed
+fleet's tighter-turning planes are predicted on the widest plane's turn. Leg airspeeds are each
+plane's own: every plane's timed legs are clamped to its own airspeed range
+(``PlaneModel.uav_speed_ranges_mps``), so a PX4 SIH plane is never asked above its 13.5 m/s
+while the ArduPlanes beside it still catch up at up to 1.5 v. The turn radius at airspeed v is
+``v**2 / (g tan(bank))`` (ArduPlane's defaults: 22 m/s at 65 deg, 23 m; the loiter circle is
+then WP_LOITER_RAD, 80 m).
 
 ``scenario_warnings`` says, before take-off, when the scenario asks for what the airframe
 cannot fly: a UAV speed outside its airspeed range, or grid legs (one cell per decision step,
@@ -32,29 +39,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
-from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, mavlink
+from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID
 from planner.config import PlannerConfig
 from planner.errors import UserError
 
-#: field -> the parameter names that may hold it, newest first, with the scale to SI units
-ARDUPILOT_NAMES: dict[str, tuple[tuple[str, float], ...]] = {
-    "min_airspeed_mps": (("AIRSPEED_MIN", 1.0), ("ARSPD_FBW_MIN", 1.0)),
-    "cruise_mps": (("AIRSPEED_CRUISE", 1.0), ("TRIM_ARSPD_CM", 0.01)),
-    "max_airspeed_mps": (("AIRSPEED_MAX", 1.0), ("ARSPD_FBW_MAX", 1.0)),
-    "bank_limit_deg": (("ROLL_LIMIT_DEG", 1.0), ("LIM_ROLL_CD", 0.01)),
-    "wp_loiter_radius_m": (("WP_LOITER_RAD", 1.0),),
-    "capture_radius_m": (("WP_RADIUS", 1.0),),
-}
-PX4_NAMES: dict[str, tuple[tuple[str, float], ...]] = {
-    "min_airspeed_mps": (("FW_AIRSPD_MIN", 1.0),),
-    "cruise_mps": (("FW_AIRSPD_TRIM", 1.0),),
-    "max_airspeed_mps": (("FW_AIRSPD_MAX", 1.0),),
-    "bank_limit_deg": (("FW_R_LIM", 1.0),),
-    "wp_loiter_radius_m": (("NAV_LOITER_RAD", 1.0),),
-    "capture_radius_m": (("NAV_ACC_RAD", 1.0),),
-}
 #: how long to wait for the answers, and how often to ask again for the missing ones (wall s)
 READ_WINDOW_S = 4.0
 RESEND_S = 0.5
@@ -74,6 +65,8 @@ class Airframe:
     #: parameter names answered; the fields of names not answered hold the daemon's defaults
     read: tuple[str, ...] = ()
     defaulted: tuple[str, ...] = ()
+    #: what the autopilot's adapter capped, and why ("" when nothing)
+    capped: str = ""
 
     def min_turn_radius_m(self, speed_mps: float) -> float:
         """``v**2 / (g tan(bank))``."""
@@ -89,12 +82,14 @@ class Airframe:
         )
         if self.defaulted:
             text += f" (not reported, assumed: {', '.join(self.defaulted)})"
+        if self.capped:
+            text += f" ({self.capped})"
         return text
 
 
 def names_for(vehicle: VehicleState) -> dict[str, tuple[tuple[str, float], ...]]:
-    """The parameter names of the vehicle's autopilot (PX4 by its HEARTBEAT, else ArduPilot)."""
-    return PX4_NAMES if vehicle.autopilot == mavlink.MAV_AUTOPILOT_PX4 else ARDUPILOT_NAMES
+    """The parameter names of the vehicle's autopilot (``autopilot_adapter.py``)."""
+    return dict(autopilot_for(vehicle).airframe_names)
 
 
 def default_airframe(system_id: int, cfg: PlannerConfig) -> dict[str, float]:
@@ -120,7 +115,8 @@ def _value(vehicle: VehicleState, options: tuple[tuple[str, float], ...]) -> tup
 
 
 def airframe_from_params(vehicle: VehicleState, cfg: PlannerConfig) -> Airframe:
-    """The vehicle's airframe from the parameters it has answered (defaults for the rest)."""
+    """The vehicle's airframe from the parameters it has answered (defaults for the rest),
+    capped by its autopilot's adapter to what it really flies."""
     fields = default_airframe(vehicle.system_id, cfg)
     read, defaulted = [], []
     for key, options in names_for(vehicle).items():
@@ -130,7 +126,10 @@ def airframe_from_params(vehicle: VehicleState, cfg: PlannerConfig) -> Airframe:
             read.append(name)
         else:
             defaulted.append(options[0][0])
-    return Airframe(vehicle.system_id, **fields, read=tuple(read), defaulted=tuple(defaulted))
+    fields, capped = autopilot_for(vehicle).fly_limits(fields, vehicle.params)
+    return Airframe(
+        vehicle.system_id, **fields, read=tuple(read), defaulted=tuple(defaulted), capped=capped
+    )
 
 
 def request_params(vehicle: VehicleState, names: list[str]) -> None:
@@ -156,7 +155,7 @@ def read_airframes(
         for options in names_for(v).values():
             if not any(name in v.params for name, _ in options):
                 out += [name for name, _ in options]
-        return out
+        return out + [name for name in autopilot_for(v).limit_names if name not in v.params]
 
     deadline = time.monotonic() + window_s
     while True:
@@ -195,24 +194,38 @@ def scenario_plane_model(
     )
 
 
+def leg_range_mps(v: float, slowest_allowed: float, fastest_allowed: float) -> tuple[float, float]:
+    """The leg timing range for airspeed limits ``slowest_allowed``..``fastest_allowed`` at the
+    scenario's speed ``v``: v .. min(1.5 v, fastest) (never below v: a slower plane turns more
+    than phi_max in a step; never above the fastest allowed)."""
+    low = min(max(v, slowest_allowed), fastest_allowed)
+    return low, max(min(1.5 * v, fastest_allowed), low)
+
+
 def fleet_plane_model(
     airframes: list[Airframe],
     cfg: PlannerConfig,
     airspeed_range_mps: tuple[float, float] | None = None,
     bank_limit_deg: float | None = None,
 ) -> PlaneModel:
-    """One plane model for the fleet: the most restrictive limits of its airframes. The leg
-    timing range is v .. min(1.5 v, AIRSPEED_MAX) (never below v: a slower plane turns more
-    than phi_max in a step), unless ``airspeed_range_mps`` is given; ``bank_limit_deg`` given
+    """One plane model for the fleet's flight prediction: the most restrictive limits of its
+    airframes (smallest bank limit, largest loiter and acceptance radii: a mixed fleet's
+    faster-turning planes are predicted to turn as wide as the widest). Leg timing is each
+    plane's own (``uav_speed_ranges_mps``, airframes in UAV order): v .. min(1.5 v, its
+    AIRSPEED_MAX); the fleet's own range (``min_speed_mps``..``max_speed_mps``) is the
+    narrowest. ``airspeed_range_mps`` given is every plane's range; ``bank_limit_deg`` given
     overrides the airframes' bank limit."""
     v = cfg.speed_mps
-    slowest_allowed = max(a.min_airspeed_mps for a in airframes)
-    fastest_allowed = min(a.max_airspeed_mps for a in airframes)
     if airspeed_range_mps is not None:
+        ranges = [tuple(airspeed_range_mps)] * len(airframes)
         low, high = airspeed_range_mps
     else:
-        low = min(max(v, slowest_allowed), fastest_allowed)
-        high = max(min(1.5 * v, fastest_allowed), low)
+        ranges = [leg_range_mps(v, a.min_airspeed_mps, a.max_airspeed_mps) for a in airframes]
+        low, high = leg_range_mps(
+            v,
+            max(a.min_airspeed_mps for a in airframes),
+            min(a.max_airspeed_mps for a in airframes),
+        )
     return PlaneModel(
         speed_mps=v,
         bank_limit_deg=bank_limit_deg or min(a.bank_limit_deg for a in airframes),
@@ -220,7 +233,8 @@ def fleet_plane_model(
         wp_loiter_radius_m=max(a.wp_loiter_radius_m for a in airframes),
         min_speed_mps=low,
         max_speed_mps=high,
-        slowest_mps=min(slowest_allowed, v),
+        slowest_mps=min(max(a.min_airspeed_mps for a in airframes), v),
+        uav_speed_ranges_mps=tuple((float(lo), float(hi)) for lo, hi in ranges),
     )
 
 

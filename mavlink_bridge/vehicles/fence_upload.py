@@ -39,6 +39,12 @@ class FenceCircle:
     radius_m: float
 
 
+#: a refused upload is started again (every retry interval) for this long after the first
+#: refusal before the refusal stands: PX4 SITL answered MAV_MISSION_ERROR to an upload made
+#: just after its boot, while its mission storage was still starting
+REFUSED_RETRY_S = 10.0
+
+
 def send_fence_item(vehicle: VehicleState, seq: int, circle: FenceCircle) -> None:
     """MISSION_ITEM_INT of one exclusion circle (frame GLOBAL, as QGroundControl sends it)."""
     vehicle.link.mav.mission_item_int_send(
@@ -99,7 +105,8 @@ def upload_fence(
             raise MissionUploadError(
                 f"vehicle {transfer.vehicle.system_id} refused the fence upload: "
                 f"{enum_name('MAV_MISSION_RESULT', transfer.result or 0)}"
-                f" (an autopilot still initialising answers NO_SPACE; wait for STANDBY)"
+                f" for {REFUSED_RETRY_S:g} s (an autopilot still initialising answers NO_SPACE or"
+                f" MAV_MISSION_ERROR; wait for STANDBY)"
             )
 
 
@@ -116,6 +123,7 @@ class _FenceTransfer:
     heard: float = 0.0  # the vehicle's last message of this upload
     restarts: int = 0
     resends: int = 0  # the last asked item sent again with no answer since
+    refused_at: float | None = None  # its first refusal (``REFUSED_RETRY_S``)
 
     def send_count(self) -> None:
         """Start (again) from MISSION_COUNT, forgetting what the vehicle asked before."""
@@ -135,7 +143,13 @@ class _FenceTransfer:
         self.answer_requests(now)
         ack = self.vehicle.mission_ack
         if ack is not None and ack[1] == mavlink.MAV_MISSION_TYPE_FENCE:
-            self.result = ack[0]
+            if ack[0] != mavlink.MAV_MISSION_ACCEPTED and self.refused_at is None:
+                self.refused_at = now
+            if ack[0] == mavlink.MAV_MISSION_ACCEPTED or now - self.refused_at > REFUSED_RETRY_S:
+                self.result = ack[0]
+            elif now - self.last_sent > retry_interval_s:
+                self.heard = now  # a refusal is an answer: upload again
+                self.send_count()
             return
         if now - self.heard > stall_timeout_s:
             raise MissionUploadError(

@@ -54,6 +54,25 @@ class PlaneModel:
     #: (``home_circles.home_circle_speeds``)
     slowest_mps: float = 100.0
     accel_mps2: float = 5.0  # how fast the airspeed follows a DO_CHANGE_SPEED
+    #: each UAV's own leg timing range (low, high) m/s, by UAV index, from its own airframe
+    #: (a mixed fleet: a PX4 SIH plane tops out at 13.5 m/s beside an ArduPlane's 30); empty:
+    #: every UAV flies [min_speed_mps, max_speed_mps]
+    uav_speed_ranges_mps: tuple[tuple[float, float], ...] = ()
+
+    def speed_range_mps(self, uavs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The leg timing range (low, high) of each row's UAV ``uavs`` (indices), or the
+        fleet's when no UAV is given or the UAVs have no ranges of their own."""
+        if uavs is None or not self.uav_speed_ranges_mps:
+            return np.asarray(self.min_speed_mps), np.asarray(self.max_speed_mps)
+        ranges = np.asarray(self.uav_speed_ranges_mps, dtype=float).reshape(-1, 2)
+        rows = ranges[np.asarray(uavs, dtype=int)]
+        return rows[:, 0], rows[:, 1]
+
+    @property
+    def fastest_leg_mps(self) -> float:
+        """The fastest airspeed any UAV is asked for when timing legs."""
+        own = (high for _, high in self.uav_speed_ranges_mps)
+        return max(own, default=self.max_speed_mps)
 
     def min_turn_radius_km(self, speed_mps: np.ndarray | float | None = None) -> np.ndarray:
         v = self.speed_mps if speed_mps is None else np.asarray(speed_mps, dtype=float)
@@ -98,6 +117,7 @@ def leg_speed_mps(
     to_km: np.ndarray,
     speed_now_mps: np.ndarray,
     step_s: float,
+    uavs: np.ndarray | None = None,
 ) -> np.ndarray:
     """Airspeed (M,) to command so that planes at ``position_km`` (M, 2), flying
     ``speed_now_mps``, reach the centre ``to_km`` of the leg ``from_km`` -> ``to_km`` in
@@ -106,8 +126,10 @@ def leg_speed_mps(
 
         flown in step_s = v T - (v - v0) |v - v0| / (2 a) = distance to go
 
-    Clipped to [min_speed_mps, max_speed_mps]; a plane ahead of its schedule slows down, one
-    behind catches up, and a leg of zero length (circle here) is flown at cruise speed."""
+    Clipped to [min_speed_mps, max_speed_mps], or to each row's own UAV's range when ``uavs``
+    (M,) names the UAV of each row (``PlaneModel.speed_range_mps``); a plane ahead of its
+    schedule slows down, one behind catches up, and a leg of zero length (circle here) is flown
+    at cruise speed."""
     p = np.asarray(position_km, dtype=float).reshape(-1, 2)
     a_km = np.asarray(from_km, dtype=float).reshape(-1, 2)
     b_km = np.asarray(to_km, dtype=float).reshape(-1, 2)
@@ -125,7 +147,8 @@ def leg_speed_mps(
     root = np.sqrt(np.maximum(acc * acc * t * t - 2 * acc * np.abs(excess), 0.0))
     change = np.where(np.abs(excess) < reachable, acc * t - root, np.inf)
     wanted = v0 + np.sign(excess) * change
-    speed = np.clip(np.nan_to_num(wanted), model.min_speed_mps, model.max_speed_mps)
+    low, high = model.speed_range_mps(uavs)
+    speed = np.clip(np.nan_to_num(wanted), low, high)
     return np.where(length > 1e-9, speed, model.speed_mps)
 
 

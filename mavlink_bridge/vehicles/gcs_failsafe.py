@@ -29,9 +29,10 @@ the fix.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+from mavlink_bridge.vehicles.param_encoding import encode_param
 from mavlink_bridge.vehicles.swarm_link import SwarmLink
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, mavlink
@@ -74,12 +75,18 @@ def set_gcs_failsafe(
     settings: GcsFailsafeSettings = MISSION_FAILSAFE,
     retry_s: float = 0.5,
     attempts: int = 40,
+    parameters_for: Callable[[VehicleState], tuple[tuple[str, float, int], ...]] | None = None,
+    refusal_fix: Callable[[VehicleState], str] | None = None,
 ) -> None:
-    """Set ``settings`` on every vehicle and wait until each confirms every value."""
+    """Set ``settings`` on every vehicle (or each vehicle's own ``parameters_for`` it: its
+    autopilot's, ``autopilot_adapter.py``) and wait until each confirms every value.
+    ``refusal_fix`` says what a refused value must be (default: ArduPlane's)."""
     todo = {
         (v.system_id, name): (v, value, ptype)
         for v in vehicles
-        for name, value, ptype in settings.parameters()
+        for name, value, ptype in (
+            settings.parameters() if parameters_for is None else parameters_for(v)
+        )
     }
 
     def confirmed(v: VehicleState, name: str, value: float) -> bool:
@@ -91,8 +98,9 @@ def set_gcs_failsafe(
     for _ in range(attempts):
         for (_, name), (v, value, ptype) in todo.items():
             if not v.lost:
+                wire = encode_param(v.autopilot, value, ptype)
                 v.link.mav.param_set_send(
-                    v.system_id, AUTOPILOT_COMPONENT_ID, name.encode(), value, ptype
+                    v.system_id, AUTOPILOT_COMPONENT_ID, name.encode(), wire, ptype
                 )
         waiting = [(v, name) for (_, name), (v, _, _) in todo.items()]
         link.pump_until(lambda w=waiting: all(name in v.params for v, name in w), retry_s)
@@ -102,10 +110,11 @@ def set_gcs_failsafe(
         refused = [(key, entry) for key, entry in todo.items() if key[1] in entry[0].params]
         if refused:
             (sysid, name), (v, value, _) = refused[0]
+            fix = "FS_GCS_ENABL 1, FS_LONG_ACTN 0" if refusal_fix is None else refusal_fix(v)
             raise UserError(
                 f"vehicle {sysid} kept {name} = {v.params[name]:g} when set to {value:g}; its "
-                f"GCS failsafe must fly on to the last guided target (FS_GCS_ENABL 1, "
-                f"FS_LONG_ACTN 0): set them by hand or check its parameter limits"
+                f"GCS failsafe must fly on to the last guided target ({fix}): set them by "
+                f"hand or check its parameter limits"
             )
         if not todo:
             return

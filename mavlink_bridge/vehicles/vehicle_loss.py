@@ -31,8 +31,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from mavlink_bridge.results.mission_result import LinkEvent, MissionAccount
+from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
-from mavlink_wire.protocol import PLANE_MODE_GUIDED, mode_name
 
 #: the reasons a vehicle went away (rather than being in the wrong state)
 GONE = ("link ", "silent ")
@@ -124,8 +124,8 @@ class LossWatch:
         off = None
         if not v.armed:
             off = "disarmed"
-        elif v.custom_mode != PLANE_MODE_GUIDED:
-            off = f"left GUIDED (now {mode_name(v.custom_mode)})"
+        elif not (autopilot := autopilot_for(v)).guided(v.custom_mode):
+            off = f"left {autopilot.guided_name} (now {autopilot.mode_name(v.custom_mode)})"
         if off is None:
             self._off_since.pop(i, None)
             return None

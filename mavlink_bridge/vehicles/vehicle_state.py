@@ -13,6 +13,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from mavlink_bridge.vehicles.param_encoding import decode_param
 from mavlink_bridge.vehicles.telemetry_plausibility import on_earth
 from mavlink_wire.links import VehicleLink
 from mavlink_wire.looks import look_part, parse_look_offsets
@@ -67,6 +68,7 @@ class VehicleState:
     lat_deg: float = 0.0
     lon_deg: float = 0.0
     relative_alt_m: float = 0.0
+    alt_amsl_m: float = 0.0  # above mean sea level (PX4 takes AMSL altitudes)
     vn_mps: float = 0.0
     ve_mps: float = 0.0
     heading_cdeg: int = 65535
@@ -211,6 +213,7 @@ class VehicleState:
         self.lat_deg = msg.lat * 1e-7
         self.lon_deg = msg.lon * 1e-7
         self.relative_alt_m = msg.relative_alt * 1e-3
+        self.alt_amsl_m = msg.alt * 1e-3
         self.vn_mps = msg.vx * 1e-2
         self.ve_mps = msg.vy * 1e-2
         self.heading_cdeg = msg.hdg
@@ -229,7 +232,7 @@ class VehicleState:
         raw = msg.param_id
         name = (raw if isinstance(raw, str) else raw.decode("ascii", "replace")).rstrip("\x00")
         if math.isfinite(msg.param_value):
-            self.params[name] = float(msg.param_value)
+            self.params[name] = float(decode_param(self.autopilot, msg.param_value, msg.param_type))
 
     def on_extended_sys_state(self, msg: mavlink.MAVLink_extended_sys_state_message) -> None:
         if msg.get_srcComponent() == AUTOPILOT_COMPONENT_ID:

@@ -17,12 +17,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
+from mavlink_bridge.vehicles.autopilot_adapter import RTL_COMMANDS, autopilot_for
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel
 from mavlink_bridge.vehicles.guided_commands import (
     Command,
     change_speed_command,
-    reposition_command,
-    set_mode_command,
 )
 from mavlink_bridge.vehicles.swarm_link import SwarmLink
 from mavlink_bridge.vehicles.vehicle_loss import link_down
@@ -31,7 +30,6 @@ from mavlink_bridge.way_home.around_threats import HomeRoutes
 from mavlink_bridge.way_home.home_circles import HomeCircles, home_circle_speeds
 from mavlink_bridge.way_home.kept_apart import ReturnPlan, ReturnSeparation
 from mavlink_bridge.way_home.rtl_at_exit import HomeWatch, rtl_line, rtl_recipients
-from mavlink_wire.protocol import PLANE_MODE_RTL, mavlink
 from planner.geodesy import local_km_to_geodetic
 from planner.grid import Grid
 from planner.scenario import Scenario
@@ -208,9 +206,7 @@ class FlightHomePhase:
         slow = [
             change_speed_command(c.vehicle, speeds[c.vehicle.system_id])
             for c in sent
-            if c.command == mavlink.MAV_CMD_DO_SET_MODE
-            and c.accepted
-            and c.vehicle.system_id in speeds
+            if c.command in RTL_COMMANDS and c.accepted and c.vehicle.system_id in speeds
         ]
         refused = [
             c.vehicle.system_id for c in (self.ctx.send(slow) if slow else []) if not c.accepted
@@ -266,9 +262,7 @@ class FlightHomePhase:
             )
             for v in still:
                 flight.holding.pop(v.system_id)
-            self.slow_home_circles(
-                self.ctx.send([set_mode_command(v, PLANE_MODE_RTL) for v in still])
-            )
+            self.slow_home_circles(self.ctx.send([autopilot_for(v).rtl_command(v) for v in still]))
 
     def guide_stray_returns(self) -> list[Command]:
         """During the mission: a plane its autopilot switched to RTL (a fence breach: ArduPlane's
@@ -284,7 +278,7 @@ class FlightHomePhase:
         routes = self.home_routes()
         commands: list[Command] = []
         for v in self.ctx.vehicles():
-            if not (v.custom_mode == PLANE_MODE_RTL and v.armed and v.airborne):
+            if not (autopilot_for(v).returning(v.custom_mode) and v.armed and v.airborne):
                 continue
             if v.system_id in self.state.sent_home:
                 continue  # its flight home is guide_sent_home's
@@ -347,7 +341,7 @@ class FlightHomePhase:
         for c in results:
             if not c.accepted:
                 self.ctx.say(f"warning: {c.describe_failure()}")
-        rtl = [c for c in results if c.command == mavlink.MAV_CMD_DO_SET_MODE]
+        rtl = [c for c in results if c.command in RTL_COMMANDS]
         sent = [c.vehicle.system_id for c in rtl]
         accepted = [c.vehicle.system_id for c in rtl if c.accepted]
         line = rtl_line(sent, accepted, skipped)
@@ -395,7 +389,7 @@ class FlightHomePhase:
                 if was_holding is not None and not announce and v.system_id not in plan.unresolved:
                     self.ctx.say(f"vehicle {v.system_id}'s way home is clear: RTL sent")
                 if before is not None or was_holding is not None or announce:
-                    commands.append(set_mode_command(v, PLANE_MODE_RTL))
+                    commands.append(autopilot_for(v).rtl_command(v))
                 continue
             flight.homing[v.system_id] = waypoint
             flight.detoured.add(v.system_id)
@@ -426,7 +420,8 @@ class FlightHomePhase:
     def reposition_to(self, v: VehicleState, xy_km: np.ndarray) -> Command:
         """DO_REPOSITION of ``v`` to ``xy_km`` (mission frame) at the scenario's altitude."""
         lat, lon = local_km_to_geodetic(xy_km[:1], xy_km[1:], self.ctx.scenario.origin)
-        return reposition_command(v, float(lat[0]), float(lon[0]), self.ctx.scenario.altitude_m)
+        altitude_m = self.ctx.scenario.altitude_m
+        return autopilot_for(v).reposition_command(v, float(lat[0]), float(lon[0]), altitude_m)
 
     def hold_for_separation(
         self,

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from mavlink_bridge.vehicles.airframe import (
     MAX_THREAT_MARGIN_KM,
     airframe_from_params,
@@ -14,6 +16,7 @@ from mavlink_bridge.vehicles.airframe import (
     scenario_warnings,
     threat_margin_km,
 )
+from mavlink_bridge.vehicles.flight_prediction import leg_speed_mps
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_wire.protocol import mavlink
 from planner.scenario import load_scenario
@@ -93,3 +96,40 @@ def test_the_threat_margin_follows_the_airframe():
            "ROLL_LIMIT_DEG": 45, "WP_LOITER_RAD": 60}  # fmt: skip
     big = fleet_plane_model([airframe_from_params(vehicle(1, sim), paper)], paper)
     assert threat_margin_km(big, 0.25) == MAX_THREAT_MARGIN_KM == 1.0
+
+
+PX4_SIH = {  # PX4 SITL's SIH airplane (airframe 10041) as it answers (benchmarks/px4_sih_flight.py)
+    "FW_AIRSPD_MIN": 10.0, "FW_AIRSPD_TRIM": 15.0, "FW_AIRSPD_MAX": 20.0, "FW_R_LIM": 50.0,
+    "NAV_LOITER_RAD": 80.0, "NAV_ACC_RAD": 10.0, "SYS_AUTOSTART": 10041,
+}  # fmt: skip
+
+
+def test_px4_sih_airplane_is_capped_to_the_speed_it_really_flies():
+    cfg = load_scenario("arduplane-3uav").config.replace(speed_mps=12.0)
+    sih = airframe_from_params(vehicle(1, PX4_SIH, mavlink.MAV_AUTOPILOT_PX4), cfg)
+    # it reports 15 / 20 m/s but tops out at 13.6 m/s at full throttle
+    assert (sih.min_airspeed_mps, sih.cruise_mps, sih.max_airspeed_mps) == (10, 13.5, 13.5)
+    assert "FW_AIRSPD_MAX 20 capped to 13.5 m/s" in sih.describe()
+    # another PX4 airframe is believed, and ArduPilot is never capped
+    other = {**PX4_SIH, "SYS_AUTOSTART": 2100}
+    believed = airframe_from_params(vehicle(2, other, mavlink.MAV_AUTOPILOT_PX4), cfg)
+    assert (believed.cruise_mps, believed.max_airspeed_mps, believed.capped) == (15, 20, "")
+    ardu = airframe_from_params(vehicle(3, {**ARDUPLANE, "SYS_AUTOSTART": 10041}), cfg)
+    assert ardu.max_airspeed_mps == 30 and ardu.capped == ""
+
+
+def test_a_mixed_fleet_times_each_planes_legs_within_its_own_airspeed_range():
+    cfg = load_scenario("arduplane-3uav").config.replace(speed_mps=12.0)
+    ardu = airframe_from_params(vehicle(1, ARDUPLANE), cfg)
+    sih = airframe_from_params(vehicle(2, PX4_SIH, mavlink.MAV_AUTOPILOT_PX4), cfg)
+    model = fleet_plane_model([ardu, sih], cfg)
+    assert model.uav_speed_ranges_mps == ((12, 18), (12, 13.5))  # v .. min(1.5 v, own max)
+    assert model.bank_limit_deg == 50  # the prediction still turns every plane as the PX4
+    # a long leg behind the clock: each plane catches up at its own fastest
+    here, there = np.zeros((2, 2)), np.array([[2.0, 0.0], [2.0, 0.0]])
+    speeds = leg_speed_mps(model, here, here, there, np.array([12.0, 12.0]), 60.0, np.arange(2))
+    assert list(speeds) == [18, 13.5]
+    assert model.fastest_leg_mps == 18  # the envelope's escape time is the fastest plane's
+    # --airspeed-range given: every plane's range
+    forced = fleet_plane_model([ardu, sih], cfg, airspeed_range_mps=(11.0, 13.0))
+    assert forced.uav_speed_ranges_mps == ((11, 13), (11, 13))

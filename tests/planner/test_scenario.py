@@ -46,7 +46,15 @@ def test_builtin_scenarios_match_the_paper():
         "known_velocity",
     }
     assert load_scenario("paper-20uav").uav_count == 20
-    assert {"paper-2uav", "paper-10uav", "paper-20uav", "arduplane-3uav"} <= set(BUILTIN_SCENARIOS)
+    assert set(BUILTIN_SCENARIOS) == {
+        "paper-2uav",
+        "paper-10uav",
+        "paper-20uav",
+        "arduplane-3uav",
+        "px4-3uav",
+        "swarm-100uav",
+        "swarm-500uav",
+    }
 
 
 @pytest.mark.parametrize("count", [100, 500])

@@ -15,7 +15,17 @@ import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 
+import px4_harness  # noqa: E402
 from sitl_harness import SitlSwarm, sitl_binary_from_env, skip_reason  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def px4_sitl() -> Path:
+    """The PX4 SITL folder from ``PX4_SITL`` (tests/sitl/px4_harness.py), or a skip."""
+    root = px4_harness.px4_root_from_env()
+    if root is None:
+        pytest.skip(px4_harness.skip_reason())
+    return root
 
 
 @pytest.fixture(scope="session")

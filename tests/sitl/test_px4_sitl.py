@@ -1,0 +1,132 @@
+"""Missions against the real PX4 SITL (``PX4_SITL``: PX4's built-in SIH airplane), with real
+processes only: PX4 instances (tests/sitl/px4_harness.py), ArduPlane SITL beside them for a
+mixed fleet (``ARDUPLANE_SITL``), ``swarmplan payload`` on their second links (PX4 forwards the
+camera, component 100, from its onboard link to its GCS link) and ``swarmplan daemon`` on their
+GCS links (tests/sitl/px4_mission.py). What each autopilot did is read from its own heartbeats
+in the daemon's tlog. Lean on purpose: the built-in px4-3uav (0.4 km cells, 43 s steps) at 5x,
+a few steps each (8 for an engagement: PX4 circles its take-off point, so the planes set off on
+any course), and a short watch of the flight home (RTL sent and flown in AUTO.RTL). Wall times
+on the shared 2-core machine (load 9-17): 90, 155, 81 and 95-172 s (docs/px4.md).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+from px4_mission import fly_px4_mission, modes_seen, reached_step, scenario_with_starts
+
+SPEEDUP = 5
+#: vehicle seconds of the flight home watched: enough to see every plane in RTL
+RTL_WATCH = ["--rtl-watch", "10"]
+
+
+def no_violations(result: dict) -> bool:
+    v = result["violations"]
+    return (v["threat"], v["separation"], v["range"]) == (0, 0, 0)
+
+
+def flew_and_returned(run, system_ids: list[int], guided: str, rtl: str) -> dict:
+    """The modes each of ``system_ids`` reported (they must hold ``guided`` then ``rtl``)."""
+    seen = modes_seen(run.out / "mission.tlog")
+    for sysid in system_ids:
+        modes = seen.get(sysid, [])
+        assert guided in modes and rtl in modes[modes.index(guided) :], (sysid, seen)
+    return seen
+
+
+@pytest.mark.timeout(240)
+def test_two_px4_planes_at_real_time_arm_take_off_fly_two_steps_and_go_home(px4_sitl, tmp_path):
+    """The issue's 1x check: ready (PX4's pre-arm bit), armed, runway take-off, two decision
+    steps guided in AUTO.LOITER, RTL sent and flown (AUTO.RTL), the cameras heard."""
+    scenario = str(Path(__file__).with_name("px4-1x.toml"))
+    run = fly_px4_mission(
+        px4_sitl, tmp_path, scenario, speedup=1, steps=2, timeout_s=200,
+        daemon_args=["--rtl-watch", "3"],
+    )  # fmt: skip
+    print(f"wall {run.wall_s:.0f} s")
+    assert run.returncode == 0, run.explain()
+    text = run.daemon.text()
+    # PX4's own settings, never ArduPilot's
+    assert "GCS failsafe set: NAV_DLL_ACT 0" in text and "FS_" not in text, run.explain()
+    assert "armed 2 vehicles after" in text and "airborne, AUTO.LOITER" in text, run.explain()
+    result = run.result
+    assert result is not None and result["steps"] == 2, run.explain()
+    assert result["uavs_without_camera"] == [], run.explain()
+    assert no_violations(result), run.explain()
+    assert sorted(result["rtl_sent_to"]) == [1, 2], run.explain()
+    flew_and_returned(run, [1, 2], "AUTO.LOITER", "AUTO.RTL")
+
+
+@pytest.mark.timeout(280)
+def test_three_px4_planes_look_and_engage_with_no_violation(px4_sitl, tmp_path):
+    run = fly_px4_mission(
+        px4_sitl, tmp_path, "px4-3uav", speedup=SPEEDUP, steps=8, timeout_s=240,
+        daemon_args=RTL_WATCH,
+    )  # fmt: skip
+    print(f"wall {run.wall_s:.0f} s")
+    assert run.returncode == 0, run.explain()
+    result, payload = run.result, run.payload
+    assert result is not None and payload is not None, run.explain()
+    # the SIH airframe capped to what it flies (FW_AIRSPD_MAX says 20)
+    assert "FW_AIRSPD_MAX 20 capped to 13.5 m/s" in run.daemon.text(), run.explain()
+    assert result["steps"] == 8 and result["uavs_without_camera"] == [], run.explain()
+    assert all(n >= 1 for n in payload["looks_per_vehicle"]), payload
+    assert result["engaged_count"] >= 1, run.explain()
+    assert no_violations(result), run.explain()
+    for phase, audit in result["track_audit"]["phases"].items():
+        assert audit["threat_entries"] == 0 and audit["separation_breaches"] == 0, (phase, audit)
+    assert sorted(result["rtl_sent_to"]) == [1, 2, 3], run.explain()
+    flew_and_returned(run, [1, 2, 3], "AUTO.LOITER", "AUTO.RTL")
+
+
+@pytest.mark.timeout(200)
+def test_one_px4_plane_killed_mid_mission_the_others_finish_and_return(px4_sitl, tmp_path):
+    killed: list[float] = []
+
+    def kill_at_step_one(run, swarms) -> None:
+        while run.returncode is None and not reached_step(run, 1):
+            time.sleep(0.2)
+        if run.returncode is None:
+            swarms[-1].kill(2)  # plane 3: SIGKILL to its process group; its UDP link goes quiet
+            killed.append(run.daemon.lines[-1][0])
+
+    run = fly_px4_mission(
+        px4_sitl, tmp_path, "px4-3uav", speedup=SPEEDUP, steps=3, with_payload=False,
+        daemon_args=RTL_WATCH, during=kill_at_step_one, timeout_s=170,
+    )  # fmt: skip
+    print(f"wall {run.wall_s:.0f} s, killed at {killed}")
+    assert killed, run.explain()
+    assert run.returncode == 0, run.explain()
+    result = run.result
+    assert result["ended"] == "completed" and result["steps"] == 3, run.explain()
+    assert result["lost_uavs"] == [2], run.explain()
+    lost = next(e for e in result["link_events"] if e["event"] == "lost")
+    assert lost["uav"] == 2 and "silent" in lost["reason"], lost
+    assert sorted(result["rtl_sent_to"]) == [1, 2] and "3" in result["rtl_not_sent"], result
+    assert no_violations(result), run.explain()
+    flew_and_returned(run, [1, 2], "AUTO.LOITER", "AUTO.RTL")
+
+
+@pytest.mark.timeout(240)
+def test_two_arduplanes_and_two_px4_planes_fly_one_mission(px4_sitl, sitl_binary, tmp_path):
+    """A mixed fleet: ArduPlane (GUIDED, RTL) and PX4 (AUTO.LOITER, AUTO.RTL) side by side,
+    each with its own failsafe settings and its own airspeed range."""
+    starts = [(0.6, 0.6), (1.4, 0.6), (2.6, 0.6), (3.4, 0.6)]
+    scenario = scenario_with_starts("px4-3uav", starts, tmp_path)
+    run = fly_px4_mission(
+        px4_sitl, tmp_path, scenario, speedup=SPEEDUP, steps=3, arduplane=2,
+        arduplane_binary=sitl_binary, daemon_args=RTL_WATCH, timeout_s=200,
+    )  # fmt: skip
+    print(f"wall {run.wall_s:.0f} s")
+    assert run.returncode == 0, run.explain()
+    text = run.daemon.text()
+    assert "GCS failsafe set: FS_GCS_ENABL 1" in text and "NAV_DLL_ACT 0" in text, run.explain()
+    assert "airborne, ArduPilot" not in text and "AUTO.LOITER" in text, run.explain()
+    result = run.result
+    assert result is not None and result["steps"] == 3, run.explain()
+    assert no_violations(result), run.explain()
+    assert sorted(result["rtl_sent_to"]) == [1, 2, 3, 4], run.explain()
+    flew_and_returned(run, [1, 2], "GUIDED", "RTL")
+    flew_and_returned(run, [3, 4], "AUTO.LOITER", "AUTO.RTL")
