@@ -38,8 +38,6 @@ How an instance is started (../shared/sitl/px4/README.md):
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import os
 import re
 import signal
@@ -49,7 +47,7 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sitl_harness import STOP_GRACE_S, Home
+from sitl_harness import STOP_GRACE_S, AutopilotProcess, Home, InstanceLock, claim_instance
 
 ENV_VAR = "PX4_SITL"
 MAX_INSTANCE = 200
@@ -95,35 +93,11 @@ def _udp_port_free(port: int) -> bool:
     return True
 
 
-@dataclass
-class _InstanceLock:
-    number: int
-    handle: object
-
-    def release(self) -> None:
-        try:
-            fcntl.flock(self.handle, fcntl.LOCK_UN)
-        finally:
-            self.handle.close()
-
-
-def _claim_instance(start_at: int) -> _InstanceLock:
-    """The lowest free instance number >= ``start_at``: our lock held, PX4's lock file absent
-    or unlocked, its UDP ports free."""
-    lock_dir = Path(tempfile.gettempdir()) / "px4-sitl-locks"
-    lock_dir.mkdir(exist_ok=True)
-    for number in range(start_at, MAX_INSTANCE):
-        handle = open(lock_dir / f"I{number}.lock", "w")  # noqa: SIM115 (held until release)
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        if all(_udp_port_free(base + number) for base in PORT_BASES):
-            return _InstanceLock(number, handle)
-        fcntl.flock(handle, fcntl.LOCK_UN)
-        handle.close()
-    raise RuntimeError(f"no free PX4 SITL instance number below {MAX_INSTANCE}")
+def _claim_instance(start_at: int) -> InstanceLock:
+    """The lowest free PX4 instance number >= ``start_at``: PX4's UDP ports of it free."""
+    return claim_instance(
+        "px4", start_at, lambda n: all(_udp_port_free(base + n) for base in PORT_BASES)
+    )
 
 
 def runtime_bin(root: Path, folder: Path) -> Path:
@@ -146,14 +120,14 @@ def runtime_bin(root: Path, folder: Path) -> Path:
 
 
 @dataclass
-class Px4Vehicle:
+class Px4Vehicle(AutopilotProcess):
     """One running PX4 SITL instance: vehicle ``index`` (system id index + 1)."""
 
     index: int
     instance: int
     workdir: Path
     home: Home
-    _lock: _InstanceLock = field(repr=False)
+    _lock: InstanceLock = field(repr=False)
     command: list[str] = field(default_factory=list, repr=False)
     env: dict[str, str] = field(default_factory=dict, repr=False)
     process: subprocess.Popen | None = None  # None until launched
@@ -177,9 +151,6 @@ class Px4Vehicle:
     def log_path(self) -> Path:
         return self.workdir / "px4.log"
 
-    def alive(self) -> bool:
-        return self.process is not None and self.process.poll() is None
-
     def launch(self) -> None:
         """Start the instance in its own process group (its output to ``log_path``)."""
         with open(self.log_path, "w") as log:
@@ -188,32 +159,6 @@ class Px4Vehicle:
                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
                 preexec_fn=(lambda: os.nice(self.niceness)) if self.niceness else None,
             )  # fmt: skip
-
-    def log_tail(self, lines: int = 15) -> str:
-        try:
-            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
-        except OSError:
-            return ""
-
-    def signal(self, sig: int) -> None:
-        """Send ``sig`` to the instance's process group (nothing if it has ended)."""
-        if self.alive():
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.process.pid, sig)
-
-    def stop(self, grace_s: float = STOP_GRACE_S) -> None:
-        """SIGTERM to its process group, SIGKILL after ``grace_s``; releases its instance."""
-        try:
-            if self.alive():
-                self.signal(signal.SIGTERM)
-                try:
-                    self.process.wait(grace_s)
-                except subprocess.TimeoutExpired:
-                    self.signal(signal.SIGKILL)
-                    self.process.wait(grace_s)
-        finally:
-            if self._lock.handle and not self._lock.handle.closed:
-                self._lock.release()
 
 
 class Px4Swarm:

@@ -46,6 +46,7 @@ import socket
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -142,7 +143,9 @@ def _listening(port: int) -> bool:
 
 
 @dataclass
-class _InstanceLock:
+class InstanceLock:
+    """An instance number held by this process (a lock file under the temporary folder)."""
+
     number: int
     handle: object
 
@@ -153,64 +156,49 @@ class _InstanceLock:
             self.handle.close()
 
 
-def _claim_instance(start_at: int = 0) -> _InstanceLock:
-    """The lowest free instance number >= ``start_at``: its lock file held, its ports free."""
-    lock_dir = Path(tempfile.gettempdir()) / "arduplane-sitl-locks"
+def claim_instance(
+    kind: str, start_at: int, ports_free: Callable[[int], bool], max_instance: int = MAX_INSTANCE
+) -> InstanceLock:
+    """The lowest free instance number >= ``start_at`` of an autopilot ``kind`` (its lock
+    folder's name): its lock file held and ``ports_free(number)``."""
+    lock_dir = Path(tempfile.gettempdir()) / f"{kind}-sitl-locks"
     lock_dir.mkdir(exist_ok=True)
-    for number in range(start_at, MAX_INSTANCE):
+    for number in range(start_at, max_instance):
         handle = open(lock_dir / f"I{number}.lock", "w")  # noqa: SIM115 (held until release)
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             handle.close()
             continue
-        base = BASE_PORT + 10 * number
-        if all(_tcp_port_free(base + k) for k in range(4)):
-            return _InstanceLock(number, handle)
+        if ports_free(number):
+            return InstanceLock(number, handle)
         fcntl.flock(handle, fcntl.LOCK_UN)
         handle.close()
-    raise RuntimeError(f"no free ArduPlane SITL instance number below {MAX_INSTANCE}")
+    raise RuntimeError(f"no free {kind} SITL instance number below {max_instance}")
 
 
-@dataclass
-class SitlVehicle:
-    """One running ArduPlane SITL instance: vehicle ``index`` (system id index + 1)."""
+def _claim_instance(start_at: int = 0) -> InstanceLock:
+    """An ArduPlane instance number whose four TCP ports are free."""
+    return claim_instance(
+        "arduplane",
+        start_at,
+        lambda number: all(_tcp_port_free(BASE_PORT + 10 * number + k) for k in range(4)),
+    )
 
-    index: int
-    instance: int
-    workdir: Path
-    process: subprocess.Popen
-    home: Home
-    _lock: _InstanceLock = field(repr=False)
 
-    @property
-    def system_id(self) -> int:
-        return self.index + 1
+class AutopilotProcess:
+    """What an autopilot instance of a test does with its process group: ``process`` (None
+    until launched), ``log_path`` and ``_lock`` are its subclass's."""
 
-    @property
-    def port(self) -> int:
-        """SERIAL0, the autopilot's MAVLink port (the daemon's)."""
-        return BASE_PORT + 10 * self.instance
-
-    @property
-    def payload_port(self) -> int:
-        """SERIAL1, a second MAVLink port (the payload simulator's)."""
-        return self.port + 2
-
-    @property
-    def master(self) -> str:
-        return f"tcp:127.0.0.1:{self.port}"
-
-    @property
-    def payload(self) -> str:
-        return f"tcp:127.0.0.1:{self.payload_port}"
+    process: subprocess.Popen | None
+    _lock: InstanceLock
 
     @property
     def log_path(self) -> Path:
-        return self.workdir / "arduplane.log"
+        raise NotImplementedError
 
     def alive(self) -> bool:
-        return self.process.poll() is None
+        return self.process is not None and self.process.poll() is None
 
     def log_tail(self, lines: int = 15) -> str:
         try:
@@ -237,6 +225,44 @@ class SitlVehicle:
         finally:
             if self._lock.handle and not self._lock.handle.closed:
                 self._lock.release()
+
+
+@dataclass
+class SitlVehicle(AutopilotProcess):
+    """One running ArduPlane SITL instance: vehicle ``index`` (system id index + 1)."""
+
+    index: int
+    instance: int
+    workdir: Path
+    process: subprocess.Popen
+    home: Home
+    _lock: InstanceLock = field(repr=False)
+
+    @property
+    def system_id(self) -> int:
+        return self.index + 1
+
+    @property
+    def port(self) -> int:
+        """SERIAL0, the autopilot's MAVLink port (the daemon's)."""
+        return BASE_PORT + 10 * self.instance
+
+    @property
+    def payload_port(self) -> int:
+        """SERIAL1, a second MAVLink port (the payload simulator's)."""
+        return self.port + 2
+
+    @property
+    def master(self) -> str:
+        return f"tcp:127.0.0.1:{self.port}"
+
+    @property
+    def payload(self) -> str:
+        return f"tcp:127.0.0.1:{self.payload_port}"
+
+    @property
+    def log_path(self) -> Path:
+        return self.workdir / "arduplane.log"
 
 
 class SitlSwarm:
