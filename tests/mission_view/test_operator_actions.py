@@ -18,7 +18,6 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-from browser import CHROMIUM_ARGS, chromium_or_skip
 from loopback import free_udp_port, start_swarmplan, stop
 
 from mavlink_wire.protocol import PLANE_MODE_RTL
@@ -97,18 +96,10 @@ def http_daemon(tmp_path_factory):
 
 
 @pytest.fixture
-def page_demo(tmp_path_factory):
-    path = chromium_or_skip()
-    from playwright.sync_api import sync_playwright
-
+def page_demo(tmp_path_factory, chromium):
     demo = Demo(tmp_path_factory.mktemp("operator-page"))
     try:
-        with sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=path, args=CHROMIUM_ARGS)
-            try:
-                yield demo, browser
-            finally:
-                browser.close()
+        yield demo, chromium
     finally:
         demo.stop()
 

@@ -22,7 +22,7 @@ import zlib
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
-from browser import CHROMIUM_ARGS, chromium_or_skip, wait_for_url
+from browser import wait_for_url
 from loopback import REPO, env, start_swarmplan, stop
 
 from planner.geodesy import local_km_to_geodetic
@@ -33,19 +33,6 @@ KILL_AT = 12
 SCENARIO = "paper-2uav"
 # one demo for the module (the fixture below): its tests on one worker of pytest-xdist, in order
 pytestmark = pytest.mark.xdist_group("operator-view")
-
-
-@pytest.fixture(scope="module")
-def chromium():
-    path = chromium_or_skip()
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=path, args=CHROMIUM_ARGS)
-        try:
-            yield browser
-        finally:
-            browser.close()
 
 
 def open_page(chromium, url: str, width: int = 1280, height: int = 800):

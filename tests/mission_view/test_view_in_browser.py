@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import pytest
 from browser import (
-    CHROMIUM_ARGS,
-    chromium_or_skip,
     heat_pixels,
     vehicle_positions,
     wait_for_url,
@@ -19,19 +17,6 @@ STEPS = 30
 # the replay test views the live test's demo: both on one worker of pytest-xdist, in order (a
 # group of this module's own: test_operator_view.py's demo can fly on the other worker meanwhile)
 pytestmark = pytest.mark.xdist_group("view-in-browser")
-
-
-@pytest.fixture(scope="module")
-def chromium():
-    path = chromium_or_skip()
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=path, args=CHROMIUM_ARGS)
-        try:
-            yield browser
-        finally:
-            browser.close()
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,6 @@ from __future__ import annotations
 import json
 import re
 import signal
-import subprocess
 import time
 from pathlib import Path
 
@@ -25,7 +24,7 @@ import numpy as np
 import pytest
 from loopback import free_udp_port, run_swarmplan, start_swarmplan, stop
 from pymavlink import mavutil
-from reliability_harness import last_json
+from reliability_harness import last_json, wait_until
 from udp_fault_relay import FaultProfile, FaultRelay, GrantHold
 
 from mavlink_bridge.results.checkpoint import CheckpointError, read_checkpoint
@@ -169,17 +168,6 @@ def _step(path: Path) -> int:
         return -1
 
 
-def _wait(predicate, timeout_s: float, procs: list[subprocess.Popen]) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        if any(p.poll() is not None for p in procs):
-            return predicate()
-        time.sleep(0.05)
-    return False
-
-
 @pytest.mark.timeout(150)
 def test_a_ground_station_outage_near_threats_enters_none(tmp_path: Path):
     """The daemon is stopped (SIGSTOP) mid-mission among threats, then killed: the planes fly
@@ -202,7 +190,8 @@ def test_a_ground_station_outage_near_threats_enters_none(tmp_path: Path):
         daemon_log,
     )  # fmt: skip
     try:
-        assert _wait(lambda: _step(ckpt) >= 6, 90, [sim, daemon]), daemon_log.read_text()[-2000:]
+        stepped = wait_until(lambda: _step(ckpt) >= 6, 90, [sim, daemon])
+        assert stepped, daemon_log.read_text()[-2000:]
         daemon.send_signal(signal.SIGSTOP)  # the ground station freezes ...
         time.sleep(3.0)
         daemon.send_signal(signal.SIGKILL)  # ... and dies
@@ -275,12 +264,12 @@ def test_a_plane_switched_to_rtl_mid_mission_is_guided_out_not_through(tmp_path:
     )  # fmt: skip
     pilot = None
     try:
-        found = _wait(lambda: re.search(r"from 127\.0\.0\.1 ports (\d+)", sim_log.read_text()),
+        found = wait_until(lambda: re.search(r"from 127\.0\.0\.1 ports (\d+)", sim_log.read_text()),
                       30, [sim])  # fmt: skip
         assert found, sim_log.read_text()[-2000:]
         vehicle_port = re.search(r"ports (\d+)", sim_log.read_text()).group(1)
         pilot = mavutil.mavlink_connection(f"udpout:127.0.0.1:{vehicle_port}", source_system=240)
-        assert _wait(hold.holding.is_set, 90, [sim, daemon]), daemon_log.read_text()[-2000:]
+        assert wait_until(hold.holding.is_set, 90, [sim, daemon]), daemon_log.read_text()[-2000:]
         at_km = hold.position_km
         assert at_km is not None and at_km[1] > 13.0, at_km  # north of the threat
         # the daemon is held too, so it hears the plane's heartbeats in RTL before its next step
@@ -448,7 +437,8 @@ def test_a_daemon_late_beyond_the_bound_holds_and_says_so(tmp_path: Path):
         daemon_log,
     )  # fmt: skip
     try:
-        assert _wait(lambda: _step(ckpt) >= 5, 90, [sim, daemon]), daemon_log.read_text()[-2000:]
+        stepped = wait_until(lambda: _step(ckpt) >= 5, 90, [sim, daemon])
+        assert stepped, daemon_log.read_text()[-2000:]
         daemon.send_signal(signal.SIGSTOP)
         time.sleep(3.0)
         daemon.send_signal(signal.SIGCONT)
