@@ -26,7 +26,9 @@ MAVLink component 100 of system id i + 1, with the very encoding of our own simu
 
 Where it connects: any endpoint (``tcp:HOST:PORT``, ``udpin:HOST:PORT``, ``udpout:HOST:PORT``),
 as many as needed; a vehicle is whoever's autopilot (component 1) is heard on it, and its camera
-answers on the same endpoint. For ArduPilot SITL that is each instance's spare serial port,
+answers on the same endpoint. A udpout peer that talks only to whoever spoke first (PX4's
+onboard link) is said hello every second until a vehicle answers on it, so the simulator may
+start before the autopilot opens its port. For ArduPilot SITL that is each instance's spare serial port,
 SERIAL1 on TCP 5762 + 10 i: ArduPilot routes MAVLink between its ports, so the camera's messages
 reach the ground station on SERIAL0 and the ground station's commands to component 100 reach the
 camera (measured with the V4.8.0-dev SITL: without a camera on a port ArduPlane itself answers
@@ -95,6 +97,7 @@ class _Channel:
     next_try_s: float = 0.0
     last_error: str = ""
     fd: int | None = None  # the socket registered with the selector
+    hello_s: float = -1e9  # when we last said hello to a udpout peer that has not answered
 
 
 class _Writer:
@@ -190,9 +193,19 @@ class PayloadSimulator:
         channel.connected = True
         channel.fd = channel.endpoint.fileno()
         self._selector.register(channel.fd, selectors.EVENT_READ, channel)
-        if channel.endpoint.needs_first_word:  # udpout: say hello so the peer answers
-            hello = mavlink.MAVLink(None, 0, CAMERA_COMPONENT_ID)
-            channel.endpoint.send_to(_heartbeat_frame(hello), None)
+        self._say_hello(channel, time.monotonic())
+
+    def _say_hello(self, channel: _Channel, now: float) -> None:
+        """A udpout peer (PX4's onboard link) talks only to whoever talked to it first: say
+        hello, again every heartbeat period until a vehicle answers on it (a hello sent before
+        the autopilot opened its port is lost, and it would never answer)."""
+        if not channel.endpoint.needs_first_word or now - channel.hello_s < HEARTBEAT_PERIOD_S:
+            return
+        if any(camera.channel is channel for camera in self.cameras):
+            return
+        channel.hello_s = now
+        hello = mavlink.MAVLink(None, 0, CAMERA_COMPONENT_ID)
+        channel.endpoint.send_to(_heartbeat_frame(hello), None)
 
     def _detach(self, channel: _Channel, reason: str) -> None:
         if channel.fd is not None:
@@ -273,6 +286,9 @@ class PayloadSimulator:
                 on_progress(self)
 
     def _heartbeats(self, now: float) -> None:
+        for channel in self.channels:
+            if channel.connected:
+                self._say_hello(channel, now)
         for camera in self.cameras:
             if camera.heard and now - camera.last_heartbeat_s >= HEARTBEAT_PERIOD_S:
                 camera.last_heartbeat_s = now

@@ -165,3 +165,49 @@ def test_bad_endpoint_is_one_line(tmp_path):
     done = run_swarmplan(["payload", "--connect", "serial:/dev/null"], timeout=30)
     assert done.returncode == 2
     assert done.stderr.count("\n") == 1 and "is not an endpoint" in done.stderr
+
+
+def test_a_udpout_autopilot_that_opens_its_port_late_is_still_heard(tmp_path):
+    """PX4's onboard link answers only whoever spoke to it first: a payload simulator started
+    before the port opened keeps saying hello until the autopilot answers, then is its camera."""
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()  # a free port that nobody listens on yet: the first hello is lost
+    proc = start_swarmplan(
+        ["payload", "--scenario", "arduplane-3uav", "--seed", "1",
+         "--connect", f"udpout:127.0.0.1:{port}"],
+        tmp_path / "payload.log",
+    )  # fmt: skip
+    autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        time.sleep(2.5)  # the simulator's first hello went to a closed port
+        autopilot.bind(("127.0.0.1", port))
+        autopilot.settimeout(0.2)
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        mav = mavlink.MAVLink(None, 2, 1)
+        peer, camera = None, None
+        deadline = time.monotonic() + 10
+        while camera is None and time.monotonic() < deadline:
+            try:
+                data, address = autopilot.recvfrom(65535)
+            except TimeoutError:
+                data, address = b"", None
+            for msg in parser.parse_buffer(data) or []:
+                if msg.get_type() == "HEARTBEAT" and msg.get_srcSystem() == 2:
+                    camera = msg
+                elif msg.get_type() == "HEARTBEAT":
+                    peer = address  # a hello: answer it as autopilot 2
+            if peer is not None:
+                hb = mavlink.MAVLink_heartbeat_message(1, 3, 0, 15, 4, 3)
+                autopilot.sendto(hb.pack(mav), peer)
+        assert peer is not None, "no hello reached the autopilot after it opened its port"
+        assert camera is not None and camera.get_srcComponent() == 100
+        assert camera.type == mavlink.MAV_TYPE_CAMERA
+    finally:
+        code = stop(proc)
+        autopilot.close()
+    assert code == 0
+    summary = json.loads((tmp_path / "payload.log").read_text().splitlines()[-1])
+    assert summary["vehicles_heard"] == 1
