@@ -172,7 +172,11 @@ class DecisionStep:
                     cell=self.grid.cell_of(look_km),
                 )  # fmt: skip
                 state.observed[reports[i].cells[:, 0], reports[i].cells[:, 1]] = True
-            if step == 0:  # where the take-off left it, flying its course
+            # told to hold (its last target was the cell it was in), it circled there: it
+            # leaves on the course it flies now, not the heading it came in on (a plane held at
+            # the area's corner heading out of it would be held there for ever)
+            circled = np.array_equal(state.commanded_cells[i], state.cells[i])
+            if step == 0 or circled:  # step 0: where the take-off left it, flying its course
                 course = course_heading(v)
                 state.headings[i] = state.headings[i] if course is None else course
             elif np.array_equal(cell, state.commanded_cells[i]):

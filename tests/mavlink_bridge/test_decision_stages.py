@@ -19,9 +19,11 @@ from planner.hapf_aco import HapfAcoPlanner
 from planner.metrics import MissionRecorder
 
 
-def _heard(sysid: int, lat: float, lon: float, time_ms: int) -> VehicleState:
+def _heard(
+    sysid: int, lat: float, lon: float, time_ms: int, north_cms: int = 0, east_cms: int = 10_000
+) -> VehicleState:
     """A vehicle as the daemon knows it after its heartbeat and one position report (flying
-    east at 100 m/s, 100 m up)."""
+    east at 100 m/s, 100 m up, unless its velocity is given)."""
     v = VehicleState(sysid, link=None)  # type: ignore[arg-type]
     mav = mavlink.MAVLink(None, sysid, 1)
     armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
@@ -31,7 +33,7 @@ def _heard(sysid: int, lat: float, lon: float, time_ms: int) -> VehicleState:
             mavlink.MAV_STATE_ACTIVE,
         ),
         mav.global_position_int_encode(
-            time_ms, int(lat * 1e7), int(lon * 1e7), 100_000, 100_000, 0, 10_000, 0, 9000
+            time_ms, int(lat * 1e7), int(lon * 1e7), 100_000, 100_000, north_cms, east_cms, 0, 9000
         ),
     ):  # fmt: skip
         v.handle(mavlink.MAVLink(None).parse_char(msg.pack(mav)))
@@ -102,6 +104,36 @@ def test_one_step_through_every_stage(paper10):
     assert state.last_target[0] == batch.moves[0][1] and state.last_target[1] is None
     assert state.refusals == [0, 1, 0] and stages.counters.refused_commands == 1
     assert (state.commanded_cells == flight.next_cells).all()
+
+
+def test_a_plane_held_in_its_cell_leaves_on_the_course_it_circles_on(paper10):
+    """A plane told to hold (its last target was the cell it was in) circles there: the next
+    step plans from the course it flies, not from the heading it came in on. Held at the
+    area's corner heading out of it, the commanded heading left it no move but another hold,
+    step after step (a PX4 plane stayed in a corner for a whole mission)."""
+    cfg = paper10.config
+    grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
+    starts = paper10.starts_for_seed(1)[:1]
+    corner = np.array([[cfg.grid_nx - 1, cfg.grid_ny - 1]])
+    here = grid.centre_km(corner)
+    lat, lon = local_km_to_geodetic(here[:, 0], here[:, 1], paper10.origin)
+    # circling there, flying south at this instant
+    vehicles = [_heard(1, lat[0], lon[0], 50_000, north_cms=-10_000, east_cms=0)]
+    stages = _stages(paper10, vehicles)
+    state = LoopState.start(grid, HapfAcoPlanner(paper10, starts, 1),
+                            MissionRecorder(paper10, starts), starts, [-1])  # fmt: skip
+    northeast, south = 1, 6  # heading indices: counter-clockwise from east in 45 deg steps
+    state.cells[:] = corner
+    state.commanded_cells[:] = corner  # the last step held it in its cell
+    state.commanded_headings[:] = northeast  # the heading it came in on: out of the area
+    stages.gather(state, 5, looks={})
+    assert state.headings[0] == south
+    # a plane that arrived in its commanded cell from another one flies the heading of that move
+    state.cells[:] = corner - 1
+    state.commanded_cells[:] = corner
+    state.commanded_headings[:] = northeast
+    stages.gather(state, 6, looks={})
+    assert state.headings[0] == northeast
 
 
 def test_a_vehicle_without_a_camera_gets_one_warning_and_no_more_engagement_requests(paper10):
