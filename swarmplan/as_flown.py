@@ -5,7 +5,11 @@ from __future__ import annotations
 
 from mavlink_bridge.mission.flown_planning import flight_margin_km, planning_scenario
 from mavlink_bridge.mission.options import DaemonOptions
-from mavlink_bridge.vehicles.airframe import airframe_from_params, fleet_plane_model
+from mavlink_bridge.vehicles.airframe import (
+    airframe_from_params,
+    fleet_plane_model,
+    separation_margin_km,
+)
 from mavlink_bridge.vehicles.airframe import threat_margin_km as airframe_threat_margin_km
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from planner.scenario import Scenario
@@ -27,10 +31,11 @@ def simulator_planning_scenario(scenario: Scenario, steps: int | None = None) ->
     plane = fleet_plane_model(airframes, cfg, options.airspeed_range_mps, options.bank_limit_deg)
     predicted = options.predicted_threat_margin_km
     margin = flight_margin_km(airframe_threat_margin_km(plane, predicted), plane, predicted)
+    separation = separation_margin_km(plane, options.predicted_separation_margin_km)
     return planning_scenario(
         scenario,
         steps or scenario.steps,
-        options.separation_margin_km,
+        separation,
         options.home_reserve_extra_steps,
         margin,
     )

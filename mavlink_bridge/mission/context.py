@@ -27,10 +27,12 @@ from mavlink_bridge.results.mission_result import MissionAccount
 from mavlink_bridge.safety.flight_envelope import FlightEnvelope
 from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
 from mavlink_bridge.vehicles.airframe import (
+    MAX_SEPARATION_MARGIN_KM,
     MAX_THREAT_MARGIN_KM,
     Airframe,
     fleet_plane_model,
     scenario_plane_model,
+    separation_margin_km,
     threat_margin_km,
 )
 from mavlink_bridge.vehicles.guided_commands import Command, send_commands
@@ -69,7 +71,9 @@ class MissionContext:
         self.envelope = SafetyEnvelope.for_scenario(
             scenario,
             MAX_THREAT_MARGIN_KM if options.threat_margin_km is None else options.threat_margin_km,
-            options.separation_margin_km,
+            MAX_SEPARATION_MARGIN_KM
+            if options.separation_margin_km is None
+            else options.separation_margin_km,
         )
         #: the airframe flown (airframe.py): the scenario's until the vehicles' are read
         self.plane = scenario_plane_model(cfg, options.airspeed_range_mps, options.bank_limit_deg)
@@ -180,6 +184,9 @@ class MissionContext:
         if self.options.threat_margin_km is None:
             margin = threat_margin_km(self.plane, self.options.predicted_threat_margin_km)
             self.envelope = replace(self.envelope, threat_margin_km=margin)
+        if self.options.separation_margin_km is None:
+            margin = separation_margin_km(self.plane, self.options.predicted_separation_margin_km)
+            self.envelope = replace(self.envelope, separation_margin_km=margin)
         if self.flight_envelope is not None:
             self.flight_envelope = replace(
                 self.flight_envelope, model=self.plane, cells=self.envelope

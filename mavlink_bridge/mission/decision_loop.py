@@ -127,7 +127,7 @@ class DecisionLoop:
         return planning_scenario(
             ctx.scenario,
             ctx.steps,
-            ctx.options.separation_margin_km,
+            ctx.envelope.separation_margin_km,
             ctx.options.home_reserve_extra_steps,
             self.flight_margin_km(),
         )

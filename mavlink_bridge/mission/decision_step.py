@@ -172,13 +172,11 @@ class DecisionStep:
                     cell=self.grid.cell_of(look_km),
                 )  # fmt: skip
                 state.observed[reports[i].cells[:, 0], reports[i].cells[:, 1]] = True
-            # told to hold (its last target was the cell it was in), it circled there: it
-            # leaves on the course it flies now, not the heading it came in on (a plane held at
-            # the area's corner heading out of it would be held there for ever)
-            circled = np.array_equal(state.commanded_cells[i], state.cells[i])
-            if step == 0 or circled:  # step 0: where the take-off left it, flying its course
+            if step == 0:  # where the take-off left it, flying its course
                 course = course_heading(v)
                 state.headings[i] = state.headings[i] if course is None else course
+            elif np.array_equal(state.commanded_cells[i], state.cells[i]):  # held: it circled
+                state.headings[i] = self.leaving_heading(cell, course_heading(v), state.headings[i])
             elif np.array_equal(cell, state.commanded_cells[i]):
                 state.headings[i] = state.commanded_headings[i]
             else:
@@ -186,6 +184,20 @@ class DecisionStep:
                 state.headings[i] = state.commanded_headings[i] if course is None else course
             state.cells[i] = cell
         return StepInputs(step, looks, active, reports)
+
+    def leaving_heading(self, cell: np.ndarray, course: int | None, came_in: int) -> int:
+        """The heading a plane told to hold in its cell leaves on. It circled there, so it can
+        leave on any course: the one it flies now when a turn-limited path goes on from there
+        (``SafetyEnvelope.viable``), else the viable heading nearest to it. Not the heading it
+        came in on: held in the area's corner heading out of it, a plane was held there step
+        after step (a PX4 plane whose 37 s circle nearly matched the 43 s step even showed the
+        same outward course at every decision instant)."""
+        now = came_in if course is None else course
+        nearest_first = sorted(range(8), key=lambda h: min((h - now) % 8, (now - h) % 8))
+        for heading in nearest_first:
+            if self.cell_envelope.viable(cell, heading):
+                return heading
+        return now
 
     # ------------------------------------------------------------------ 2. plan
 

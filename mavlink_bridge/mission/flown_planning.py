@@ -5,9 +5,11 @@ turns, and circles the last target it was sent when no newer one comes. So the d
 planner plans with margins the paper's grid UAVs do not need (docs/daemon.md, "What the
 planner plans with"):
 
-* **separation**: ``min_separation_km`` plus ``separation_margin_km`` (telemetry positions lag
-  the cells), and the UAVs within that plus ``CLOSING_CELLS`` always seen: two UAVs close by
-  at most two diagonal cells in a step, so one seen any later can be met head-on with no
+* **separation**: ``min_separation_km`` plus ``separation_margin_km`` (the planes stray from
+  the cells: two loiter circles and the predicted margin, at most 1 km,
+  ``airframe.separation_margin_km``), and the UAVs within that plus ``CLOSING_CELLS`` always
+  seen: two UAVs close by at most two diagonal cells in a step, so one seen any later can be
+  met head-on with no
   separated move left (paper-10uav seed 11 planned as flown, sensing 3 km with d_min 2 km: two
   UAVs in one cell at step 224; 25 breaches of the planned 2 km in seeds 1-30, 3 with 4.83 km
   sensed, none of the scenario's 1 km);

@@ -126,9 +126,14 @@ def airframe(launch: Launch) -> None:
     ctx.use_airframes(frames)
     for frame in frames:
         ctx.say(f"airframe {frame.describe()}")
-    margin = ctx.envelope.threat_margin_km
-    source = "given" if ctx.options.threat_margin_km is not None else "from the airframe"
-    ctx.say(f"safety envelope: legs kept {margin:.2f} km clear of the threat zones ({source})")
+    envelope, options = ctx.envelope, ctx.options
+    threat = "given" if options.threat_margin_km is not None else "from the airframe"
+    apart = "given" if options.separation_margin_km is not None else "from the airframe"
+    ctx.say(
+        f"safety envelope: legs kept {envelope.threat_margin_km:.2f} km clear of the threat "
+        f"zones ({threat}), next cells d_min + {envelope.separation_margin_km:.2f} km apart "
+        f"({apart})"
+    )
     for line in scenario_warnings(frames, ctx.scenario.config):
         ctx.say(f"warning: {line}")
 

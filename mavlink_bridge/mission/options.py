@@ -35,7 +35,11 @@ class DaemonOptions:
     #: ``predicted_threat_margin_km``, at most 1 km; 1 km until then, and for the simulator's
     #: 100 m/s plane, about its minimum turn radius)
     threat_margin_km: float | None = None
-    separation_margin_km: float = 1.0  # on top of d_min: telemetry positions lag the cells
+    #: on top of d_min between the UAVs' next cells (telemetry positions stray from the
+    #: cells); None: from the airframe read at launch (``airframe.separation_margin_km``: two
+    #: loiter circles plus ``predicted_separation_margin_km``, at most 1 km; 1 km until then,
+    #: and for the simulator's 100 m/s plane)
+    separation_margin_km: float | None = None
     #: guided targets lead the next cell by this many legs along the planned direction, so a
     #: plane passes through the cell centre on time instead of arriving and circling it
     lead_steps: float = 1.0

@@ -150,7 +150,7 @@ class FlightEnvelope:
             previous_aims_km, flown_km, home_km, active, lead,
         )  # fmt: skip
         paths = predict_paths(
-            self.model,
+            self.model.rows(np.array([i for i, _ in table.rows], dtype=int)),
             table.starts_km,
             np.array([courses_rad[i] for i, _ in table.rows]),
             table.aims_km,

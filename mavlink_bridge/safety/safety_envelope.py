@@ -16,7 +16,8 @@ in one step (``max_turn_deg``), first among those that land where a turn-limited
 safely for ever (``viable``: not a row along the area's edge heading out of it, nor a pocket
 against a threat, judged with this envelope's threats and margin); if none is safe, by the
 reachable cell farthest from the threats (holding, i.e. circling, only when no move is better).
-Every replacement is reported with its reason.
+Every replacement is reported with its reason. A UAV with no safe move at all is settled
+first, so the others keep apart from where it holds.
 """
 
 from __future__ import annotations
@@ -155,7 +156,15 @@ class SafetyEnvelope:
         overrides: list[Override] = []
         n = len(cells)
         settled: list[int] = []
-        for i in range(n):
+        # a UAV with no safe move holds (or escapes) wherever the others go: it settles first,
+        # so the others keep apart from it (settled after them, a plane held in a corner let
+        # another fly its next cell 0.4 km from it)
+        cornered = [
+            i for i in range(n)
+            if active[i] and not self._has_safe_move(cells[i], int(headings[i]), flown_km[i],
+                                                     home_km[i])
+        ]  # fmt: skip
+        for i in cornered + [i for i in range(n) if i not in cornered]:
             if not active[i]:
                 continue
             others = out_cells[settled] if settled else np.empty((0, 2), np.int64)
@@ -178,6 +187,16 @@ class SafetyEnvelope:
                 )
             settled.append(i)
         return EnvelopeDecision(out_cells, out_headings, overrides)
+
+    def _has_safe_move(
+        self, cell: np.ndarray, heading: int, flown_km: float, home_km: np.ndarray
+    ) -> bool:
+        """Some move within the turn limit breaks none of the rules but separation."""
+        return any(
+            self.static_reason(cell, cell + HEADING_STEPS[int((heading + turn) % 8)],
+                               float(flown_km), home_km) is None
+            for turn in turn_options(self.max_turn_deg)
+        )  # fmt: skip
 
     def _alternative(
         self,

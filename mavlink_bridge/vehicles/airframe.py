@@ -18,12 +18,14 @@ tops out at 13.6 m/s, so its cruise and fastest airspeed become 13.5 m/s).
 A name the vehicle does not answer within the read window falls back to the daemon's own
 assumption, and the airframe says so (``source``).
 
-The fleet's flight prediction uses one plane model (vectorised over UAVs): the most restrictive
-of the vehicles' limits (smallest bank limit, largest loiter and acceptance radii), so a mixed
-fleet's tighter-turning planes are predicted on the widest plane's turn. Leg airspeeds are each
-plane's own: every plane's timed legs are clamped to its own airspeed range
-(``PlaneModel.uav_speed_ranges_mps``), so a PX4 SIH plane is never asked above its 13.5 m/s
-while the ArduPlanes beside it still catch up at up to 1.5 v. The turn radius at airspeed v is
+The fleet's plane model (vectorised over UAVs) holds the most restrictive of the vehicles'
+limits (smallest bank limit, largest loiter and acceptance radii), which the safety margins and
+the way home are judged with, and each plane's own turn where the fleet mixes airframes: the
+flight envelope predicts every candidate path of a plane with that plane's bank limit, loiter
+and acceptance radius (``PlaneModel.rows``). Leg airspeeds are each plane's own: every
+plane's timed legs are clamped to its own airspeed range (``PlaneModel.uav_speed_ranges_mps``),
+so a PX4 SIH plane is never asked above its 13.5 m/s while the ArduPlanes beside it still catch
+up at up to 1.5 v. The turn radius at airspeed v is
 ``v**2 / (g tan(bank))`` (ArduPlane's defaults: 22 m/s at 65 deg, 23 m; the loiter circle is
 then WP_LOITER_RAD, 80 m).
 
@@ -208,9 +210,11 @@ def fleet_plane_model(
     airspeed_range_mps: tuple[float, float] | None = None,
     bank_limit_deg: float | None = None,
 ) -> PlaneModel:
-    """One plane model for the fleet's flight prediction: the most restrictive limits of its
-    airframes (smallest bank limit, largest loiter and acceptance radii: a mixed fleet's
-    faster-turning planes are predicted to turn as wide as the widest). Leg timing is each
+    """One plane model for the fleet: the most restrictive limits of its airframes (smallest
+    bank limit, largest loiter and acceptance radii), which the margins and the way home are
+    judged with, and, for a fleet of more than one airframe, each plane's own turn
+    (``uav_turn_limits``), which the flight envelope predicts each plane's path with
+    (``PlaneModel.rows``). Leg timing is each
     plane's own (``uav_speed_ranges_mps``, airframes in UAV order): v .. min(1.5 v, its
     AIRSPEED_MAX); the fleet's own range (``min_speed_mps``..``max_speed_mps``) is the
     narrowest. ``airspeed_range_mps`` given is every plane's range; ``bank_limit_deg`` given
@@ -226,6 +230,11 @@ def fleet_plane_model(
             max(a.min_airspeed_mps for a in airframes),
             min(a.max_airspeed_mps for a in airframes),
         )
+    # each plane's own turn (a mixed fleet's flight prediction: PlaneModel.rows)
+    own_turns = tuple(
+        (bank_limit_deg or a.bank_limit_deg, a.wp_loiter_radius_m, a.capture_radius_m)
+        for a in airframes
+    )
     return PlaneModel(
         speed_mps=v,
         bank_limit_deg=bank_limit_deg or min(a.bank_limit_deg for a in airframes),
@@ -235,6 +244,7 @@ def fleet_plane_model(
         max_speed_mps=high,
         slowest_mps=min(max(a.min_airspeed_mps for a in airframes), v),
         uav_speed_ranges_mps=tuple((float(lo), float(hi)) for lo, hi in ranges),
+        uav_turn_limits=own_turns if len(set(own_turns)) > 1 else (),
     )
 
 
@@ -253,6 +263,23 @@ def threat_margin_km(model: PlaneModel, predicted_margin_km: float) -> float:
     steps)."""
     loiter_km = float(model.loiter_radius_km(model.speed_mps))
     return min(loiter_km + predicted_margin_km, MAX_THREAT_MARGIN_KM)
+
+
+#: the separation margin on top of d_min never exceeds this (km): the margin the daemon has
+#: always flown the simulator's 100 m/s plane with
+MAX_SEPARATION_MARGIN_KM = 1.0
+
+
+def separation_margin_km(model: PlaneModel, predicted_margin_km: float) -> float:
+    """The margin on top of d_min between the UAVs' next cells for this airframe: each of two
+    planes may be anywhere on the circle it flies around its guided target (WP_LOITER_RAD, or
+    its tightest turn when wider), so two loiter radii, plus the flight envelope's predicted
+    separation margin, at most ``MAX_SEPARATION_MARGIN_KM``. ArduPlane's and PX4's defaults
+    (80 m circles): 0.46 km; the simulator's plane: 1 km. A 1 km margin for planes that circle
+    within 80 m kept three PX4 SIH planes on px4-3uav's 4 x 3.2 km area 1.6 km apart: they
+    were pushed into its corners and held there (9 separation overrides in 8 steps)."""
+    loiter_km = float(model.loiter_radius_km(model.speed_mps))
+    return min(2 * loiter_km + predicted_margin_km, MAX_SEPARATION_MARGIN_KM)
 
 
 def scenario_warnings(airframes: list[Airframe], cfg: PlannerConfig) -> list[str]:

@@ -26,7 +26,7 @@ north); courses in radians counter-clockwise from east, as the planner's grid he
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -58,6 +58,25 @@ class PlaneModel:
     #: (a mixed fleet: a PX4 SIH plane tops out at 13.5 m/s beside an ArduPlane's 30); empty:
     #: every UAV flies [min_speed_mps, max_speed_mps]
     uav_speed_ranges_mps: tuple[tuple[float, float], ...] = ()
+    #: each UAV's own turn limits (bank limit deg, loiter radius asked m, acceptance radius m),
+    #: by UAV index, for a fleet of more than one airframe; empty: every UAV flies the fields
+    #: above (the fleet's most restrictive where it is mixed)
+    uav_turn_limits: tuple[tuple[float, float, float], ...] = ()
+
+    def rows(self, uavs: np.ndarray) -> PlaneModel:
+        """This model for rows of planes, ``uavs`` (M,) the UAV of each row: with each row's
+        own bank limit, loiter and acceptance radius (arrays over the rows) where the UAVs
+        have turn limits of their own, else this model itself."""
+        if not self.uav_turn_limits:
+            return self
+        limits = np.asarray(self.uav_turn_limits, dtype=float)[np.asarray(uavs, dtype=int)]
+        return replace(
+            self,
+            bank_limit_deg=limits[:, 0],
+            wp_loiter_radius_m=limits[:, 1],
+            capture_radius_m=limits[:, 2],
+            uav_turn_limits=(),
+        )
 
     def speed_range_mps(self, uavs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The leg timing range (low, high) of each row's UAV ``uavs`` (indices), or the
@@ -80,7 +99,7 @@ class PlaneModel:
 
     def turn_rate_radps(self, speed_mps: np.ndarray | float | None = None) -> np.ndarray:
         v = self.speed_mps if speed_mps is None else np.asarray(speed_mps, dtype=float)
-        return GRAVITY_MPS2 * float(np.tan(np.radians(self.bank_limit_deg))) / np.maximum(v, 1.0)
+        return GRAVITY_MPS2 * np.tan(np.radians(self.bank_limit_deg)) / np.maximum(v, 1.0)
 
     def loiter_radius_km(self, speed_mps: np.ndarray | float | None = None) -> np.ndarray:
         """The circle a plane flies around a loiter point: WP_LOITER_RAD, or the tightest it
@@ -197,7 +216,7 @@ def predict_paths(
         desired = to_aim.copy()
         if orbiting.any():
             # clockwise loiter: tangent = bearing from the centre - 90 deg, steered onto the circle
-            loiter_km = model.loiter_radius_km(speed[orbiting])
+            loiter_km = model.loiter_radius_km(speed)[orbiting]
             from_centre = to_aim[orbiting] + np.pi
             correction = np.arctan(model.loiter_gain * (dist[orbiting] - loiter_km) / loiter_km)
             desired[orbiting] = from_centre - (np.pi / 2 + correction)

@@ -10,13 +10,15 @@ import math
 import numpy as np
 
 from mavlink_bridge.vehicles.airframe import (
+    MAX_SEPARATION_MARGIN_KM,
     MAX_THREAT_MARGIN_KM,
     airframe_from_params,
     fleet_plane_model,
     scenario_warnings,
+    separation_margin_km,
     threat_margin_km,
 )
-from mavlink_bridge.vehicles.flight_prediction import leg_speed_mps
+from mavlink_bridge.vehicles.flight_prediction import leg_speed_mps, predict_paths
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_wire.protocol import mavlink
 from planner.scenario import load_scenario
@@ -84,7 +86,7 @@ def test_a_scenario_the_airframe_cannot_fly_gets_a_warning_with_the_fix():
     assert "cannot fly a diagonal cell of 1 km in one 40 s step" in line and "step_s >= 48" in line
 
 
-def test_the_threat_margin_follows_the_airframe():
+def test_the_threat_and_separation_margins_follow_the_airframe():
     """A plane that circles within 80 m is not kept 1 km off the threat zones (three ArduPlane
     SITL planes were held beside arduplane-3uav's zones for most of a mission); the simulator's
     100 m/s plane keeps its 1 km."""
@@ -96,6 +98,10 @@ def test_the_threat_margin_follows_the_airframe():
            "ROLL_LIMIT_DEG": 45, "WP_LOITER_RAD": 60}  # fmt: skip
     big = fleet_plane_model([airframe_from_params(vehicle(1, sim), paper)], paper)
     assert threat_margin_km(big, 0.25) == MAX_THREAT_MARGIN_KM == 1.0
+    # the separation margin too: two 80 m circles and the predicted 0.3 km, where 1 km on top of
+    # px4-3uav's d_min (0.6 km) pushed three PX4 planes into its corners; the simulator's 1 km
+    assert math.isclose(separation_margin_km(small, 0.3), 2 * 0.08 + 0.3)
+    assert separation_margin_km(big, 0.3) == MAX_SEPARATION_MARGIN_KM == 1.0
 
 
 PX4_SIH = {  # PX4 SITL's SIH airplane (airframe 10041) as it answers (benchmarks/px4_sih_flight.py)
@@ -124,7 +130,7 @@ def test_a_mixed_fleet_times_each_planes_legs_within_its_own_airspeed_range():
     sih = airframe_from_params(vehicle(2, PX4_SIH, mavlink.MAV_AUTOPILOT_PX4), cfg)
     model = fleet_plane_model([ardu, sih], cfg)
     assert model.uav_speed_ranges_mps == ((12, 18), (12, 13.5))  # v .. min(1.5 v, own max)
-    assert model.bank_limit_deg == 50  # the prediction still turns every plane as the PX4
+    assert model.bank_limit_deg == 50  # the margins are judged as the most restrictive plane
     # a long leg behind the clock: each plane catches up at its own fastest
     here, there = np.zeros((2, 2)), np.array([[2.0, 0.0], [2.0, 0.0]])
     speeds = leg_speed_mps(model, here, here, there, np.array([12.0, 12.0]), 60.0, np.arange(2))
@@ -133,3 +139,27 @@ def test_a_mixed_fleet_times_each_planes_legs_within_its_own_airspeed_range():
     # --airspeed-range given: every plane's range
     forced = fleet_plane_model([ardu, sih], cfg, airspeed_range_mps=(11.0, 13.0))
     assert forced.uav_speed_ranges_mps == ((11, 13), (11, 13))
+
+
+def test_a_mixed_fleet_predicts_each_plane_on_its_own_turn():
+    """ArduPlane (65 deg of bank, WP_RADIUS 90 m) beside the SIH plane (50 deg, NAV_ACC_RAD 10
+    m): the flight envelope predicts each plane's path with its own turn, not every plane as
+    the widest-turning one; a fleet of one airframe keeps the one model."""
+    cfg = load_scenario("arduplane-3uav").config.replace(speed_mps=22.0)
+    ardu = airframe_from_params(vehicle(1, ARDUPLANE), cfg)
+    sih = airframe_from_params(vehicle(2, PX4_SIH, mavlink.MAV_AUTOPILOT_PX4), cfg)
+    model = fleet_plane_model([ardu, sih], cfg)
+    assert model.uav_turn_limits == ((65, 80, 90), (50, 80, 10))
+    rows = model.rows(np.array([0, 1, 0]))
+    assert list(rows.bank_limit_deg) == [65, 50, 65] and list(rows.capture_radius_m) == [90, 10, 90]
+    assert fleet_plane_model([ardu, ardu], cfg).rows(np.array([0, 1])) == fleet_plane_model(
+        [ardu, ardu], cfg
+    )
+    # both sent back the way they came, at 22 m/s: the ArduPlane turns about on a tighter
+    # circle than the fleet's 50 deg model would fly it; the SIH plane as that model
+    start, course, aim = np.zeros((2, 2)), np.zeros(2), np.array([[-2.0, 0.0], [-2.0, 0.0]])
+    own = predict_paths(model.rows(np.array([0, 1])), start, course, aim, 20.0)
+    fleet = predict_paths(model, start, course, aim, 20.0)
+    own_width, fleet_width = (np.abs(p[:, :, 1]).max(axis=1) for p in (own, fleet))
+    assert own_width[0] < 0.8 * fleet_width[0]
+    np.testing.assert_allclose(own_width[1], fleet_width[1])

@@ -128,11 +128,19 @@ def test_a_plane_held_in_its_cell_leaves_on_the_course_it_circles_on(paper10):
     state.commanded_headings[:] = northeast  # the heading it came in on: out of the area
     stages.gather(state, 5, looks={})
     assert state.headings[0] == south
+    # circling there flying east, out of the area: it leaves on the viable course nearest that
+    stages.vehicles[0] = _heard(1, lat[0], lon[0], 60_000)  # flying east
+    state.cells[:] = corner
+    state.commanded_cells[:] = corner
+    stages.gather(state, 6, looks={})
+    east = 0
+    assert state.headings[0] != east and stages.cell_envelope.viable(corner[0], state.headings[0])
+    assert not stages.cell_envelope.viable(corner[0], east)
     # a plane that arrived in its commanded cell from another one flies the heading of that move
     state.cells[:] = corner - 1
     state.commanded_cells[:] = corner
     state.commanded_headings[:] = northeast
-    stages.gather(state, 6, looks={})
+    stages.gather(state, 7, looks={})
     assert state.headings[0] == northeast
 
 

@@ -154,6 +154,26 @@ def test_a_replaced_move_goes_where_the_plane_can_fly_on_not_into_a_dead_end():
     assert decision.next_headings[1] == north_east
 
 
+def test_a_plane_with_no_safe_move_holds_first_and_the_others_keep_apart_from_it():
+    """A plane in the area's corner heading out of it has no move inside the area: it holds
+    there whatever the others do. Settled first, it keeps the plane of lower index, which the
+    planner sent next to the corner, away (three PX4 SIH planes: settled after it, the held
+    plane came within 0.31 km of it, d_min 0.6)."""
+    grid = Grid(10, 8, 0.4)
+    env = SafetyEnvelope(grid, np.empty((0, 2)), np.empty(0), 0.33, 0.6, 0.46)
+    corner, south_east = np.array([9, 0]), 7
+    near, south = np.array([6, 2]), 6
+    decision = env.check(
+        np.array([near, corner]), np.array([south, south_east]),
+        np.array([[7, 1], [10, -1]]), np.array([south_east, south_east]),
+        np.zeros(2), grid.centre_km(np.array([[1, 1], [4, 1]])), np.ones(2, dtype=bool),
+    )  # fmt: skip
+    np.testing.assert_array_equal(decision.next_cells[1], corner)  # held: nowhere else to go
+    apart = np.hypot(*(grid.centre_km(decision.next_cells[0]) - grid.centre_km(corner)))
+    assert apart >= 0.6 + 0.46
+    assert sorted(o.reason for o in decision.overrides) == ["area", "separation"]
+
+
 def test_planes_converging_too_fast_to_turn_away_after_the_next_decision_are_kept_apart(paper10):
     """The lockstep demo's paper-10uav seed 2, step 203: two planes 3.9 km apart, one heading
     north-east, the other north-west, their next cells 2.2 km apart and their guided targets
