@@ -108,9 +108,10 @@ def test_one_step_through_every_stage(paper10):
 
 def test_a_plane_held_in_its_cell_leaves_on_the_course_it_circles_on(paper10):
     """A plane told to hold (its last target was the cell it was in) circles there: the next
-    step plans from the course it flies, not from the heading it came in on. Held at the
-    area's corner heading out of it, the commanded heading left it no move but another hold,
-    step after step (a PX4 plane stayed in a corner for a whole mission)."""
+    step plans from the course it flies (or the viable one nearest it), not from the heading it
+    came in on. Held at the area's corner heading out of it, the commanded heading left it no
+    move but another hold, step after step (a PX4 plane stayed in a corner for a whole
+    mission). The same at step 0, circling its take-off point."""
     cfg = paper10.config
     grid = Grid(cfg.grid_nx, cfg.grid_ny, cfg.cell_km)
     starts = paper10.starts_for_seed(1)[:1]
@@ -136,7 +137,18 @@ def test_a_plane_held_in_its_cell_leaves_on_the_course_it_circles_on(paper10):
     east = 0
     assert state.headings[0] != east and stages.cell_envelope.viable(corner[0], state.headings[0])
     assert not stages.cell_envelope.viable(corner[0], east)
+    # step 0: circling its take-off point on the south edge, caught flying south (every move
+    # within the turn limit leaves the area): it leaves on the viable course nearest south
+    edge = np.array([[cfg.grid_nx // 2, 0]])
+    lat, lon = local_km_to_geodetic(*grid.centre_km(edge).T, paper10.origin)
+    stages.vehicles[0] = _heard(1, lat[0], lon[0], 70_000, north_cms=-10_000, east_cms=0)
+    assert not stages.cell_envelope.viable(edge[0], south)
+    stages.gather(state, 0, looks={})
+    assert state.headings[0] in (5, 7)  # south-west or south-east: on along the edge
+    assert stages.cell_envelope.viable(edge[0], state.headings[0])
     # a plane that arrived in its commanded cell from another one flies the heading of that move
+    lat, lon = local_km_to_geodetic(here[:, 0], here[:, 1], paper10.origin)
+    stages.vehicles[0] = _heard(1, lat[0], lon[0], 80_000)
     state.cells[:] = corner - 1
     state.commanded_cells[:] = corner
     state.commanded_headings[:] = northeast
