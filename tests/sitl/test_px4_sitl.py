@@ -4,9 +4,8 @@ mixed fleet (``ARDUPLANE_SITL``), ``swarmplan payload`` on their second links (P
 camera, component 100, from its onboard link to its GCS link) and ``swarmplan daemon`` on their
 GCS links (tests/sitl/px4_mission.py). What each autopilot did is read from its own heartbeats
 in the daemon's tlog. Lean on purpose: the built-in px4-3uav (0.4 km cells, 43 s steps) at 5x,
-a few steps each (8 for an engagement: PX4 circles its take-off point, so the planes set off on
-any course), and a short watch of the flight home (RTL sent and flown in AUTO.RTL). Wall times
-on the shared 2-core machine (load 9-17): 90, 155, 81 and 95-172 s (docs/px4.md).
+a few steps each (8 for an engagement), and a short watch of the flight home (RTL sent and
+flown in AUTO.RTL). Wall times on the shared 2-core machine: docs/px4.md, "Tests and their cost".
 """
 
 from __future__ import annotations
@@ -59,10 +58,6 @@ def test_two_px4_planes_at_real_time_arm_take_off_fly_two_steps_and_go_home(px4_
     flew_and_returned(run, [1, 2], "AUTO.LOITER", "AUTO.RTL")
 
 
-@pytest.mark.skip(
-    reason="known failure, open: the engagement comes in about half the runs (the planes leave "
-    "their take-off circles on any course and may not reach a target in 8 steps); docs/px4.md"
-)
 @pytest.mark.timeout(280)
 def test_three_px4_planes_look_and_engage_with_no_violation(px4_sitl, tmp_path):
     run = fly_px4_mission(
@@ -75,6 +70,8 @@ def test_three_px4_planes_look_and_engage_with_no_violation(px4_sitl, tmp_path):
     assert result is not None and payload is not None, run.explain()
     # the SIH airframe capped to what it flies (FW_AIRSPD_MAX says 20)
     assert "FW_AIRSPD_MAX 20 capped to 13.5 m/s" in run.daemon.text(), run.explain()
+    # the margins of its 80 m circles, not the simulator's 100 m/s plane's 1 km
+    assert "next cells d_min + 0.46 km apart (from the airframe)" in run.daemon.text()
     assert result["steps"] == 8 and result["uavs_without_camera"] == [], run.explain()
     assert all(n >= 1 for n in payload["looks_per_vehicle"]), payload
     assert result["engaged_count"] >= 1, run.explain()
@@ -113,15 +110,13 @@ def test_one_px4_plane_killed_mid_mission_the_others_finish_and_return(px4_sitl,
     flew_and_returned(run, [1, 2], "AUTO.LOITER", "AUTO.RTL")
 
 
-@pytest.mark.skip(
-    reason="known failure, open: on px4-3uav's 4 x 3.2 km area four planes of two airframes came "
-    "within 0.26 km (d_min 0.6) on the way home and broke 4 turn limits; docs/px4.md"
-)
 @pytest.mark.timeout(240)
 def test_two_arduplanes_and_two_px4_planes_fly_one_mission(px4_sitl, sitl_binary, tmp_path):
     """A mixed fleet: ArduPlane (GUIDED, RTL) and PX4 (AUTO.LOITER, AUTO.RTL) side by side,
     each with its own failsafe settings and its own airspeed range."""
-    starts = [(0.6, 0.6), (1.4, 0.6), (2.6, 0.6), (3.4, 0.6)]
+    # ArduPlane in the south corners, PX4 in the north ones: 2 km and more apart (four in a
+    # row 0.8 km apart, next cells d_min + 0.46 = 1.06 km apart, crowded the south edge)
+    starts = [(0.6, 0.6), (3.4, 0.6), (0.6, 2.6), (3.4, 2.6)]
     scenario = scenario_with_starts("px4-3uav", starts, tmp_path)
     run = fly_px4_mission(
         px4_sitl, tmp_path, scenario, speedup=SPEEDUP, steps=3, arduplane=2,
