@@ -19,6 +19,8 @@ from px4_mission import fly_px4_mission, modes_seen, reached_step, scenario_with
 SPEEDUP = 5
 #: vehicle seconds of the flight home watched: enough to see every plane in RTL
 RTL_WATCH = ["--rtl-watch", "10"]
+#: ... and to see a plane held for another's way home sent home too (held 26 s in one run)
+RTL_WATCH_HELD = ["--rtl-watch", "60"]
 
 
 def no_violations(result: dict) -> bool:
@@ -62,7 +64,7 @@ def test_two_px4_planes_at_real_time_arm_take_off_fly_two_steps_and_go_home(px4_
 def test_three_px4_planes_look_and_engage_with_no_violation(px4_sitl, tmp_path):
     run = fly_px4_mission(
         px4_sitl, tmp_path, "px4-3uav", speedup=SPEEDUP, steps=8, timeout_s=240,
-        daemon_args=RTL_WATCH,
+        daemon_args=RTL_WATCH_HELD,
     )  # fmt: skip
     print(f"wall {run.wall_s:.0f} s")
     assert run.returncode == 0, run.explain()
@@ -120,7 +122,7 @@ def test_two_arduplanes_and_two_px4_planes_fly_one_mission(px4_sitl, sitl_binary
     scenario = scenario_with_starts("px4-3uav", starts, tmp_path)
     run = fly_px4_mission(
         px4_sitl, tmp_path, scenario, speedup=SPEEDUP, steps=3, arduplane=2,
-        arduplane_binary=sitl_binary, daemon_args=RTL_WATCH, timeout_s=200,
+        arduplane_binary=sitl_binary, daemon_args=RTL_WATCH_HELD, timeout_s=200,
     )  # fmt: skip
     print(f"wall {run.wall_s:.0f} s")
     assert run.returncode == 0, run.explain()
