@@ -54,6 +54,16 @@ def scenario_with_starts(name: str, starts: list[tuple[float, float]], folder: P
     return str(path)
 
 
+def searching_to_the_end(name: str, folder: Path) -> str:
+    """A copy in ``folder`` of the built-in scenario ``name`` whose planner searches to the last
+    step (``home_by_end`` off): a short mission that looks for targets, then RTL."""
+    text = (REPO / "planner" / "scenarios" / f"{name}.toml").read_text()
+    path = folder / f"{name}-searching.toml"
+    path.write_text(text.replace("home_by_end = true", "home_by_end = false"))
+    assert not load_scenario(str(path)).config.home_by_end
+    return str(path)
+
+
 def reached_step(run: SitlMissionRun, step: int) -> bool:
     """Has the daemon printed its line of decision step ``step``?"""
     return any(re.search(rf"step +{step}/", line) for _, line in list(run.daemon.lines))
