@@ -21,7 +21,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from planner.field_rows import FieldRows
+from planner.field_rows import CountRows, FieldRows
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, Grid, turn_options
 
 
@@ -72,12 +72,19 @@ class SafetyModel:
         self.viable = self._viability_kernel()
         shape = (grid.nx, grid.ny)
         self._distances = FieldRows(shape, np.float64)  # per home: ``distance_home_km``
-        #: per home: the fewest cell moves home (whole numbers or inf: float32 holds them exactly)
-        self._hops = FieldRows(shape, np.float32)
-        self._states = FieldRows((8, *shape), np.float32)  # per home: ``_state_hops``'s search
+        self._hops = CountRows(shape)  # per home: the fewest cell moves home
+        self._states = CountRows((8, *shape))  # per home: ``_state_hops``'s search
         #: home cell -> how far its state search went (``searched``: the searches of an earlier
         #: model of the same threats, dropped by ``SafetyModels``, to be made as far again)
         self.state_limits: dict[int, float] = dict(searched or {})
+        self.step = 0  # the decision step the model is asked at (``SafetyModels``)
+
+    def drop_unread(self, step: int) -> None:
+        """Free the fields per home not read at ``step`` nor the step before: read again, they
+        are made again, the same (a state search as far as it went: ``state_limits`` keeps it).
+        """
+        for fields in (self._distances, self._hops, self._states):
+            fields.drop_unread(step)
 
     def _cells(self) -> np.ndarray:
         """(nx, ny, 2): every cell's index."""
@@ -160,7 +167,7 @@ class SafetyModel:
         grid = self.grid
         # move_allowed over the whole area: a safe move that lands in a viable state
         can_go = [self.edge_safe[h] & self._shifted(self.viable[h], h) for h in range(8)]
-        count = np.zeros((8, grid.nx, grid.ny), dtype=np.int64)
+        count = np.zeros((8, grid.nx, grid.ny), dtype=np.int8)  # at most 8
         for h in range(8):
             for t in self.turns:
                 count[h] += can_go[(h + t) % 8]
@@ -200,7 +207,7 @@ class SafetyModel:
             fresh = dijkstra(self._reversed_graph, indices=missing).reshape(-1, *self.grid.shape)
             for h, field in zip(missing, fresh, strict=True):
                 self._distances.put(h, field)
-        return self._distances.rows(homes)
+        return self._distances.rows(homes, self.step)
 
     def hops_home_at(
         self,
@@ -265,8 +272,8 @@ class SafetyModel:
                 limit=limits[home],
             )
             self._states.put(home, field.reshape(8, *self.grid.shape))
-        rows = self._states.rows(homes).reshape((-1,) + (1,) * (np.ndim(x) - 1))
-        return self._states.data[rows, headings, x, y].astype(float)
+        rows = self._states.rows(homes, self.step).reshape((-1,) + (1,) * (np.ndim(x) - 1))
+        return self._states.take((rows, headings, x, y))
 
     def _cell_hops(
         self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray, headings: np.ndarray
@@ -282,9 +289,8 @@ class SafetyModel:
             fresh = dijkstra(self._reversed_graph, indices=missing, unweighted=True)
             for h, field in zip(missing, fresh.reshape(-1, *self.grid.shape), strict=True):
                 self._hops.put(h, field)
-        rows = self._hops.rows(homes).reshape((-1,) + (1,) * (np.ndim(x) - 1))
-        hops = self._hops.data
-        here = hops[rows, x, y].astype(float)
+        rows = self._hops.rows(homes, self.step).reshape((-1,) + (1,) * (np.ndim(x) - 1))
+        here = self._hops.take((rows, x, y))
         best = np.full(np.broadcast(rows, x, y).shape, np.inf)
         direction = np.zeros(best.shape, dtype=np.int64)
         for h in range(8):
@@ -292,7 +298,7 @@ class SafetyModel:
             # a safe move ends inside the area: its landing cell is a cell of the field
             safe = self.home_edge_safe[h][x, y]
             nx, ny = np.where(safe, nx, x), np.where(safe, ny, y)
-            after = np.where(safe, hops[rows, nx, ny], np.inf)
+            after = np.where(safe, self._hops.take((rows, nx, ny)), np.inf)
             better = after < best
             best = np.where(better, after, best)
             direction = np.where(better, h, direction)
@@ -353,13 +359,17 @@ class SafetyModels:
         if model is None:
             model = self._models[key] = self._make(known, self._searched.pop(key, None))
         self._asked[key] = max(step, self._asked.get(key, step))
+        model.step = self._asked[key]
         return model
 
     def drop_unused(self, step: int) -> None:
         """Drop the models not asked at ``step`` nor the step before (the UAVs of a swarm
-        planned node by node ask at the same step, each in turn)."""
+        planned node by node ask at the same step, each in turn), and the fields of the others
+        not read as long (``SafetyModel.drop_unread``)."""
         for key in [k for k, asked in self._asked.items() if asked < step - 1]:
             model = self._models.pop(key)
             del self._asked[key]
             if model.state_limits:
                 self._searched[key] = model.state_limits
+        for model in self._models.values():
+            model.drop_unread(step)
