@@ -9,16 +9,17 @@ and ``grid_nx = grid_ny = cells`` changed (cells of 1 km), run offline (``run_of
 ``--steps`` decision steps in a fresh interpreter of its own, so that its peak memory (the
 process's maximum resident set) is its own. It prints, per point, the CPU time of the first
 step (building the swarm's beliefs and safety models), the mean CPU time of the steps after it,
-the peak memory and a digest of the flown tracks, engagements and decision modes;
-``--figure`` draws the table (matplotlib). A point whose memory, scaled
-from the smaller points measured, would pass ``--max-gb`` is skipped and said so. Run 40 steps
+the peak memory and a digest of the flown tracks, engagements and decision modes; ``--figure``
+draws the table (matplotlib). A point whose memory, scaled from the smaller points measured,
+would pass ``--max-gb`` is skipped and said so. Run 40 steps
 or more: the cost grows as the UAVs find threats (each set of known threats gets safety models
-of its own), so 10 steps of 100 UAVs on 200 x 200 cells measure 45 ms a step and 1.5 GB where
-40 steps measure 567 ms and 3.6 GB.
+of its own, with fields per home) and as they turn home (the run's steps are its mission, so
+``home_by_end`` brings them home within it); docs/results.md "Swarm size" has the table.
 
 ``--against REV`` runs the same points on REV (a commit or branch, checked out into a temporary
-git worktree) and here, alternating, and prints both, the ratios (here / REV) and whether the
-two flew the same tracks and engagements (a change meant to keep the decisions must say "same").
+git worktree) and here, one after the other, and prints both, the ratios (here / REV) and
+whether the two flew the same tracks and engagements (a change meant to keep the decisions must
+say "same").
 """
 
 from __future__ import annotations
