@@ -348,6 +348,7 @@ class SafetyModels:
         self._models: dict[bytes, SafetyModel] = {}
         self._asked: dict[bytes, int] = {}  # model -> the last step it was asked at
         self._searched: dict[bytes, dict[int, float]] = {}  # dropped models' state searches
+        self._swept = -1  # the step ``drop_unused`` last ran at
 
     def __len__(self) -> int:
         return len(self._models)
@@ -365,7 +366,11 @@ class SafetyModels:
     def drop_unused(self, step: int) -> None:
         """Drop the models not asked at ``step`` nor the step before (the UAVs of a swarm
         planned node by node ask at the same step, each in turn), and the fields of the others
-        not read as long (``SafetyModel.drop_unread``)."""
+        not read as long (``SafetyModel.drop_unread``); once a step, however many UAVs' nodes
+        share the models."""
+        if step == self._swept:
+            return
+        self._swept = step
         for key in [k for k, asked in self._asked.items() if asked < step - 1]:
             model = self._models.pop(key)
             del self._asked[key]
