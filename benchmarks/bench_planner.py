@@ -6,13 +6,16 @@ python benchmarks/bench_planner.py --against REV [--seeds 1 2 3 4 5]
 ``--against REV`` is the before/after comparison in one session: it checks REV (a commit, a
 branch, ``HEAD~1``) out into a temporary git worktree and times the same runs there and here,
 alternating between the two so that a change in the machine's load hits both, then prints both
-and the ratio (here / REV). Several seeds average out that a planner change also changes the
-flown paths, and with them the work of each step.
+and the ratio (here / REV), and whether both flew the same tracks, engagements and decision
+modes on every seed ("same"; a change meant to keep the decisions must say so). Several seeds
+average out that a planner change also changes the flown paths, and with them the work of each
+step.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import subprocess
 import sys
@@ -26,30 +29,39 @@ REPO = Path(__file__).resolve().parents[1]
 
 def time_runs(repeat: int, seeds: list[int]) -> dict[str, float]:
     """Per scenario, the mean over ``seeds`` of the best of ``repeat`` 250-step runs (s)."""
+    return {name: s for name, (s, _) in timed_runs(repeat, seeds).items()}
+
+
+def timed_runs(repeat: int, seeds: list[int]) -> dict[str, tuple[float, str]]:
+    """Per scenario, ``time_runs``'s time and a digest of every seed's flown tracks,
+    engagements and decision modes."""
     from planner.scenario import load_scenario
     from sim_gateway.offline_runner import run_offline
 
     out = {}
     for name in SCENARIOS:
         scenario = load_scenario(name)
-        total = 0.0
+        total, flown = 0.0, []
         for seed in seeds:
             best = float("inf")
             for _ in range(repeat):
                 started = time.perf_counter()
-                run_offline(scenario, seed, 250)
+                result = run_offline(scenario, seed, 250)
                 best = min(best, time.perf_counter() - started)
             total += best
-        out[name] = total / len(seeds)
+            flown.append([[u["track_km"] for u in result["uavs"]], result["engagements"],
+                          result["decision_modes"]])  # fmt: skip
+        digest = hashlib.sha256(json.dumps(flown).encode()).hexdigest()[:12]
+        out[name] = (total / len(seeds), digest)
     return out
 
 
-def time_in(tree: Path, repeat: int, seeds: list[int]) -> dict[str, float]:
+def time_in(tree: Path, repeat: int, seeds: list[int]) -> dict[str, list]:
     """``time_runs`` in a fresh interpreter on the code of ``tree``."""
     code = (
         "import json, sys; sys.path.insert(0, sys.argv[1]); sys.path.insert(0, sys.argv[2]);"
-        "from bench_planner import time_runs;"
-        "print(json.dumps(time_runs(int(sys.argv[3]), json.loads(sys.argv[4]))))"
+        "from bench_planner import timed_runs;"
+        "print(json.dumps(timed_runs(int(sys.argv[3]), json.loads(sys.argv[4]))))"
     )
     proc = subprocess.run(
         [sys.executable, "-c", code, str(tree), str(Path(__file__).parent), str(repeat),
@@ -82,11 +94,14 @@ def compare(rev: str, repeat: int, seeds: list[int], rounds: int) -> None:
         try:
             before = {name: [] for name in SCENARIOS}
             after = {name: [] for name in SCENARIOS}
+            tracks: dict[str, set[str]] = {name: set() for name in SCENARIOS}
             for _ in range(rounds):  # alternate, so that a change of load hits both
-                for name, s in time_in(tree, repeat, seeds).items():
+                for name, (s, digest) in time_in(tree, repeat, seeds).items():
                     before[name].append(s)
-                for name, s in time_in(REPO, repeat, seeds).items():
+                    tracks[name].add(digest)
+                for name, (s, digest) in time_in(REPO, repeat, seeds).items():
                     after[name].append(s)
+                    tracks[name].add(digest)
         finally:
             subprocess.run(
                 ["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
@@ -94,10 +109,12 @@ def compare(rev: str, repeat: int, seeds: list[int], rounds: int) -> None:
             )  # fmt: skip
     print(f"planner time per decision step (ms; best of {repeat}, mean over seeds {seeds}, "
           f"best of {rounds} alternating rounds)")  # fmt: skip
-    print(f"{'scenario':<12} {'UAVs':>4} {rev[:12]:>12} {'this tree':>10} {'ratio':>7}")
+    print(f"{'scenario':<12} {'UAVs':>4} {rev[:12]:>12} {'this tree':>10} {'ratio':>7}"
+          f" {'tracks':>7}")  # fmt: skip
     for name in SCENARIOS:
         b, a = min(before[name]) / 250 * 1000, min(after[name]) / 250 * 1000
-        print(f"{name:<12} {uav_count(name):>4} {b:>12.2f} {a:>10.2f} {a / b:>7.2f}")
+        same = "same" if len(tracks[name]) == 1 else "DIFFER"
+        print(f"{name:<12} {uav_count(name):>4} {b:>12.2f} {a:>10.2f} {a / b:>7.2f} {same:>7}")
 
 
 def main() -> None:

@@ -9,14 +9,17 @@ and ``grid_nx = grid_ny = cells`` changed (cells of 1 km), run offline (``run_of
 ``--steps`` decision steps in a fresh interpreter of its own, so that its peak memory (the
 process's maximum resident set) is its own. It prints, per point, the CPU time of the first
 step (building the swarm's beliefs and safety models), the mean CPU time of the steps after it,
-and the peak memory; ``--figure`` draws the table (matplotlib). A point whose memory, scaled
-from the smaller points measured, would pass ``--max-gb`` is skipped and said so. Run 40 steps
+the peak memory and a digest of the flown tracks, engagements and decision modes; ``--figure``
+draws the table (matplotlib). A point whose memory, scaled from the smaller points measured,
+would pass ``--max-gb`` is skipped and said so. Run 40 steps
 or more: the cost grows as the UAVs find threats (each set of known threats gets safety models
-of its own), so 10 steps of 100 UAVs on 200 x 200 cells measure 45 ms a step and 1.5 GB where
-40 steps measure 567 ms and 3.6 GB.
+of its own, with fields per home) and as they turn home (the run's steps are its mission, so
+``home_by_end`` brings them home within it); docs/results.md "Swarm size" has the table.
 
 ``--against REV`` runs the same points on REV (a commit or branch, checked out into a temporary
-git worktree) and here, alternating, and prints both and the ratios (here / REV).
+git worktree) and here, one after the other, and prints both, the ratios (here / REV) and
+whether the two flew the same tracks and engagements (a change meant to keep the decisions must
+say "same").
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 #: run in a fresh interpreter: argv = tree, uavs, cells, steps; prints one JSON line
 _POINT = """
-import dataclasses, json, resource, sys, time
+import dataclasses, hashlib, json, resource, sys, time
 sys.path.insert(0, sys.argv[1])
 from planner.scenario import load_scenario
 from sim_gateway.offline_runner import run_offline
@@ -48,8 +51,10 @@ class Clock:
 clock = Clock()
 result = run_offline(scenario, 1, steps, account=False, progress=clock)
 peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+flown = [[u["track_km"] for u in result["uavs"]], result["engagements"], result["decision_modes"]]
+tracks = hashlib.sha256(json.dumps(flown).encode()).hexdigest()[:12]
 print(json.dumps({"first_s": cpu[0], "step_s": sum(cpu[1:]) / max(1, len(cpu) - 1),
-                  "peak_mb": peak_mb, "violations": result["violations"]}))
+                  "peak_mb": peak_mb, "violations": result["violations"], "tracks": tracks}))
 """
 
 
@@ -147,14 +152,15 @@ def compare(rev: str, args: argparse.Namespace) -> None:
             subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
                            capture_output=True, check=False)  # fmt: skip
     print(f"{'UAVs':>5} {'cells':>9} {'ms/step ' + rev[:10]:>20} {'here':>8} {'ratio':>6}"
-          f" {'MB ' + rev[:10]:>14} {'here':>7} {'ratio':>6}")  # fmt: skip
+          f" {'MB ' + rev[:10]:>14} {'here':>7} {'ratio':>6} {'tracks':>9}")  # fmt: skip
     for key in sorted(after, key=lambda k: (k[1], k[0])):
         b, a = before.get(key, {}), after[key]
         if "peak_mb" not in a or "peak_mb" not in b:
             continue
         print(f"{key[0]:>5} {key[1]:>4} x {key[1]:<3} {b['step_s'] * 1000:>20.1f}"
               f" {a['step_s'] * 1000:>8.1f} {a['step_s'] / b['step_s']:>6.2f}"
-              f" {b['peak_mb']:>14.0f} {a['peak_mb']:>7.0f} {a['peak_mb'] / b['peak_mb']:>6.2f}")
+              f" {b['peak_mb']:>14.0f} {a['peak_mb']:>7.0f} {a['peak_mb'] / b['peak_mb']:>6.2f}"
+              f" {'same' if a['tracks'] == b['tracks'] else 'DIFFER':>9}")  # fmt: skip
 
 
 def main() -> None:

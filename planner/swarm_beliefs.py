@@ -39,7 +39,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from planner.config import PlannerConfig
-from planner.constraints import SafetyModel
+from planner.constraints import SafetyModel, SafetyModels
 from planner.engagement import EngagementOutcome
 from planner.feasibility import MoveOptions, feasible_moves
 from planner.grid import Grid, disc_overlap, disc_overlap_at, heading_of_angle, steps_to_reach
@@ -116,7 +116,7 @@ class SwarmBeliefs(SwarmHearing):
         self.engage_cells, self.engage_fractions = disc_overlap(cfg.engage_radius_km, cfg.cell_km)
         self.k = 0
         self.mission_steps = scenario.steps  # the last step, for ``home_by_end``
-        self._safety: dict[bytes, SafetyModel] = {}  # by the known-threat row's bytes
+        self._safety = SafetyModels(self._new_safety_model)  # by the known-threat row
         self._options: MoveOptions | None = None  # this step's, once the threats are heard
         #: Read-only observers, called as ``observe(beliefs, decision)`` after each decision and
         #: before the forecast (``planner.pursuit_log.PursuitLog``); they must not change state.
@@ -124,13 +124,15 @@ class SwarmBeliefs(SwarmHearing):
 
     def safety_model(self, known: np.ndarray) -> SafetyModel:
         """C_t's model of the threats ``known`` (a row of ``known_threats``), cached."""
-        key = np.asarray(known, dtype=bool).tobytes()
-        if key not in self._safety:
-            self._safety[key] = SafetyModel(
-                self.grid, self.threat_xy[known], self.threat_r[known], self.cfg.threat_margin_km,
-                self.cfg.max_turn_deg, self.cfg.home_path_margin_km,
-            )  # fmt: skip
-        return self._safety[key]
+        return self._safety.get(known, self.k)
+
+    def _new_safety_model(
+        self, known: np.ndarray, searched: dict[int, float] | None
+    ) -> SafetyModel:
+        return SafetyModel(
+            self.grid, self.threat_xy[known], self.threat_r[known], self.cfg.threat_margin_km,
+            self.cfg.max_turn_deg, self.cfg.home_path_margin_km, searched,
+        )  # fmt: skip
 
     def share_safety_models(self, other: SwarmBeliefs) -> None:
         """Use ``other``'s cache of C_t's models (beliefs of the same scenario: a model depends
@@ -254,6 +256,7 @@ class SwarmBeliefs(SwarmHearing):
                 self.cells, self.headings, self.distance_km, self.homes_key, self.known_threats,
                 self.safety_model, self.cfg, self.grid, steps_left,
             )  # fmt: skip
+            self._safety.drop_unused(self.k)
         return self._options
 
     def update_return(self, opts: MoveOptions, flying: np.ndarray) -> None:

@@ -1,0 +1,70 @@
+"""The safety models' fields per home at scale (planner/constraints.py, planner/field_rows.py):
+fields and models no UAV reads any more are dropped, and whatever is read again after a drop
+is what a model that never dropped anything answers, so the decisions do not depend on it
+(benchmarks/bench_scale.py --against REV compares whole flights with an older revision)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from planner.constraints import SafetyModel, SafetyModels
+from planner.field_rows import CountRows
+from planner.grid import Grid
+from planner.scenario import load_scenario
+
+GRID = Grid(100, 100, 1.0)
+
+
+def _threats() -> tuple[np.ndarray, np.ndarray]:
+    scenario = load_scenario("paper-10uav")
+    xy = np.array([[t.x_km, t.y_km] for t in scenario.threats])
+    return xy, np.array([t.radius_km for t in scenario.threats])
+
+
+def _make(known: np.ndarray, searched: dict[int, float] | None) -> SafetyModel:
+    xy, radii = _threats()
+    return SafetyModel(GRID, xy[known], radii[known], 0.0, 45.0, 1.0, searched)
+
+
+def _answers(model: SafetyModel, homes: np.ndarray, within: int) -> list[np.ndarray]:
+    """Everything a UAV at home ``homes[i]`` reads: km, cell moves and (heading, cell) moves
+    home from every cell and heading."""
+    x, y, h = np.meshgrid(np.arange(GRID.nx), np.arange(GRID.ny), np.arange(8), indexing="ij")
+    x, y, h = (np.broadcast_to(a[None], (len(homes), *a.shape)) for a in (x, y, h))
+    return [
+        model.distances_home_at(homes, x[..., 0], y[..., 0]),
+        model._cell_hops(homes, x, y, h),
+        model._state_hops(homes, x, y, h, within),
+    ]
+
+
+def test_fields_read_again_after_a_drop_are_the_same_as_never_dropped() -> None:
+    known = np.ones(len(_threats()[1]), dtype=bool)
+    homes = np.array([GRID.flat(np.array([10, 10])), GRID.flat(np.array([80, 30]))])
+    models = SafetyModels(_make)
+    kept = _make(known, None)  # never drops anything
+    first = _answers(models.get(known, 0), homes, within=80)
+    assert all(np.array_equal(a, b) for a, b in zip(first, _answers(kept, homes, 80), strict=True))
+    for step in range(1, 4):  # only the first home is read: the second's fields go
+        _answers(models.get(known, step), homes[:1], within=80)
+        models.drop_unused(step)
+    assert homes[1] not in models.get(known, 4)._states
+    # asked less far now: a search as far as the dropped one's, as the kept model has it
+    again = _answers(models.get(known, 4), homes, within=30)
+    expected = _answers(kept, homes, within=30)
+    assert all(np.array_equal(a, b) for a, b in zip(again, expected, strict=True))
+    far = np.isfinite(again[2][1]) & (again[2][1] > 30 + 20)
+    assert far.any()  # counts beyond this call's reach, kept from the first search
+    # the whole model dropped (no UAV asked it for two steps), then built again
+    models.drop_unused(7)
+    assert len(models) == 0
+    rebuilt = _answers(models.get(known, 8), homes, within=30)
+    assert all(np.array_equal(a, b) for a, b in zip(rebuilt, expected, strict=True))
+
+
+def test_counts_beyond_sixteen_bits_are_kept_exactly() -> None:
+    rows = CountRows((3,))
+    rows.put(7, np.array([0.0, 12.0, np.inf]))
+    rows.put(9, np.array([70000.0, 1.0, np.inf]))  # widens the store
+    got = rows.take((rows.rows(np.array([7, 9])),))
+    assert np.array_equal(got, [[0.0, 12.0, np.inf], [70000.0, 1.0, np.inf]])
