@@ -28,10 +28,10 @@ Where it connects: any endpoint (``tcp:HOST:PORT``, ``udpin:HOST:PORT``, ``udpou
 as many as needed; a vehicle is whoever's autopilot (component 1) is heard on it, and its camera
 answers on the same endpoint. A udpout peer that talks only to whoever spoke first (PX4's
 onboard link) is said hello every second until a vehicle answers on it, so the simulator may
-start before the autopilot opens its port. For ArduPilot SITL that is each instance's spare serial port,
-SERIAL1 on TCP 5762 + 10 i: ArduPilot routes MAVLink between its ports, so the camera's messages
-reach the ground station on SERIAL0 and the ground station's commands to component 100 reach the
-camera (measured with the V4.8.0-dev SITL: without a camera on a port ArduPlane itself answers
+start before the autopilot opens its port. For ArduPilot SITL the endpoint is each instance's
+spare serial port, SERIAL1 on TCP 5762 + 10 i: ArduPilot routes MAVLink between its ports, so
+the camera's messages reach the ground station on SERIAL0 and the ground station's commands to
+component 100 reach the camera (measured with the V4.8.0-dev SITL: without a camera on a port ArduPlane itself answers
 IMAGE_START_CAPTURE with FAILED; with one, it forwards the command and stays silent). A TCP
 server that is not up yet (SITL opens SERIAL1 only once it boots) is retried every 0.5 s, and
 reconnected if it goes away.

@@ -172,10 +172,8 @@ class DecisionStep:
                     cell=self.grid.cell_of(look_km),
                 )  # fmt: skip
                 state.observed[reports[i].cells[:, 0], reports[i].cells[:, 1]] = True
-            # circling: after the take-off (step 0: around its take-off point) or held in its
-            # cell by the last step
-            circling = step == 0 or np.array_equal(state.commanded_cells[i], state.cells[i])
-            if circling:
+            # circling: around its take-off point (step 0) or held in its cell by the last step
+            if step == 0 or np.array_equal(state.commanded_cells[i], state.cells[i]):
                 state.headings[i] = self.leaving_heading(cell, course_heading(v), state.headings[i])
             elif np.array_equal(cell, state.commanded_cells[i]):
                 state.headings[i] = state.commanded_headings[i]
@@ -187,13 +185,11 @@ class DecisionStep:
 
     def leaving_heading(self, cell: np.ndarray, course: int | None, came_in: int) -> int:
         """The heading a circling plane (around its take-off point, or held in its cell) leaves
-        on. It can leave on any course: the one it flies now when a turn-limited path goes on
-        from there (``SafetyEnvelope.viable``), else the viable heading nearest to it. Not the
-        course of that instant alone: a plane one row from the area's edge, caught heading out
-        at step 0, had only dead-end moves (two PX4 planes were then cornered on the edge side
-        by side), and not the heading it came in on: held in a corner heading out, a plane was
-        held there step after step (a PX4 plane whose 37 s circle nearly matched the 43 s step
-        showed the same outward course at every decision instant)."""
+        on: the course it flies now when a turn-limited path goes on from there
+        (``SafetyEnvelope.viable``), else the viable heading nearest to it. Given the heading
+        it came in on, a PX4 plane held in a corner heading out was held there for a whole
+        mission (its 37 s circle nearly matched the 43 s step: the same outward course at every
+        decision instant)."""
         now = came_in if course is None else course
         nearest_first = sorted(range(8), key=lambda h: min((h - now) % 8, (now - h) % 8))
         for heading in nearest_first:
