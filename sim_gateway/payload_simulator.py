@@ -33,8 +33,8 @@ spare serial port, SERIAL1 on TCP 5762 + 10 i: ArduPilot routes MAVLink between 
 the camera's messages reach the ground station on SERIAL0 and the ground station's commands to
 component 100 reach the camera (measured with the V4.8.0-dev SITL: without a camera on a port
 ArduPlane itself answers IMAGE_START_CAPTURE with FAILED; with one, it forwards the command and
-stays silent). A TCP server that is not up yet (SITL opens SERIAL1 only once it boots) is retried every 0.5 s, and
-reconnected if it goes away.
+stays silent). A TCP server that is not up yet (SITL opens SERIAL1 only once it boots) is
+retried every 0.5 s, and reconnected if it goes away.
 """
 
 from __future__ import annotations
