@@ -98,8 +98,10 @@ def test_three_px4_planes_look_and_engage_with_no_violation(px4_sitl, tmp_path):
             print(f"rtl: min separation {audit['min_separation_km']} km")
         else:
             assert audit["separation_breaches"] == 0, (phase, audit)
-    assert sorted(result["rtl_sent_to"]) == [1, 2, 3], run.explain()
-    flew_and_returned(run, [1, 2, 3], "AUTO.LOITER", "AUTO.RTL")
+    # every plane sent home: RTL, or guided home around a threat RTL's straight line would cross
+    rtl = sorted(result["rtl_sent_to"])
+    assert sorted(rtl + result["guided_home_around_threats"]) == [1, 2, 3], run.explain()
+    flew_and_returned(run, rtl, "AUTO.LOITER", "AUTO.RTL")
 
 
 @pytest.mark.timeout(200)
@@ -122,9 +124,14 @@ def test_one_px4_plane_killed_mid_mission_the_others_finish_and_return(px4_sitl,
     assert run.returncode == 0, run.explain()
     result = run.result
     assert result["ended"] == "completed" and result["steps"] == 3, run.explain()
-    assert result["lost_uavs"] == [2], run.explain()
-    lost = next(e for e in result["link_events"] if e["event"] == "lost")
-    assert lost["uav"] == 2 and "silent" in lost["reason"], lost
+    # plane 3 lost for good; a plane the starved machine silenced for a few seconds may be lost
+    # and rejoin on the way (the suite's other workers share the 2 cores)
+    events = result["link_events"]
+    lost = next(e for e in events if e["event"] == "lost" and e["uav"] == 2)
+    assert "silent" in lost["reason"], lost
+    assert not any(e["uav"] == 2 and e["event"] == "rejoined" for e in events), events
+    for uav in set(result["lost_uavs"]) - {2}:
+        assert [e["event"] for e in events if e["uav"] == uav][-1] == "rejoined", events
     assert sorted(result["rtl_sent_to"]) == [1, 2] and "3" in result["rtl_not_sent"], result
     assert no_violations(result), run.explain()
     flew_and_returned(run, [1, 2], "AUTO.LOITER", "AUTO.RTL")
