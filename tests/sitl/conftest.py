@@ -53,7 +53,7 @@ def sitl_swarm(sitl_binary: Path, tmp_path: Path) -> Iterator:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Under pytest-xdist (the suite's ``-n 3``), the SITL tests run one after another on one
+    """Under pytest-xdist (the suite's ``-n 2``), the SITL tests run one after another on one
     worker: each starts several autopilot instances, and two missions at once on a 2-core
     machine would fly late. They come first, so that worker flies them from the suite's start."""
     here = Path(__file__).parent
