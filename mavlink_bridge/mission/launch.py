@@ -21,7 +21,7 @@ from mavlink_bridge.vehicles.airframe import read_airframes, scenario_warnings
 from mavlink_bridge.vehicles.autopilot_adapter import ArduPilot, autopilot_for
 from mavlink_bridge.vehicles.discovery import wait_for_vehicles, wait_until_ready
 from mavlink_bridge.vehicles.fence_upload import FenceCircle, upload_fence
-from mavlink_bridge.vehicles.gcs_failsafe import MISSION_FAILSAFE, set_gcs_failsafe
+from mavlink_bridge.vehicles.gcs_failsafe import set_gcs_failsafe
 from mavlink_bridge.vehicles.guided_commands import request_message_command, require_accepted
 from mavlink_bridge.vehicles.readiness import arm_when_ready
 from mavlink_wire.protocol import mavlink
@@ -105,13 +105,7 @@ def failsafe(launch: Launch) -> None:
     to the last guided target (``gcs_failsafe.py``)."""
     ctx = launch.ctx
     vehicles = ctx.vehicles()
-    set_gcs_failsafe(
-        ctx.require_link(),
-        vehicles,
-        MISSION_FAILSAFE,
-        parameters_for=lambda v: autopilot_for(v).failsafe_parameters(),
-        refusal_fix=lambda v: autopilot_for(v).failsafe_fix,
-    )
+    set_gcs_failsafe(ctx.require_link(), vehicles)
     for autopilot in autopilots_of(vehicles):
         ctx.say(f"GCS failsafe set: {autopilot.failsafe_summary()}")
 

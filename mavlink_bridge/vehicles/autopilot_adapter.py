@@ -40,7 +40,6 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from mavlink_bridge.vehicles.gcs_failsafe import MISSION_FAILSAFE
 from mavlink_bridge.vehicles.guided_commands import Command, reposition_command, set_mode_command
 from mavlink_wire.protocol import (
     PLANE_MODE_GUIDED,
@@ -53,10 +52,35 @@ from mavlink_wire.protocol import (
 if TYPE_CHECKING:
     from mavlink_bridge.vehicles.vehicle_state import VehicleState
 
+INT8 = mavlink.MAV_PARAM_TYPE_INT8
 INT32 = mavlink.MAV_PARAM_TYPE_INT32
+REAL32 = mavlink.MAV_PARAM_TYPE_REAL32
 
 #: (name, value, MAVLink type) of a parameter to set
 Parameter = tuple[str, float, int]
+
+
+@dataclass(frozen=True)
+class GcsFailsafeSettings:
+    """ArduPlane's GCS failsafe parameters, as the daemon sets them (``gcs_failsafe.py``)."""
+
+    enable: int = 1  # FS_GCS_ENABL: 1 = heartbeat
+    long_timeout_s: float = 5.0  # FS_LONG_TIMEOUT (ArduPlane's default)
+    short_action: int = 0  # FS_SHORT_ACTN: RC loss in GUIDED: no change
+    long_action: int = 0  # FS_LONG_ACTN: 0 = Continue (GUIDED circles its last target)
+
+    def parameters(self) -> tuple[tuple[str, float, int], ...]:
+        """(name, value, MAVLink type) of every parameter to set."""
+        return (
+            ("FS_SHORT_ACTN", float(self.short_action), INT8),
+            ("FS_LONG_ACTN", float(self.long_action), INT8),
+            ("FS_LONG_TIMEOUT", float(self.long_timeout_s), REAL32),
+            ("FS_GCS_ENABL", float(self.enable), INT8),  # last: on once the actions are right
+        )
+
+
+MISSION_FAILSAFE = GcsFailsafeSettings()
+
 
 #: PX4 airframes (SYS_AUTOSTART) that cannot fly the FW_AIRSPD_MAX they report, with the top
 #: airspeed (m/s, indicated) measured in level flight at full throttle: the SIH airplane

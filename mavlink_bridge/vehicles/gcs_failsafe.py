@@ -9,8 +9,8 @@ last guided target and circles it, 1 returns home (RTL: a straight line that may
 zone), 2 glides. ``FS_SHORT_ACTN`` acts on a lost RC link only (in GUIDED, 0 changes nothing;
 1 would switch to CIRCLE where the plane is).
 
-The daemon's choice, :data:`MISSION_FAILSAFE`: heartbeat failsafe on, *Continue*. Every guided
-target the flight envelope sends keeps its loiter circle clear of every threat
+The daemon's choice, ``autopilot_adapter.MISSION_FAILSAFE``: heartbeat failsafe on, *Continue*.
+Every guided target the flight envelope sends keeps its loiter circle clear of every threat
 (``flight_envelope.py``), so a plane whose ground station is gone, for any length of time,
 circles a place proven safe instead of flying a line home through a threat (issue 12, finding 2:
 a failsafe that switched planes to CIRCLE where they were took two into threat zones). The
@@ -29,64 +29,29 @@ the fix.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 
+from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
 from mavlink_bridge.vehicles.param_encoding import encode_param
 from mavlink_bridge.vehicles.swarm_link import SwarmLink
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
-from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, mavlink
+from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID
 from planner.errors import UserError
-
-INT8 = mavlink.MAV_PARAM_TYPE_INT8
-REAL32 = mavlink.MAV_PARAM_TYPE_REAL32
-
-
-@dataclass(frozen=True)
-class GcsFailsafeSettings:
-    """ArduPlane's GCS failsafe parameters, as the daemon sets them."""
-
-    enable: int = 1  # FS_GCS_ENABL: 1 = heartbeat
-    long_timeout_s: float = 5.0  # FS_LONG_TIMEOUT (ArduPlane's default)
-    short_action: int = 0  # FS_SHORT_ACTN: RC loss in GUIDED: no change
-    long_action: int = 0  # FS_LONG_ACTN: 0 = Continue (GUIDED circles its last target)
-
-    def parameters(self) -> tuple[tuple[str, float, int], ...]:
-        """(name, value, MAVLink type) of every parameter to set."""
-        return (
-            ("FS_SHORT_ACTN", float(self.short_action), INT8),
-            ("FS_LONG_ACTN", float(self.long_action), INT8),
-            ("FS_LONG_TIMEOUT", float(self.long_timeout_s), REAL32),
-            ("FS_GCS_ENABL", float(self.enable), INT8),  # last: on once the actions are right
-        )
-
-    @property
-    def circles_last_target(self) -> bool:
-        """A plane in GUIDED that loses its ground station carries on to its last target."""
-        return self.long_action == 0
-
-
-MISSION_FAILSAFE = GcsFailsafeSettings()
 
 
 def set_gcs_failsafe(
     link: SwarmLink,
     vehicles: Sequence[VehicleState],
-    settings: GcsFailsafeSettings = MISSION_FAILSAFE,
     retry_s: float = 0.5,
     attempts: int = 40,
-    parameters_for: Callable[[VehicleState], tuple[tuple[str, float, int], ...]] | None = None,
-    refusal_fix: Callable[[VehicleState], str] | None = None,
 ) -> None:
-    """Set ``settings`` on every vehicle (or each vehicle's own ``parameters_for`` it: its
-    autopilot's, ``autopilot_adapter.py``) and wait until each confirms every value.
-    ``refusal_fix`` says what a refused value must be (default: ArduPlane's)."""
+    """Set every vehicle's GCS-loss settings, its autopilot's (``autopilot_adapter.py``:
+    ArduPlane's :data:`~autopilot_adapter.MISSION_FAILSAFE`, PX4's NAV_DLL_ACT and geofence
+    settings), and wait until each confirms every value."""
     todo = {
         (v.system_id, name): (v, value, ptype)
         for v in vehicles
-        for name, value, ptype in (
-            settings.parameters() if parameters_for is None else parameters_for(v)
-        )
+        for name, value, ptype in autopilot_for(v).failsafe_parameters()
     }
 
     def confirmed(v: VehicleState, name: str, value: float) -> bool:
@@ -110,7 +75,7 @@ def set_gcs_failsafe(
         refused = [(key, entry) for key, entry in todo.items() if key[1] in entry[0].params]
         if refused:
             (sysid, name), (v, value, _) = refused[0]
-            fix = "FS_GCS_ENABL 1, FS_LONG_ACTN 0" if refusal_fix is None else refusal_fix(v)
+            fix = autopilot_for(v).failsafe_fix
             raise UserError(
                 f"vehicle {sysid} kept {name} = {v.params[name]:g} when set to {value:g}; its "
                 f"GCS failsafe must fly on to the last guided target ({fix}): set them by "

@@ -21,9 +21,10 @@ from reliability_harness import last_json  # noqa: E402
 from udp_fault_relay import FaultProfile, FaultRelay, MessageWithhold  # noqa: E402
 
 from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon  # noqa: E402
+from mavlink_bridge.vehicles.autopilot_adapter import MISSION_FAILSAFE  # noqa: E402
 from mavlink_bridge.vehicles.discovery import wait_for_vehicles  # noqa: E402
 from mavlink_bridge.vehicles.fence_upload import FenceCircle, upload_fence  # noqa: E402
-from mavlink_bridge.vehicles.gcs_failsafe import MISSION_FAILSAFE, set_gcs_failsafe  # noqa: E402
+from mavlink_bridge.vehicles.gcs_failsafe import set_gcs_failsafe  # noqa: E402
 from mavlink_bridge.vehicles.guided_commands import engagement_command  # noqa: E402
 from mavlink_bridge.vehicles.swarm_link import SwarmLink  # noqa: E402
 from mavlink_bridge.vehicles.telemetry_plausibility import PlausibilityFilter  # noqa: E402

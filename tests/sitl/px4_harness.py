@@ -40,14 +40,13 @@ from __future__ import annotations
 
 import os
 import re
-import signal
 import socket
 import subprocess
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sitl_harness import STOP_GRACE_S, AutopilotProcess, Home, InstanceLock, claim_instance
+from sitl_harness import AutopilotProcess, AutopilotSwarm, Home, InstanceLock, claim_instance
 
 ENV_VAR = "PX4_SITL"
 MAX_INSTANCE = 200
@@ -134,10 +133,6 @@ class Px4Vehicle(AutopilotProcess):
     niceness: int = 0
 
     @property
-    def system_id(self) -> int:
-        return self.index + 1
-
-    @property
     def master(self) -> str:
         """The GCS link (the daemon's)."""
         return f"udpout:127.0.0.1:{18570 + self.instance}"
@@ -161,7 +156,7 @@ class Px4Vehicle(AutopilotProcess):
             )  # fmt: skip
 
 
-class Px4Swarm:
+class Px4Swarm(AutopilotSwarm):
     """N PX4 SIH airplanes, vehicle i with system id ``first_system_id + i`` at ``homes[i]``.
 
     ``params`` (name -> value) are set by the hook after PX4's defaults; ``niceness`` lowers
@@ -189,17 +184,6 @@ class Px4Swarm:
         self._tmp = None if workdir is not None else tempfile.TemporaryDirectory(prefix="px4-")
         self.workdir = Path(self._tmp.name) if self._tmp is not None else Path(workdir)
         self.vehicles: list[Px4Vehicle] = []
-
-    def __enter__(self) -> Px4Swarm:
-        try:
-            self.start()
-        except BaseException:
-            self.stop()
-            raise
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
     def start(self) -> None:
         """Start every instance (each in its own process group); returns at once: PX4 answers
@@ -250,34 +234,3 @@ class Px4Swarm:
                     niceness=self.niceness,
                 )  # fmt: skip
             )
-
-    def connect_args(self) -> list[str]:
-        """``--connect`` options for ``swarmplan daemon``: every vehicle's GCS link."""
-        return [arg for v in self.vehicles for arg in ("--connect", v.master)]
-
-    def payload_args(self) -> list[str]:
-        """``--connect`` options for the payload simulator: every vehicle's onboard link."""
-        return [arg for v in self.vehicles for arg in ("--connect", v.payload)]
-
-    def kill(self, index: int, sig: int = signal.SIGKILL) -> None:
-        """Send ``sig`` (default SIGKILL) to vehicle ``index``'s instance and wait for its end."""
-        vehicle = self.vehicles[index]
-        vehicle.signal(sig)
-        if vehicle.process is None:
-            return
-        try:
-            vehicle.process.wait(STOP_GRACE_S)
-        except subprocess.TimeoutExpired:
-            vehicle.signal(signal.SIGKILL)
-            vehicle.process.wait(STOP_GRACE_S)
-
-    def stop(self) -> None:
-        """Stop every instance (process group: SIGTERM, then SIGKILL) and remove the temporary
-        folder. Safe to call more than once."""
-        for vehicle in self.vehicles:
-            vehicle.signal(signal.SIGTERM)
-        for vehicle in self.vehicles:
-            vehicle.stop()
-        if self._tmp is not None:
-            self._tmp.cleanup()
-            self._tmp = None

@@ -187,11 +187,17 @@ def _claim_instance(start_at: int = 0) -> InstanceLock:
 
 
 class AutopilotProcess:
-    """What an autopilot instance of a test does with its process group: ``process`` (None
-    until launched), ``log_path`` and ``_lock`` are its subclass's."""
+    """What an autopilot instance of a test does with its process group: ``index`` (vehicle
+    ``index``, system id index + 1), ``process`` (None until launched), ``log_path`` and
+    ``_lock`` are its subclass's."""
 
+    index: int
     process: subprocess.Popen | None
     _lock: InstanceLock
+
+    @property
+    def system_id(self) -> int:
+        return self.index + 1
 
     @property
     def log_path(self) -> Path:
@@ -211,6 +217,18 @@ class AutopilotProcess:
         if self.alive():
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(self.process.pid, sig)
+
+    def kill(self, sig: int | None = None) -> None:
+        """Send ``sig`` (default SIGKILL) to its process group and wait for its end (SIGKILL
+        after the grace)."""
+        self.signal(signal.SIGKILL if sig is None else sig)
+        if self.process is None:
+            return
+        try:
+            self.process.wait(STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            self.signal(signal.SIGKILL)
+            self.process.wait(STOP_GRACE_S)
 
     def stop(self, grace_s: float = STOP_GRACE_S) -> None:
         """SIGTERM to its process group, SIGKILL after ``grace_s``; releases its instance."""
@@ -239,10 +257,6 @@ class SitlVehicle(AutopilotProcess):
     _lock: InstanceLock = field(repr=False)
 
     @property
-    def system_id(self) -> int:
-        return self.index + 1
-
-    @property
     def port(self) -> int:
         """SERIAL0, the autopilot's MAVLink port (the daemon's)."""
         return BASE_PORT + 10 * self.instance
@@ -265,7 +279,53 @@ class SitlVehicle(AutopilotProcess):
         return self.workdir / "arduplane.log"
 
 
-class SitlSwarm:
+class AutopilotSwarm:
+    """What a swarm of autopilot instances of a test shares: ``vehicles`` (each with a
+    ``master`` and a ``payload`` endpoint), the temporary work folder ``_tmp`` (None when the
+    caller gave one), ``start`` (its subclass's); a context manager that stops every instance."""
+
+    vehicles: list
+    _tmp: tempfile.TemporaryDirectory | None
+
+    def start(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self):
+        try:
+            self.start()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def connect_args(self) -> list[str]:
+        """``--connect`` options for ``swarmplan daemon``: every vehicle's GCS link."""
+        return [arg for v in self.vehicles for arg in ("--connect", v.master)]
+
+    def payload_args(self) -> list[str]:
+        """``--connect`` options for the payload simulator: every vehicle's second link."""
+        return [arg for v in self.vehicles for arg in ("--connect", v.payload)]
+
+    def kill(self, index: int, sig: int = signal.SIGKILL) -> None:
+        """Send ``sig`` (default SIGKILL) to vehicle ``index``'s instance and wait for its end."""
+        self.vehicles[index].kill(sig)
+
+    def stop(self) -> None:
+        """Stop every instance (process group: SIGTERM, then SIGKILL) and remove the temporary
+        folder. Safe to call more than once."""
+        for vehicle in self.vehicles:
+            vehicle.signal(signal.SIGTERM)
+        for vehicle in self.vehicles:
+            vehicle.stop()
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+
+class SitlSwarm(AutopilotSwarm):
     """N ArduPlane SITL instances, vehicle i with system id i + 1 at ``homes[i]``.
 
     ``params`` (name -> value) go into an extra defaults file after ArduPilot's plane.parm
@@ -291,17 +351,6 @@ class SitlSwarm:
         self._tmp = None if workdir is not None else tempfile.TemporaryDirectory(prefix="sitl-")
         self.workdir = Path(workdir) if workdir is not None else Path(self._tmp.name)
         self.vehicles: list[SitlVehicle] = []
-
-    def __enter__(self) -> SitlSwarm:
-        try:
-            self.start()
-        except BaseException:
-            self.stop()
-            raise
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
     def start(self) -> None:
         """Start every instance and wait (bounded) until each one's SERIAL0 listens."""
@@ -342,38 +391,3 @@ class SitlSwarm:
                         f"{vehicle.port} within {self.start_timeout_s:g} s:\n{vehicle.log_tail()}"
                     )
                 time.sleep(0.05)
-
-    def connect_args(self) -> list[str]:
-        """``--connect`` options for ``swarmplan daemon``: every vehicle's SERIAL0."""
-        out: list[str] = []
-        for vehicle in self.vehicles:
-            out += ["--connect", vehicle.master]
-        return out
-
-    def payload_args(self) -> list[str]:
-        """``--connect`` options for the payload simulator: every vehicle's SERIAL1."""
-        out: list[str] = []
-        for vehicle in self.vehicles:
-            out += ["--connect", vehicle.payload]
-        return out
-
-    def kill(self, index: int, sig: int = signal.SIGKILL) -> None:
-        """Send ``sig`` (default SIGKILL) to vehicle ``index``'s instance and wait for its end."""
-        vehicle = self.vehicles[index]
-        vehicle.signal(sig)
-        try:
-            vehicle.process.wait(STOP_GRACE_S)
-        except subprocess.TimeoutExpired:
-            vehicle.signal(signal.SIGKILL)
-            vehicle.process.wait(STOP_GRACE_S)
-
-    def stop(self) -> None:
-        """Stop every instance (process group: SIGTERM, then SIGKILL) and remove the temporary
-        folder. Safe to call more than once."""
-        for vehicle in self.vehicles:
-            vehicle.signal(signal.SIGTERM)
-        for vehicle in self.vehicles:
-            vehicle.stop()
-        if self._tmp is not None:
-            self._tmp.cleanup()
-            self._tmp = None
