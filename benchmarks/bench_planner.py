@@ -15,13 +15,13 @@ step.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
+
+from revision_checkout import checked_out, flown_digest
 
 SCENARIOS = ("paper-2uav", "paper-10uav", "paper-20uav")
 REPO = Path(__file__).resolve().parents[1]
@@ -41,7 +41,7 @@ def timed_runs(repeat: int, seeds: list[int]) -> dict[str, tuple[float, str]]:
     out = {}
     for name in SCENARIOS:
         scenario = load_scenario(name)
-        total, flown = 0.0, []
+        total, results = 0.0, []
         for seed in seeds:
             best = float("inf")
             for _ in range(repeat):
@@ -49,10 +49,8 @@ def timed_runs(repeat: int, seeds: list[int]) -> dict[str, tuple[float, str]]:
                 result = run_offline(scenario, seed, 250)
                 best = min(best, time.perf_counter() - started)
             total += best
-            flown.append([[u["track_km"] for u in result["uavs"]], result["engagements"],
-                          result["decision_modes"]])  # fmt: skip
-        digest = hashlib.sha256(json.dumps(flown).encode()).hexdigest()[:12]
-        out[name] = (total / len(seeds), digest)
+            results.append(result)
+        out[name] = (total / len(seeds), flown_digest(results))
     return out
 
 
@@ -81,32 +79,17 @@ def uav_count(name: str) -> int:
 
 
 def compare(rev: str, repeat: int, seeds: list[int], rounds: int) -> None:
-    with tempfile.TemporaryDirectory(prefix="bench-planner-") as tmp:
-        tree = Path(tmp) / "before"
-        added = subprocess.run(
-            ["git", "-C", str(REPO), "worktree", "add", "--detach", "--quiet", str(tree), rev],
-            capture_output=True, text=True, check=False,
-        )  # fmt: skip
-        if added.returncode != 0:
-            reason = (added.stderr.strip().splitlines() or ["git failed"])[-1]
-            raise SystemExit(f"bench_planner: cannot check out {rev!r} ({reason}); give a "
-                             f"commit or branch of this repository")  # fmt: skip
-        try:
-            before = {name: [] for name in SCENARIOS}
-            after = {name: [] for name in SCENARIOS}
-            tracks: dict[str, set[str]] = {name: set() for name in SCENARIOS}
-            for _ in range(rounds):  # alternate, so that a change of load hits both
-                for name, (s, digest) in time_in(tree, repeat, seeds).items():
-                    before[name].append(s)
-                    tracks[name].add(digest)
-                for name, (s, digest) in time_in(REPO, repeat, seeds).items():
-                    after[name].append(s)
-                    tracks[name].add(digest)
-        finally:
-            subprocess.run(
-                ["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
-                capture_output=True, check=False,
-            )  # fmt: skip
+    before = {name: [] for name in SCENARIOS}
+    after = {name: [] for name in SCENARIOS}
+    tracks: dict[str, set[str]] = {name: set() for name in SCENARIOS}
+    with checked_out(rev, "bench_planner") as tree:
+        for _ in range(rounds):  # alternate, so that a change of load hits both
+            for name, (s, digest) in time_in(tree, repeat, seeds).items():
+                before[name].append(s)
+                tracks[name].add(digest)
+            for name, (s, digest) in time_in(REPO, repeat, seeds).items():
+                after[name].append(s)
+                tracks[name].add(digest)
     print(f"planner time per decision step (ms; best of {repeat}, mean over seeds {seeds}, "
           f"best of {rounds} alternating rounds)")  # fmt: skip
     print(f"{'scenario':<12} {'UAVs':>4} {rev[:12]:>12} {'this tree':>10} {'ratio':>7}"

@@ -28,18 +28,21 @@ import argparse
 import json
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
+
+from revision_checkout import checked_out
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: run in a fresh interpreter: argv = tree, uavs, cells, steps; prints one JSON line
+#: run in a fresh interpreter: argv = tree, benchmarks folder, uavs, cells, steps; prints one
+#: JSON line
 _POINT = """
-import dataclasses, hashlib, json, resource, sys, time
-sys.path.insert(0, sys.argv[1])
+import dataclasses, json, resource, sys, time
+sys.path[:0] = [sys.argv[1], sys.argv[2]]
 from planner.scenario import load_scenario
+from revision_checkout import flown_digest
 from sim_gateway.offline_runner import run_offline
-uavs, cells, steps = (int(a) for a in sys.argv[2:5])
+uavs, cells, steps = (int(a) for a in sys.argv[3:6])
 scenario = load_scenario("paper-20uav")
 scenario = scenario.with_config(grid_nx=cells, grid_ny=cells)
 scenario = dataclasses.replace(scenario, uav_count=uavs)
@@ -51,16 +54,16 @@ class Clock:
 clock = Clock()
 result = run_offline(scenario, 1, steps, account=False, progress=clock)
 peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-flown = [[u["track_km"] for u in result["uavs"]], result["engagements"], result["decision_modes"]]
-tracks = hashlib.sha256(json.dumps(flown).encode()).hexdigest()[:12]
 print(json.dumps({"first_s": cpu[0], "step_s": sum(cpu[1:]) / max(1, len(cpu) - 1),
-                  "peak_mb": peak_mb, "violations": result["violations"], "tracks": tracks}))
+                  "peak_mb": peak_mb, "violations": result["violations"],
+                  "tracks": flown_digest([result])}))
 """
 
 
 def measure(tree: Path, uavs: int, cells: int, steps: int) -> dict:
     proc = subprocess.run(
-        [sys.executable, "-c", _POINT, str(tree), str(uavs), str(cells), str(steps)],
+        [sys.executable, "-c", _POINT, str(tree), str(Path(__file__).parent), str(uavs),
+         str(cells), str(steps)],
         capture_output=True, text=True, cwd=tree, check=False,
     )  # fmt: skip
     if proc.returncode != 0:
@@ -137,20 +140,8 @@ def draw(points: dict[tuple[int, int], dict], path: Path) -> None:
 
 
 def compare(rev: str, args: argparse.Namespace) -> None:
-    with tempfile.TemporaryDirectory(prefix="bench-scale-") as tmp:
-        tree = Path(tmp) / "before"
-        added = subprocess.run(
-            ["git", "-C", str(REPO), "worktree", "add", "--detach", "--quiet", str(tree), rev],
-            capture_output=True, text=True, check=False,
-        )  # fmt: skip
-        if added.returncode != 0:
-            reason = (added.stderr.strip().splitlines() or ["git failed"])[-1]
-            raise SystemExit(f"bench_scale: cannot check out {rev!r} ({reason})")
-        try:
-            before, after = sweep(tree, args), sweep(REPO, args)
-        finally:
-            subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
-                           capture_output=True, check=False)  # fmt: skip
+    with checked_out(rev, "bench_scale") as tree:
+        before, after = sweep(tree, args), sweep(REPO, args)
     print(f"{'UAVs':>5} {'cells':>9} {'ms/step ' + rev[:10]:>20} {'here':>8} {'ratio':>6}"
           f" {'MB ' + rev[:10]:>14} {'here':>7} {'ratio':>6} {'tracks':>9}")  # fmt: skip
     for key in sorted(after, key=lambda k: (k[1], k[0])):
