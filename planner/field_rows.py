@@ -26,9 +26,6 @@ class FieldRows:
     def __contains__(self, home: int) -> bool:
         return home in self._rows
 
-    def __len__(self) -> int:
-        return len(self._rows)
-
     def put(self, home: int, field: np.ndarray) -> None:
         """Store (or replace) the field of ``home``."""
         row = self._rows.get(home)

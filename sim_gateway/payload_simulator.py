@@ -98,6 +98,7 @@ class _Channel:
     last_error: str = ""
     fd: int | None = None  # the socket registered with the selector
     hello_s: float = -1e9  # when we last said hello to a udpout peer that has not answered
+    answered: bool = False  # a vehicle was heard on it (``_follow``)
 
 
 class _Writer:
@@ -199,9 +200,9 @@ class PayloadSimulator:
         """A udpout peer (PX4's onboard link) talks only to whoever talked to it first: say
         hello, again every heartbeat period until a vehicle answers on it (a hello sent before
         the autopilot opened its port is lost, and it would never answer)."""
-        if not channel.endpoint.needs_first_word or now - channel.hello_s < HEARTBEAT_PERIOD_S:
+        if channel.answered or not channel.endpoint.needs_first_word:
             return
-        if any(camera.channel is channel for camera in self.cameras):
+        if now - channel.hello_s < HEARTBEAT_PERIOD_S:
             return
         channel.hello_s = now
         hello = mavlink.MAVLink(None, 0, CAMERA_COMPONENT_ID)
@@ -329,6 +330,7 @@ class PayloadSimulator:
         heard_from_autopilot: bool,
     ) -> None:
         """The vehicle's camera answers where its autopilot was last heard."""
+        channel.answered = True
         if camera.channel is None or heard_from_autopilot:
             camera.channel, camera.address = channel, address
 

@@ -154,22 +154,24 @@ class SafetyEnvelope:
         out_cells = np.array(next_cells, dtype=np.int64, copy=True)
         out_headings = np.array(next_headings, dtype=np.int64, copy=True)
         overrides: list[Override] = []
-        n = len(cells)
-        settled: list[int] = []
+        flying = [i for i in range(len(cells)) if active[i]]
+        reasons = {
+            i: self.static_reason(cells[i], out_cells[i], float(flown_km[i]), home_km[i])
+            for i in flying
+        }
         # a UAV with no safe move holds (or escapes) wherever the others go: it settles first,
         # so the others keep apart from it (settled after them, a plane held in a corner let
         # another fly its next cell 0.4 km from it)
-        cornered = [
-            i for i in range(n)
-            if active[i] and not self._has_safe_move(cells[i], int(headings[i]), flown_km[i],
-                                                     home_km[i])
-        ]  # fmt: skip
-        for i in cornered + [i for i in range(n) if i not in cornered]:
-            if not active[i]:
-                continue
+        cornered = {
+            i for i in flying
+            if reasons[i] is not None
+            and not self._has_safe_move(cells[i], int(headings[i]), flown_km[i], home_km[i])
+        }  # fmt: skip
+        settled: list[int] = []
+        for i in sorted(flying, key=lambda i: i not in cornered):
             others = out_cells[settled] if settled else np.empty((0, 2), np.int64)
             proposed = out_cells[i].copy()
-            reason = self.static_reason(cells[i], proposed, float(flown_km[i]), home_km[i])
+            reason = reasons[i]
             if reason is None and not self.separated(proposed, others):
                 reason = "separation"
             if reason is not None:

@@ -25,9 +25,8 @@ flight envelope predicts every candidate path of a plane with that plane's bank 
 and acceptance radius (``PlaneModel.rows``). Leg airspeeds are each plane's own: every
 plane's timed legs are clamped to its own airspeed range (``PlaneModel.uav_speed_ranges_mps``),
 so a PX4 SIH plane is never asked above its 13.5 m/s while the ArduPlanes beside it still catch
-up at up to 1.5 v. The turn radius at airspeed v is
-``v**2 / (g tan(bank))`` (ArduPlane's defaults: 22 m/s at 65 deg, 23 m; the loiter circle is
-then WP_LOITER_RAD, 80 m).
+up at up to 1.5 v. The turn radius at airspeed v is ``v**2 / (g tan(bank))`` (ArduPlane's
+defaults: 22 m/s at 65 deg, 23 m; the loiter circle is then WP_LOITER_RAD, 80 m).
 
 ``scenario_warnings`` says, before take-off, when the scenario asks for what the airframe
 cannot fly: a UAV speed outside its airspeed range, or grid legs (one cell per decision step,
@@ -214,11 +213,10 @@ def fleet_plane_model(
     bank limit, largest loiter and acceptance radii), which the margins and the way home are
     judged with, and, for a fleet of more than one airframe, each plane's own turn
     (``uav_turn_limits``), which the flight envelope predicts each plane's path with
-    (``PlaneModel.rows``). Leg timing is each
-    plane's own (``uav_speed_ranges_mps``, airframes in UAV order): v .. min(1.5 v, its
-    AIRSPEED_MAX); the fleet's own range (``min_speed_mps``..``max_speed_mps``) is the
-    narrowest. ``airspeed_range_mps`` given is every plane's range; ``bank_limit_deg`` given
-    overrides the airframes' bank limit."""
+    (``PlaneModel.rows``). Leg timing is each plane's own (``uav_speed_ranges_mps``, airframes
+    in UAV order): v .. min(1.5 v, its AIRSPEED_MAX); the fleet's own range
+    (``min_speed_mps``..``max_speed_mps``) is the narrowest. ``airspeed_range_mps`` given is
+    every plane's range; ``bank_limit_deg`` given overrides the airframes' bank limit."""
     v = cfg.speed_mps
     if airspeed_range_mps is not None:
         ranges = [tuple(airspeed_range_mps)] * len(airframes)

@@ -55,10 +55,9 @@ def sitl_swarm(sitl_binary: Path, tmp_path: Path) -> Iterator:
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Under pytest-xdist (the suite's ``-n 2``), the SITL tests run one after another on one
     worker: each starts several autopilot instances, and two missions at once on a 2-core
-    machine would fly late. They come first, so that worker flies them from the suite's start."""
+    machine would fly late (pytest-xdist hands the largest group out first: that worker flies
+    them from the suite's start)."""
     here = Path(__file__).parent
-    sitl = [item for item in items if here in Path(item.fspath).parents]
-    for item in sitl:
-        item.add_marker(pytest.mark.xdist_group("sitl"))
-    ids = {id(item) for item in sitl}
-    items[:] = sitl + [item for item in items if id(item) not in ids]
+    for item in items:
+        if here in Path(item.fspath).parents:
+            item.add_marker(pytest.mark.xdist_group("sitl"))
