@@ -65,6 +65,8 @@ class MissionRecorder:
         self.engagements: list[dict] = []
         self.engage_misses = 0  # engagements requested where no target was within the radius
         self.mode_steps = np.zeros(len(MODES), dtype=np.int64)  # UAV-steps in each decision mode
+        #: ``home_by_end``: every UAV turned home at the first step (no time to go out and back)
+        self.turned_home_at_start = False
         self.violations = {"threat": 0, "separation": 0, "turn": 0, "range": 0}
         self._last = np.full((self.n, 2), np.nan)
         self._last_leg = np.full((self.n, 2), np.nan)
@@ -154,11 +156,18 @@ class MissionRecorder:
         """Unpickled from a daemon checkpoint written before decision modes were counted: they
         are counted from the resumed step on."""
         state.setdefault("mode_steps", np.zeros(len(MODES), dtype=np.int64))
+        state.setdefault("turned_home_at_start", False)
         self.__dict__.update(state)
 
     def record_modes(self, modes: np.ndarray) -> None:
-        """The planner's decision mode of every UAV at one step (indices into ``MODES``)."""
-        self.mode_steps += np.bincount(np.asarray(modes, dtype=np.int64), minlength=len(MODES))
+        """The planner's decision mode of every UAV at one step (indices into ``MODES``). At the
+        first step, with ``home_by_end``, every UAV in the return mode means the mission is too
+        short to go out and come back with the steps kept in reserve (``home_reserve_steps``,
+        and the daemon's more): px4-3uav flown as 12 steps stayed at home."""
+        modes = np.asarray(modes, dtype=np.int64)
+        if not self.mode_steps.any() and self.cfg.home_by_end and len(modes):
+            self.turned_home_at_start = bool((modes == MODES.index("return")).all())
+        self.mode_steps += np.bincount(modes, minlength=len(MODES))
 
     def record_engagement_miss(self) -> None:
         """An engagement was requested and nothing was within the engage radius."""
@@ -207,6 +216,7 @@ class MissionRecorder:
             "engaged_curve": list(self.engaged_curve),
             "engage_misses": int(self.engage_misses),
             "decision_modes": {m: int(c) for m, c in zip(MODES, self.mode_steps, strict=True)},
+            "turned_home_at_start": self.turned_home_at_start,
             "min_separation_km": float(min(finite_sep)) if finite_sep else None,
             "min_separation_curve": [
                 None if not math.isfinite(s) else round(s, 4) for s in self.min_separation_curve
@@ -271,6 +281,7 @@ def format_summary(result: dict) -> str:
         f"engaged         {result['engaged_count']} targets, value {result['engaged_value']:g}",
         f"min separation  {'n/a' if sep is None else f'{sep:.2f} km'}",
         _home_line(result),
+        *_turned_home_lines(result),
         f"violations      threat {v['threat']}, separation {v['separation']}, turn {v['turn']},"
         f" range {v['range']} (at decision steps)",
         *_continuous_lines(result),
@@ -287,6 +298,23 @@ def _home_line(result: dict) -> str:
         f"decision step"
     )
     return line + ("; RTL sent after it" if result.get("source") == "mavlink" else "")
+
+
+def turned_home_warning(steps: int) -> str:
+    """What every UAV turning home at the first step means (``turned_home_at_start``)."""
+    return (
+        f"every UAV turned home at the first step: with home_by_end, {steps} steps leave no "
+        "time to go out and back with the steps kept in reserve; fly more steps (swarmplan "
+        "run --as-flown --steps N shows what a flown mission of N steps does) or set "
+        "home_by_end = false"
+    )
+
+
+def _turned_home_lines(result: dict) -> list[str]:
+    """A warning when every UAV turned home at the first step (``home_by_end``)."""
+    if not result.get("turned_home_at_start"):
+        return []
+    return [f"warning         {turned_home_warning(result['steps'])}"]
 
 
 def _continuous_lines(result: dict) -> list[str]:

@@ -37,6 +37,7 @@ from mavlink_bridge.results.mission_result import LookTimes, StepRecord, StepSta
 from mavlink_bridge.safety.track_audit import TrackAudit
 from mavlink_bridge.way_home.flight_home import FlightHomePhase
 from planner.grid import heading_of_angle
+from planner.metrics import turned_home_warning
 from planner.pursuit_log import PursuitLog
 from planner.scenario import Scenario, UavStart
 
@@ -251,6 +252,8 @@ class DecisionLoop:
             stages.record(state, inputs, plan, flight)
             if step < ctx.steps:  # the decisions of the mission's steps, as offline counts them
                 state.recorder.record_modes(plan.decision.modes)
+                if step == 0 and state.recorder.turned_home_at_start:
+                    ctx.say(f"warning: {turned_home_warning(ctx.steps)}")
             batch = stages.command_batch(state, inputs, plan, flight)
             # how late the step's commands go out, measured once (pacing.Lateness)
             lateness = pacing.current.lateness(instant) if step > 0 else None

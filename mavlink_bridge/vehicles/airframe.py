@@ -50,6 +50,10 @@ from planner.errors import UserError
 #: how long to wait for the answers, and how often to ask again for the missing ones (wall s)
 READ_WINDOW_S = 4.0
 RESEND_S = 0.5
+#: ... and for a vehicle that has answered none yet: still starting (three PX4 SITL instances
+#: at 5x on a loaded 2-core machine: one answered nothing in 4 s and was flown on the
+#: defaults, a loiter radius of 0 m)
+SILENT_READ_WINDOW_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -133,6 +137,12 @@ def airframe_from_params(vehicle: VehicleState, cfg: PlannerConfig) -> Airframe:
     )
 
 
+def _all_names(vehicle: VehicleState) -> list[str]:
+    """Every parameter name the airframe read asks ``vehicle`` for."""
+    names = [name for options in names_for(vehicle).values() for name, _ in options]
+    return names + list(autopilot_for(vehicle).limit_names)
+
+
 def request_params(vehicle: VehicleState, names: list[str]) -> None:
     """PARAM_REQUEST_READ by name (param_index -1) for each name, to the autopilot."""
     for name in names:
@@ -149,7 +159,8 @@ def read_airframes(
 ) -> list[Airframe]:
     """Ask every vehicle for its limits (all names at once, the missing ones again every
     ``RESEND_S``) and return each one's airframe once every field has an answer, or at the end
-    of ``window_s`` with defaults for the rest."""
+    of ``window_s`` with defaults for the rest; a vehicle that has answered none of them is
+    asked on for ``SILENT_READ_WINDOW_S`` in all."""
 
     def missing(v: VehicleState) -> list[str]:
         out = []
@@ -158,12 +169,17 @@ def read_airframes(
                 out += [name for name, _ in options]
         return out + [name for name in autopilot_for(v).limit_names if name not in v.params]
 
-    deadline = time.monotonic() + window_s
+    started = time.monotonic()
+    asked = {v.system_id: set(_all_names(v)) for v in vehicles}
     while True:
         todo = [(v, missing(v)) for v in vehicles]
         todo = [(v, names) for v, names in todo if names]
-        if not todo or time.monotonic() >= deadline:
+        elapsed = time.monotonic() - started
+        silent = [v for v, _ in todo if not asked[v.system_id] & v.params.keys()]
+        if not todo or elapsed >= (SILENT_READ_WINDOW_S if silent else window_s):
             break
+        if elapsed >= window_s:  # only the silent ones are waited for now
+            todo = [(v, names) for v, names in todo if v in silent]
         for v, names in todo:
             request_params(v, names)
         wait(lambda: all(not missing(v) for v in vehicles), RESEND_S)

@@ -461,7 +461,24 @@ class FlightHomePhase:
             set_legs, waiting, keep=flight.holding, detouring=flight.detouring, movable=movable
         )
         flight.detouring = set(plan.detours)
+        for sid in set(plan.unresolved) - flight.unresolved:
+            flight.unresolved.add(sid)
+            point = plan.holds.get(sid)
+            does = (
+                "it flies on"
+                if point is None
+                else f"{'it flies via' if sid in plan.detours else 'it holds at'} "
+                f"({point[0]:.1f}, {point[1]:.1f}) km"
+            )
+            self.ctx.say(
+                f"warning: no way home for vehicle {sid} keeps d_min from every other plane's "
+                f"for sure: {does}, the way that keeps farthest from them "
+                f"({plan.closest_km[sid]:.2f} km, their strays counted)"
+            )
         for sid, point in plan.holds.items():
+            if sid in plan.unresolved:
+                flight.held.add(sid)
+                continue
             if sid in plan.staggered:
                 self.ctx.say(
                     f"vehicle {sid} holds at ({point[0]:.1f}, {point[1]:.1f}) km while vehicle "
@@ -475,10 +492,4 @@ class FlightHomePhase:
                     f"would come within d_min of another plane's"
                 )
             flight.held.add(sid)
-        for sid in set(plan.unresolved) - flight.unresolved:
-            flight.unresolved.add(sid)
-            self.ctx.say(
-                f"warning: vehicle {sid}'s way home may come within d_min of another plane's "
-                "and no hold or detour clears it: it flies on"
-            )
         return plan

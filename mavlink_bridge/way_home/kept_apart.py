@@ -43,22 +43,31 @@ class ReturnSeparation(HomewardFlights):
     """Deconflicts the planes' flights home (see the module's docstring): finds the holds,
     detours and staggered departures, and plans who flies home now."""
 
-    hold_rings_km: tuple[float, ...] = (0.0, 2.0, 4.0, 6.0, 8.0)
+    #: hold points (``hold``) around the plane, in ``pass_km`` (the simulator's 100 m/s plane:
+    #: 2.1 to 8.4 km; a PX4 SIH plane, 80 m circles, d_min 0.6: 0.4 to 1.7 km)
+    hold_rings: tuple[float, ...] = (0.0, 0.5, 1.0, 1.5, 2.0)
     hold_directions: int = 16
-    #: detour points (``detour``), this far from the plane: far enough to pass a home
-    #: circle off the line by d_min plus the circle's reach and the plane's stray (~4.2 km)
-    detour_rings_km: tuple[float, ...] = (3.0, 5.0, 7.0, 9.0, 12.0)
+    #: detour points (``detour``) around the plane, in ``pass_km``: rings fixed in km (3 to
+    #: 12) fitted the 100 m/s plane only; on px4-3uav's 4 x 3.2 km area every one was off
+    #: the area or in another's way, and a plane flew home through another's home circle
+    detour_rings: tuple[float, ...] = (0.75, 1.25, 1.75, 2.25, 3.0)
     #: a hold, detour or staggered departure is chosen this much beyond d_min, and kept while
     #: it keeps d_min: chosen 0.01 km clear, one was condemned 2 s later by the drift of the
     #: prediction, and the plane was left without a way
     choose_margin_km: float = 0.1
 
-    def _rings(self, xy: np.ndarray, radii_km: tuple[float, ...]) -> np.ndarray:
-        """Points on circles of ``radii_km`` around ``xy``, ``hold_directions`` to a circle,
-        circle by circle (radius 0: ``xy`` itself)."""
+    def pass_km(self) -> float:
+        """How far off its line a plane must pass a home circle to keep d_min from the plane
+        circling there: d_min, the circle's reach and the stray of each (4.2 km for the
+        simulator's 100 m/s plane, 0.84 km for PX4's SIH plane at d_min 0.6)."""
+        return self.d_min_km + self.circle_km() + self.slack_km
+
+    def _rings(self, xy: np.ndarray, radii: tuple[float, ...]) -> np.ndarray:
+        """Points on circles of ``radii`` (in ``pass_km``) around ``xy``, ``hold_directions``
+        to a circle, circle by circle (radius 0: ``xy`` itself)."""
         angles = np.arange(self.hold_directions) * (2 * math.pi / self.hold_directions)
-        ring = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-        return np.concatenate([xy[None] if r == 0 else xy[None] + r * ring for r in radii_km])
+        ring = self.pass_km() * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        return np.concatenate([xy[None] if r == 0 else xy[None] + r * ring for r in radii])
 
     def _circle_and_leg_clear(self, xy: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Points whose circle keeps the threat margin (the loiter diameter from the point)
@@ -157,14 +166,14 @@ class ReturnSeparation(HomewardFlights):
         return points[routes.turn_clearance(xy, course_rad, points) >= routes.turn_margin_km]
 
     def _hold_points(self, xy: np.ndarray, course_rad: float) -> np.ndarray:
-        """Safe points to hold at around ``xy``, nearest first (``hold_rings_km``)."""
-        rings = self._rings(xy, (0.0, *(r for r in self.hold_rings_km if r > 0)))
+        """Safe points to hold at around ``xy``, nearest first (``hold_rings``)."""
+        rings = self._rings(xy, (0.0, *(r for r in self.hold_rings if r > 0)))
         return self._safe_points(xy, course_rad, rings)
 
     def _detour_points(self, xy: np.ndarray, course_rad: float, aim: np.ndarray) -> np.ndarray:
         """Safe points to fly through from ``xy`` on to ``aim`` (the leg on keeps the threat
-        margin too), the shortest way first (``detour_rings_km``)."""
-        points = self._rings(xy, self.detour_rings_km)
+        margin too), the shortest way first (``detour_rings``)."""
+        points = self._rings(xy, self.detour_rings)
         total = np.hypot(*(points - xy).T) + np.hypot(*(aim - points).T)
         points = self._safe_points(xy, course_rad, points[np.argsort(total, kind="stable")])
         on = self.routes.leg_clearance(points, np.broadcast_to(aim, points.shape))
@@ -234,10 +243,10 @@ class ReturnSeparation(HomewardFlights):
         conflicts with none set, and the others are judged against it: a plane that another
         holds for must not then fly through the hold. It flies home once its way conflicts
         with none of what the others do. A plane that conflicts and finds no hold point,
-        detour or staggered departure (``stagger``) flies its leg (``unresolved``: the daemon
-        says so). ``movable``: of ``set_legs``, the planes (system id -> course) that may be
-        guided again to let another leave first (planes in RTL: a DO_REPOSITION takes them
-        out of it)."""
+        detour or staggered departure (``stagger``) takes the one of them, or its leg, that
+        comes least close (``unresolved``: the daemon says so). ``movable``: of ``set_legs``,
+        the planes (system id -> course) that may be guided again to let another leave first
+        (planes in RTL: a DO_REPOSITION takes them out of it)."""
         planning = _Planning(keep or {}, movable or {}, list(set_legs))
         order = sorted(waiting, key=lambda lc: (lc[0].arrival_s, lc[0].system_id))
         for leg, course in order:
@@ -265,8 +274,8 @@ class ReturnSeparation(HomewardFlights):
     def _find_way(self, planning: _Planning, leg: Homeward, course: float) -> None:
         """A waiting plane flies its leg home when it conflicts with none set; else, in this
         order, it holds (unless only planes that stay where they are block it), detours, has
-        the plane in its way hold while it leaves first (``stagger``), or flies its leg
-        unresolved."""
+        the plane in its way hold while it leaves first (``stagger``), or takes the way that
+        comes least close (``_least_close``)."""
         fixed, plan, sid = planning.fixed, planning.plan, leg.system_id
         blocking = [o for o in fixed if self.conflict(leg, o)]
         if not blocking:
@@ -293,8 +302,7 @@ class ReturnSeparation(HomewardFlights):
             leg, course, fixed, blocking, {**planning.movable, **planning.released}
         )
         if staggered is None:
-            plan.unresolved.append(sid)
-            fixed.append(leg)
+            self._least_close(planning, leg, course, fixed)
             return
         other, hold_km, via, hold, way = staggered
         planning.released.pop(other, None)
@@ -306,6 +314,43 @@ class ReturnSeparation(HomewardFlights):
         else:
             plan.holds[sid] = via
             plan.detours.append(sid)
+
+    def _least_close(
+        self, planning: _Planning, leg: Homeward, course: float, fixed: list[Homeward]
+    ) -> None:
+        """No way of ``leg``'s plane clears every flight set: it takes the one that comes least
+        close to them (``unresolved``: the daemon says so), its leg home, a hold or a detour.
+        Flying its leg on regardless took a plane of px4-3uav through the circle of another
+        at its home (0.04 km); the planner's missed-claim rule does the same (the move that
+        keeps the most separation)."""
+        xy, sid = leg.start_km, leg.system_id
+        holds = self._hold_points(xy, course)
+        detours = self._detour_points(xy, course, leg.aim_km)
+        options: list[tuple[np.ndarray | None, bool, Homeward]] = [(None, False, leg)]
+        options += [
+            (p, False, f)
+            for p, f in zip(holds, self.guided_flights(sid, xy, course, holds), strict=True)
+        ]
+        options += [
+            (p, True, f)
+            for p, f in zip(
+                detours,
+                self.guided_flights(sid, xy, course, detours, leg.aim_km, leg.at_home),
+                strict=True,
+            )
+        ]
+        closest = [min((self.clearance_km(f, o) for o in fixed), default=math.inf)
+                   for _, _, f in options]  # fmt: skip
+        best = int(np.argmax(closest))
+        point, is_detour, flight = options[best]
+        planning.plan.unresolved.append(sid)
+        planning.plan.closest_km[sid] = closest[best]
+        planning.fixed.append(flight)
+        if point is None:
+            return
+        planning.plan.holds[sid] = point.copy()
+        if is_detour:
+            planning.plan.detours.append(sid)
 
     def _end_hold(self, planning: _Planning, leg: Homeward, course: float) -> None:
         """A plane holding now flies home once its way is clear of what every other one does;
@@ -323,8 +368,8 @@ class ReturnSeparation(HomewardFlights):
             return
         found = self.detour(leg, course, others)
         if found is None:
-            plan.unresolved.append(sid)
-            planning.fixed = [*others, leg]
+            planning.fixed = others
+            self._least_close(planning, leg, course, others)
             return
         plan.holds[sid], flight = found
         plan.detours.append(sid)
@@ -338,7 +383,10 @@ class ReturnPlan:
     holds: dict[int, np.ndarray] = field(default_factory=dict)  # system id -> point to fly to
     #: of ``holds``, the planes that fly through their point on the way (a detour), not wait
     detours: list[int] = field(default_factory=list)
-    unresolved: list[int] = field(default_factory=list)  # conflicting, no hold or detour found
+    #: conflicting whatever they do: each takes the way that comes least close (a hold or a
+    #: detour in ``holds``, else its leg home), ``closest_km`` to the others less their strays
+    unresolved: list[int] = field(default_factory=list)
+    closest_km: dict[int, float] = field(default_factory=dict)
     #: of ``holds``, planes held so that another can leave first (``stagger``): -> that plane
     staggered: dict[int, int] = field(default_factory=dict)
 

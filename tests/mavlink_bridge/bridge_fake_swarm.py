@@ -33,6 +33,7 @@ class FakeVehicle:
     refuse_arm: str | None = None  # PreArm text to refuse arming with
     refuse_command: int | None = None  # a command id answered DENIED
     keep_param: str | None = None  # a parameter a PARAM_SET does not change (echoes its old 0)
+    params_after_s: float = 0.0  # PARAM_REQUEST_READ unanswered this long (wall s; still booting)
     silent: threading.Event = field(default_factory=threading.Event)
     sock: socket.socket = field(
         default_factory=lambda: socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -66,6 +67,7 @@ class FakeVehicle:
 
     def __post_init__(self) -> None:
         self.home = (self.lat, self.lon)  # where it starts: its launch point
+        self.created = time.monotonic()
         self.sock.bind(("127.0.0.1", 0))
         self.sock.setblocking(False)
         self.ap = mavlink.MAVLink(None, self.sysid, 1)
@@ -291,7 +293,7 @@ class FakeSwarm(threading.Thread):
         elif kind == "PARAM_REQUEST_READ":  # by name; a name it does not have: no answer
             name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode()
             value = v.params.get(name, v.limits.get(name))
-            if value is not None:
+            if value is not None and time.monotonic() - v.created >= v.params_after_s:
                 real32 = mavlink.MAV_PARAM_TYPE_REAL32
                 v.send(v.ap, v.ap.param_value_encode(name.encode(), value, real32, 0, 0))
         elif kind == "MISSION_COUNT":

@@ -106,6 +106,21 @@ def test_gcs_failsafe_is_set_and_confirmed_before_arming(paper10, udp_port, fake
         assert v.params["FS_SHORT_ACTN"] == 0 and v.params["FS_LONG_TIMEOUT"] == 5
 
 
+def test_a_vehicle_answering_its_parameters_late_is_flown_on_its_own_airframe(
+    paper10, udp_port, fake_swarm_factory
+):
+    """Three PX4 SITL instances at 5x on a loaded machine: one answered no parameter in the 4 s
+    the airframe read waited, and was flown on the defaults (a loiter radius of 0 m). A vehicle
+    that has answered none is asked on (``SILENT_READ_WINDOW_S``)."""
+    fake_swarm_factory(2, udp_port, params_after_s=7.0)
+    said: list[str] = []
+    MissionDaemon(paper10, options(udp_port, expect=2, steps=1, progress=said.append)).fly()
+    frames = [line for line in said if line.startswith("airframe vehicle")]
+    assert len(frames) == 2, said
+    for line in frames:
+        assert "loiter radius 60 m" in line and "not reported" not in line, line
+
+
 def test_a_vehicle_keeping_its_failsafe_stops_the_launch_unarmed(
     paper10, udp_port, fake_swarm_factory
 ):

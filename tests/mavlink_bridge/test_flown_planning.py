@@ -10,6 +10,7 @@ import pytest
 
 from mavlink_bridge.mission.daemon import DaemonOptions
 from planner.constraints import segment_clearance
+from planner.metrics import format_summary
 from planner.scenario import load_scenario
 from sim_gateway.offline_runner import run_offline
 from swarmplan.as_flown import simulator_planning_scenario
@@ -65,3 +66,20 @@ def test_two_uavs_planned_as_flown_that_meet_head_on_keep_apart():
     result = run_offline(scenario, 11, planning=planning, account=False)
     assert result["min_separation_km"] >= scenario.config.min_separation_km
     assert result["violations"] == {"threat": 0, "separation": 0, "turn": 0, "range": 0}
+
+
+def test_a_mission_too_short_to_go_out_and_back_says_so():
+    """px4-3uav flown as 12 steps stayed at home: with home_by_end, the way home and the steps
+    kept in reserve (3, and the daemon's 3 more) left no time to search, and nothing said why.
+    Every UAV turning home at the first step is now said; 16 steps search."""
+    scenario = load_scenario("px4-3uav")
+    assert scenario.config.home_by_end
+    results = {}
+    for steps in (12, 16):
+        planning = simulator_planning_scenario(scenario, steps)
+        results[steps] = run_offline(scenario, 1, steps, account=False, planning=planning)
+    short, long = results[12], results[16]
+    assert short["turned_home_at_start"] and short["engaged_count"] == 0
+    assert "every UAV turned home at the first step" in format_summary(short)
+    assert not long["turned_home_at_start"] and long["engaged_count"] >= 1
+    assert "turned home" not in format_summary(long)

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel
 from mavlink_bridge.way_home.around_threats import HomeRoutes
@@ -251,3 +252,39 @@ def test_a_plane_in_rtl_may_hold_off_its_home_for_another_to_pass():
     else:
         gone = way
     assert not s.conflict(gone, held)
+
+
+def test_on_a_small_area_a_plane_with_no_clear_way_home_takes_the_one_that_keeps_farthest():
+    """px4-3uav (0.4 km cells, 4 x 3.2 km, PX4's 12 m/s SIH plane, d_min 0.6) searching to
+    its last step, seed 3 in the simulator: plane 3 ended beside plane 1's home, its own home
+    beyond plane 2's. Plane 1 comes home from the north, plane 2 circles its home: every way
+    of plane 3 starts too near plane 1 to keep d_min for sure. It flew its straight line on
+    and passed 0.04 km from plane 2 circling; the hold and detour points, rings fixed in km
+    for the 100 m/s plane (2 to 12 km), were all off the area. Rings in ``pass_km`` and the
+    way that keeps farthest: plane 3 holds or goes round, never through plane 2's circle."""
+    plane = PlaneModel(
+        speed_mps=12.0, bank_limit_deg=50.0, capture_radius_m=30.0, wp_loiter_radius_m=80.0,
+        min_speed_mps=12.0, max_speed_mps=13.5, slowest_mps=10.0,
+    )  # fmt: skip
+    routes = HomeRoutes(
+        Grid(10, 8, 0.4), np.array([[2.2, 2.2]]), np.array([0.25]), plane, margin_km=0.3
+    )
+    s = ReturnSeparation(routes, 0.6, slack_km=float(plane.loiter_radius_km()))
+    assert s.pass_km() < 1.0  # the rings fit the area: 0.5 to 3 of it
+    home_1, home_2, home_3 = np.array([0.6, 0.6]), np.array([2.2, 0.6]), np.array([3.4, 0.6])
+    coming, circling, way = s.flights_home(
+        [(1, np.array([0.59, 1.18]), home_1, -np.pi / 2, 12.0),
+         (2, home_2 - np.array([0.0, 0.08]), home_2, 0.0, 12.0),
+         (3, np.array([1.09, 0.58]), home_3, 0.0, 12.0)]
+    )  # fmt: skip
+    assert s.conflict(way, circling) and s.conflict(way, coming)
+    plan = s.plan([coming, circling], [(way, 0.0)])
+    assert plan.unresolved == [3] and 3 in plan.holds  # a hold or a detour, not the line
+    point = plan.holds[3]
+    then = home_3 if 3 in plan.detours else None
+    (taken,) = s.guided_flights(3, way.start_km, 0.0, point[None], then, then is not None)
+    closest = min(s.clearance_km(taken, coming), s.clearance_km(taken, circling))
+    assert closest == pytest.approx(plan.closest_km[3])
+    # the line passes through plane 2's circle; the way taken keeps clear of it
+    assert s.clearance_km(way, circling) < 0 < s.clearance_km(taken, circling)
+    assert closest > min(s.clearance_km(way, coming), s.clearance_km(way, circling))

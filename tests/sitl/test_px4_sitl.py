@@ -67,18 +67,14 @@ def test_two_px4_planes_at_real_time_arm_take_off_fly_two_steps_and_go_home(px4_
     flew_and_returned(run, [1, 2], "AUTO.LOITER", "AUTO.RTL")
 
 
-@pytest.mark.skip(
-    reason="known failure, open: in CI two of the three SIH planes came 0.48 km apart in the "
-    "mission (d_min 0.6) and 0.10 km on the way home, on px4-3uav's 4 x 3.2 km area; docs/px4.md"
-)
 @pytest.mark.timeout(340)
 def test_three_px4_planes_look_and_engage_with_no_violation(px4_sitl, tmp_path):
-    """px4-3uav searching to the end of 10 steps, then RTL. Its planner would bring the planes
-    home by the last step, but flown so short a mission it kept them at home (px4-3uav as 12 and
-    14 steps: no engagement, 36 % coverage); searching, the first engagement came at step 5-8
-    in every run. Open: the flight home after it, RTL straight lines on so small an area, came
-    within d_min in 1 run of 5 (0.53 km, d_min 0.6; docs/px4.md), so the RTL phase's separation
-    is printed, not asserted."""
+    """px4-3uav searching to the end of 10 steps, then home: RTL, or guided around a threat,
+    or held for another's way home. Flown so short a mission its planner would keep the planes
+    at home (``home_by_end``: 12 steps leave no time to go out and back, and it says so); the
+    first engagement came at step 5-8 in every run. No threat entry and no separation breach
+    in any phase, the flight home's included (a plane whose way home no hold or detour cleared
+    had flown its line on through another's home circle: 0.53 km in 1 run of 5, d_min 0.6)."""
     scenario = searching_to_the_end("px4-3uav", tmp_path)
     run = fly_px4_mission(
         px4_sitl, tmp_path, scenario, speedup=SPEEDUP, steps=10, timeout_s=300,
@@ -97,14 +93,12 @@ def test_three_px4_planes_look_and_engage_with_no_violation(px4_sitl, tmp_path):
     assert result["engaged_count"] >= 1, run.explain()
     assert no_violations(result), run.explain()
     for phase, audit in result["track_audit"]["phases"].items():
+        print(f"{phase}: min separation {audit['min_separation_km']} km")
         assert audit["threat_entries"] == 0, (phase, audit)
-        if phase == "rtl":
-            print(f"rtl: min separation {audit['min_separation_km']} km")
-        else:
-            assert audit["separation_breaches"] == 0, (phase, audit)
+        assert audit["separation_breaches"] == 0, (phase, audit)
     # every plane sent home: RTL, or guided home around a threat RTL's straight line would cross
     rtl = sorted(result["rtl_sent_to"])
-    assert sorted(rtl + result["guided_home_around_threats"]) == [1, 2, 3], run.explain()
+    assert set(rtl) | set(result["guided_home_around_threats"]) == {1, 2, 3}, run.explain()
     flew_and_returned(run, rtl, "AUTO.LOITER", "AUTO.RTL")
 
 
