@@ -34,6 +34,10 @@ from planner.geodesy import local_km_to_geodetic
 from planner.grid import Grid
 from planner.scenario import Scenario
 
+#: how long the daemon listens for the return mode of planes sent RTL at the watch's end
+#: (vehicle seconds: a few heartbeats)
+RTL_SEEN_S = 5.0
+
 
 @dataclass
 class FlightHome:
@@ -242,10 +246,7 @@ class FlightHomePhase:
             left_s = limit_s + extra_s - waited_s
             guiding = bool(flight.homing or flight.holding)
             chunk_s = min(period_s, left_s) if guiding else left_s
-            if self.ctx.clock is not None:
-                done = self.ctx.wait_sim(watch.home, chunk_s)
-            else:
-                done = self.ctx.require_link().pump_until(watch.home, chunk_s / self.ctx.time_scale)
+            done = self._listen(watch.home, chunk_s)
             waited_s += chunk_s
             if flight.holding:
                 extra_s = min(limit_s, extra_s + chunk_s)
@@ -263,6 +264,25 @@ class FlightHomePhase:
             for v in still:
                 flight.holding.pop(v.system_id)
             self.slow_home_circles(self.ctx.send([autopilot_for(v).rtl_command(v) for v in still]))
+            self.see_rtl(still)
+
+    def see_rtl(self, vehicles: list[VehicleState]) -> None:
+        """Listen on (the tlog records it) until each of ``vehicles`` reports its autopilot's
+        return mode, for at most ``RTL_SEEN_S`` of the vehicles' seconds: a PX4 plane held to
+        the watch's end was sent RTL and the daemon closed its log on the COMMAND_ACK, before
+        any heartbeat said AUTO.RTL."""
+
+        def returning() -> bool:
+            return all(v.lost or autopilot_for(v).returning(v.custom_mode) for v in vehicles)
+
+        self._listen(returning, RTL_SEEN_S)
+
+    def _listen(self, done: Callable[[], bool], vehicle_s: float) -> bool:
+        """Listen on until ``done`` or for ``vehicle_s`` of the vehicles' seconds (in lockstep:
+        granting them); True when ``done``."""
+        if self.ctx.clock is not None:
+            return self.ctx.wait_sim(done, vehicle_s)
+        return self.ctx.require_link().pump_until(done, vehicle_s / self.ctx.time_scale)
 
     def guide_stray_returns(self) -> list[Command]:
         """During the mission: a plane its autopilot switched to RTL (a fence breach: ArduPlane's
@@ -461,35 +481,8 @@ class FlightHomePhase:
             set_legs, waiting, keep=flight.holding, detouring=flight.detouring, movable=movable
         )
         flight.detouring = set(plan.detours)
-        for sid in set(plan.unresolved) - flight.unresolved:
-            flight.unresolved.add(sid)
-            point = plan.holds.get(sid)
-            does = (
-                "it flies on"
-                if point is None
-                else f"{'it flies via' if sid in plan.detours else 'it holds at'} "
-                f"({point[0]:.1f}, {point[1]:.1f}) km"
-            )
-            self.ctx.say(
-                f"warning: no way home for vehicle {sid} keeps d_min from every other plane's "
-                f"for sure: {does}, the way that keeps farthest from them "
-                f"({plan.closest_km[sid]:.2f} km, their strays counted)"
-            )
-        for sid, point in plan.holds.items():
-            if sid in plan.unresolved:
-                flight.held.add(sid)
-                continue
-            if sid in plan.staggered:
-                self.ctx.say(
-                    f"vehicle {sid} holds at ({point[0]:.1f}, {point[1]:.1f}) km while vehicle "
-                    f"{plan.staggered[sid]} leaves first: their ways home cross, and they are too "
-                    "close for either to wait or go around the other alone"
-                )
-            elif sid not in flight.holding:
-                how = "flies home via" if sid in plan.detours else "holds at"
-                self.ctx.say(
-                    f"vehicle {sid} {how} ({point[0]:.1f}, {point[1]:.1f}) km: its way home "
-                    f"would come within d_min of another plane's"
-                )
-            flight.held.add(sid)
+        for line in plan.news(flight.holding.keys(), flight.unresolved):
+            self.ctx.say(line)
+        flight.unresolved |= set(plan.unresolved)
+        flight.held |= plan.holds.keys()
         return plan

@@ -30,6 +30,7 @@ All geometry is in the mission's local km; times are the vehicles' seconds.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -389,6 +390,35 @@ class ReturnPlan:
     closest_km: dict[int, float] = field(default_factory=dict)
     #: of ``holds``, planes held so that another can leave first (``stagger``): -> that plane
     staggered: dict[int, int] = field(default_factory=dict)
+
+    def news(self, holding: Iterable[int], unresolved: Iterable[int]) -> list[str]:
+        """What the daemon says of this plan: each plane newly unresolved (not in
+        ``unresolved``), staggered, or newly holding or detouring (not in ``holding``)."""
+        lines = []
+        for sid in sorted(set(self.unresolved) - set(unresolved)):
+            point = self.holds.get(sid)
+            how = "it flies via" if sid in self.detours else "it holds at"
+            does = "it flies on" if point is None else f"{how} ({point[0]:.1f}, {point[1]:.1f}) km"
+            lines.append(
+                f"warning: no way home for vehicle {sid} keeps d_min from every other plane's "
+                f"for sure: {does}, the way that keeps farthest from them "
+                f"({self.closest_km[sid]:.2f} km, their strays counted)"
+            )
+        for sid, point in self.holds.items():
+            at = f"({point[0]:.1f}, {point[1]:.1f}) km"
+            if sid in self.staggered:
+                lines.append(
+                    f"vehicle {sid} holds at {at} while vehicle {self.staggered[sid]} leaves "
+                    "first: their ways home cross, and they are too close for either to wait "
+                    "or go around the other alone"
+                )
+            elif sid not in self.unresolved and sid not in set(holding):
+                how = "flies home via" if sid in self.detours else "holds at"
+                lines.append(
+                    f"vehicle {sid} {how} {at}: its way home would come within d_min of "
+                    "another plane's"
+                )
+        return lines
 
 
 @dataclass
