@@ -66,10 +66,12 @@ def test_three_planes_with_the_payload_simulator_search_look_and_engage(sitl_bin
 
 @pytest.mark.timeout(300)
 def test_two_planes_at_real_time_become_ready_arm_take_off_and_fly_two_steps(sitl_binary, tmp_path):
+    """The 1x readiness check; the flight home is watched for 3 s only (at 1x it took 49 s of
+    the test's 122, and the 3-plane test watches it to the end)."""
     scenario = Path(__file__).with_name("arduplane-1x.toml")
     run = fly_sitl_mission(
         sitl_binary, tmp_path, planes=2, speedup=1, scenario=str(scenario), steps=2,
-        timeout_s=240, with_payload=False,
+        timeout_s=240, with_payload=False, daemon_args=["--rtl-watch", "3"],
     )  # fmt: skip
     assert run.returncode == 0, run.explain()
     text = run.daemon.text()
