@@ -170,9 +170,9 @@ class _FenceTransfer:
         asked: list[int] = []
         while self.vehicle.mission_requests:
             seq, mission_type = self.vehicle.mission_requests.popleft()
-            if mission_type == mavlink.MAV_MISSION_TYPE_FENCE and 0 <= seq < n:
-                if seq not in asked:
-                    asked.append(seq)
+            fence = mission_type == mavlink.MAV_MISSION_TYPE_FENCE
+            if fence and 0 <= seq < n and seq not in asked:
+                asked.append(seq)
         for seq in asked:
             send_fence_item(self.vehicle, seq, self.circles[seq])
             self.last_asked, self.last_sent, self.heard = seq, now, now

@@ -269,8 +269,10 @@ class FlightHomePhase:
     def see_rtl(self, vehicles: list[VehicleState]) -> None:
         """Listen on (the tlog records it) until each of ``vehicles`` reports its autopilot's
         return mode, for at most ``RTL_SEEN_S`` of the vehicles' seconds: a PX4 plane held to
-        the watch's end was sent RTL and the daemon closed its log on the COMMAND_ACK, before
-        any heartbeat said AUTO.RTL."""
+        the watch's end, or every plane of a daemon stopped by SIGTERM, was sent RTL and the
+        daemon closed its log on the COMMAND_ACK, before any heartbeat said AUTO.RTL."""
+        if not vehicles:
+            return
 
         def returning() -> bool:
             return all(v.lost or autopilot_for(v).returning(v.custom_mode) for v in vehicles)
@@ -372,6 +374,8 @@ class FlightHomePhase:
             holding = ", ".join(str(i) for i in sorted(flight.holding))
             line += f"; holding for the others' way home: {holding}"
         self.ctx.say(line)
+        if not separate:  # no watch follows (an interrupted daemon): see the RTL taken
+            self.see_rtl([c.vehicle for c in rtl if c.accepted])
         return sent, skipped
 
     def homeward_commands(self, vehicles: list[VehicleState], announce: bool) -> list[Command]:

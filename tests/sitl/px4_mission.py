@@ -118,6 +118,7 @@ def fly_px4_mission(
                  *[a for s in swarms for a in s.connect_args()], *(daemon_args or [])]
             )  # fmt: skip
             procs.append(daemon)
+            run.daemon_process = daemon
             readers.append(_read_lines(daemon, run.daemon, started))
             # PX4 once the daemon has measured its own pace (``keeping_up.py``): three PX4
             # instances booting at 5x took that measure from 0.4 s a step to 3.8 and more

@@ -70,6 +70,7 @@ class SitlMissionRun:
     planes: int
     speedup: float
     step_s: float
+    daemon_process: subprocess.Popen | None = None  # while it runs (to signal it)
 
     def explain(self) -> str:
         """What to show when a test fails: the daemon's last lines and the payload's."""

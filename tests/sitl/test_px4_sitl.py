@@ -11,6 +11,7 @@ cost".
 
 from __future__ import annotations
 
+import signal
 import time
 from pathlib import Path
 
@@ -45,22 +46,32 @@ def flew_and_returned(run, system_ids: list[int], guided: str, rtl: str) -> dict
 
 
 @pytest.mark.timeout(240)
-def test_two_px4_planes_at_real_time_arm_take_off_fly_two_steps_and_go_home(px4_sitl, tmp_path):
+def test_two_px4_planes_at_real_time_arm_take_off_fly_two_steps_and_go_home_on_sigterm(
+    px4_sitl, tmp_path
+):
     """The issue's 1x check: ready (PX4's pre-arm bit), armed, runway take-off, two decision
-    steps guided in AUTO.LOITER, RTL sent and flown (AUTO.RTL), the cameras heard."""
+    steps guided in AUTO.LOITER, the cameras heard; then SIGTERM, as an operator stops the
+    daemon: RTL sent and flown (AUTO.RTL in the planes' heartbeats), the result written."""
+
+    def sigterm_after_step_two(run, swarms) -> None:
+        while run.daemon_process.poll() is None and not reached_step(run, 2):
+            time.sleep(0.2)
+        run.daemon_process.send_signal(signal.SIGTERM)
+
     scenario = str(Path(__file__).with_name("px4-1x.toml"))
     run = fly_px4_mission(
-        px4_sitl, tmp_path, scenario, speedup=1, steps=2, timeout_s=200,
-        daemon_args=["--rtl-watch", "3"],
+        px4_sitl, tmp_path, scenario, speedup=1, steps=4, timeout_s=200,
+        during=sigterm_after_step_two,
     )  # fmt: skip
     print(f"wall {run.wall_s:.0f} s")
-    assert run.returncode == 0, run.explain()
+    assert run.returncode == 143, run.explain()
     text = run.daemon.text()
     # PX4's own settings, never ArduPilot's
     assert "GCS failsafe set: NAV_DLL_ACT 0" in text and "FS_" not in text, run.explain()
     assert "armed 2 vehicles after" in text and "airborne, AUTO.LOITER" in text, run.explain()
     result = run.result
-    assert result is not None and result["steps"] == 2, run.explain()
+    assert result is not None and result["ended"] == "interrupted (SIGTERM)", run.explain()
+    assert 2 <= result["steps"] < 4, run.explain()
     assert result["uavs_without_camera"] == [], run.explain()
     assert no_violations(result), run.explain()
     assert sorted(result["rtl_sent_to"]) == [1, 2], run.explain()
