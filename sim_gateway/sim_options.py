@@ -59,7 +59,12 @@ class SimOptions:
     """How the simulator runs and where its vehicles talk."""
 
     seed: int = 0
-    vehicles: int | None = None  # None: the scenario's UAV count
+    vehicles: int | None = None  # None: the scenario's UAV count (from ``first_uav``: the rest)
+    #: fly the scenario's UAVs (as it is) from this one (0-based) on, as system ids 1.. of this
+    #: network: a swarm of more than MAX_VEHICLES flies as several simulators (the daemon's
+    #: ``--connect SPEC@FIRST``, mavlink_bridge/vehicles/vehicle_key.py). None: ``vehicles``
+    #: makes a scenario of that many UAVs (random starts)
+    first_uav: int | None = None
     speedup: float = 1.0
     fast: bool = False
     tick_s: float = 0.1
@@ -101,6 +106,8 @@ class SimOptions:
             raise SimulatorError(f"--boot-s must be in [0, 600] s, got {self.boot_s}")
         if not (math.isfinite(self.position_rate_hz) and 0 < self.position_rate_hz <= 50):
             raise SimulatorError(f"--telemetry-hz must be in (0, 50], got {self.position_rate_hz}")
+        if self.first_uav is not None and self.first_uav < 0:
+            raise SimulatorError(f"--first-uav must be 0 or more, got {self.first_uav}")
         if self.vehicles is not None and not 1 <= self.vehicles <= MAX_VEHICLES:
             raise SimulatorError(f"--vehicles must be in 1..{MAX_VEHICLES}, got {self.vehicles}")
         for name, port, low in (
@@ -123,6 +130,29 @@ def resolve_gcs_host(host: str) -> str:
             f"--gcs-host {host!r} is not an IPv4 address or a name this machine can resolve "
             f"({exc}); e.g. --gcs-host 127.0.0.1"
         ) from None
+
+
+def flown_uavs(
+    scenario: Scenario, count: int | None, first_uav: int | None
+) -> tuple[Scenario, range]:
+    """The scenario (``with_vehicle_count`` without ``first_uav``) and the UAVs of it this
+    simulator flies: ``count`` (default: the rest) from ``first_uav`` on, at most
+    ``MAX_VEHICLES``."""
+    if first_uav is None:
+        scenario = with_vehicle_count(scenario, count)
+        return scenario, range(scenario.uav_count)
+    n = scenario.uav_count - first_uav if count is None else count
+    if n < 1 or first_uav + n > scenario.uav_count:
+        raise SimulatorError(
+            f"--first-uav {first_uav} with {n} vehicles passes the {scenario.uav_count} UAVs of "
+            f"scenario {scenario.name!r}; lower --first-uav or --vehicles"
+        )
+    if n > MAX_VEHICLES:
+        raise SimulatorError(
+            f"UAVs {first_uav}.. of scenario {scenario.name!r} are {n} vehicles and one "
+            f"simulator serves at most {MAVLINK_NOTE}; give --vehicles {MAX_VEHICLES} or fewer"
+        )
+    return scenario, range(first_uav, first_uav + n)
 
 
 def with_vehicle_count(scenario: Scenario, count: int | None) -> Scenario:

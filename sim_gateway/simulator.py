@@ -43,7 +43,7 @@ from sim_gateway.mission_protocol import retry_upload
 from sim_gateway.radio import SwarmRadio
 from sim_gateway.sensor_looks import Looks
 from sim_gateway.signing import enable_signing
-from sim_gateway.sim_options import SimOptions, SimulatorError, resolve_gcs_host, with_vehicle_count
+from sim_gateway.sim_options import SimOptions, SimulatorError, flown_uavs, resolve_gcs_host
 from sim_gateway.target_account import TargetAccount
 from sim_gateway.telemetry import BUILDERS
 from sim_gateway.telemetry_streams import FleetSnapshot
@@ -63,7 +63,7 @@ class Simulator:
 
     def __init__(self, scenario: Scenario, options: SimOptions) -> None:
         options.validate()
-        scenario = with_vehicle_count(scenario, options.vehicles)
+        scenario, uavs = flown_uavs(scenario, options.vehicles, options.first_uav)
         self.scenario = scenario
         self.options = options
         self.config = scenario.config
@@ -81,7 +81,7 @@ class Simulator:
         self.utc0_us = int(time.time() * 1e6)
         self.max_range_m = self.config.max_range_km * 1000.0
 
-        starts = scenario.starts_for_seed(options.seed)
+        starts = scenario.starts_for_seed(options.seed)[uavs.start : uavs.stop]
         n = len(starts)
         self.fleet = FleetKinematics(
             np.array([s.x_km * 1000.0 for s in starts]),

@@ -62,6 +62,10 @@ def positive_int(text: str) -> int:
     return _whole_number(text, 1, "must be at least 1")
 
 
+def non_negative_int(text: str) -> int:
+    return _whole_number(text, 0, "must be 0 or more")
+
+
 def uav_index(text: str) -> int:
     """A UAV of a scenario, 0-based (its autopilot is system id index + 1)."""
     return _whole_number(text, 0, "must be 0 or more (0-based: system id - 1)", 254)

@@ -48,6 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ENDPOINT",
         help="udpin:HOST:PORT (shared by many vehicles), udpout:HOST:PORT or tcp:HOST:PORT "
         "(one per vehicle, e.g. ArduPilot SITL tcp:127.0.0.1:5760, 5770...); repeatable; "
+        "ENDPOINT@K: a MAVLink network of its own whose system id s is the scenario's UAV "
+        "K + s - 1 (swarmplan sim --first-uav K; more than 250 vehicles); "
         "default udpin:0.0.0.0:14550",
     )
     option_groups.add_scenario_argument(parser, "paper-10uav")

@@ -27,6 +27,7 @@ from swarmplan import option_groups  # noqa: E402
 from swarmplan.arguments import (  # noqa: E402
     finite_float,
     non_negative_float,
+    non_negative_int,
     port_number,
     positive_float,
 )
@@ -109,7 +110,14 @@ def _add_address_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_vehicle_start_arguments(parser: argparse.ArgumentParser) -> None:
-    """How the vehicles start: their boot, in the air or not, their telemetry rate."""
+    """Which UAVs, and how the vehicles start: their boot, in the air or not, their telemetry
+    rate."""
+    parser.add_argument(
+        "--first-uav", type=non_negative_int, default=None, metavar="K",
+        help="fly the scenario's UAVs from K (0-based) on, as system ids 1..; a swarm of more "
+        "than 250 flies as several simulators on their own ports, the daemon told with "
+        "--connect ENDPOINT@K (default: --vehicles makes a scenario of that many UAVs)",
+    )  # fmt: skip
     parser.add_argument(
         "--boot-s", type=non_negative_float, default=20.0, help="simulated boot (pre-arm) phase, s"
     )
@@ -177,6 +185,7 @@ def main(args: argparse.Namespace) -> int:
     options = SimOptions(
         seed=args.seed,
         vehicles=args.vehicles,
+        first_uav=args.first_uav,
         speedup=args.speedup,
         fast=args.fast,
         tick_s=args.tick_s,

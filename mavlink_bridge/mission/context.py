@@ -1,15 +1,14 @@
 """What every phase of a mission works with, and nothing of any phase's own state.
 
-:class:`MissionContext` holds the mission's surroundings: the scenario and the options, the
-grid and the expected vehicles (system ids 1..N, index = UAV), the link and, in lockstep, the
-clock that grants simulated time, the airframe in force (the plane model, the cell-level and
-the flight-path envelopes: the scenario's until the airframes are read at launch), the
-mission's counters (``MissionAccount``), and the ways to talk to the vehicles: ``send``
-(acknowledged, retried commands), ``wait_sim`` (pump; in lockstep grant time meanwhile) and
-``say``. The launch (``launch.py``), the take back after a restart (``resume_takeback.py``),
+:class:`MissionContext` holds the mission's surroundings: the scenario and the options, the grid
+and the expected vehicles (their (link, system id) keys, index = UAV: ``FleetMap``), the link
+and, in lockstep, the clock that grants simulated time, the airframe in force (the plane model,
+the cell-level and the flight-path envelopes: the scenario's until the airframes are read at
+launch), the mission's counters (``MissionAccount``), and the ways to talk to the vehicles:
+``send`` (acknowledged, retried commands), ``wait_sim`` (pump; in lockstep grant time meanwhile)
+and ``say``. The launch (``launch.py``), the take back after a restart (``resume_takeback.py``),
 the decision loop (``decision_step.py``, ``pacing.py``) and the flight home
-(``way_home/flight_home.py``) each own their state and take this context.
-"""
+(``way_home/flight_home.py``) each own their state and take this context."""
 
 from __future__ import annotations
 
@@ -37,6 +36,7 @@ from mavlink_bridge.vehicles.airframe import (
 )
 from mavlink_bridge.vehicles.guided_commands import Command, send_commands
 from mavlink_bridge.vehicles.swarm_link import SwarmLink
+from mavlink_bridge.vehicles.vehicle_key import FleetMap, VehicleKey, split_first_uav
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from planner.errors import UserError
 from planner.geodesy import geodetic_to_local_km
@@ -63,7 +63,13 @@ class MissionContext:
             raise UserError("--expect must be at least 1")
         #: the scenario's UAV of each vehicle flown (index = the daemon's UAV index)
         self.fleet = tuple(fleet)
-        self.system_ids = [uav + 1 for uav in fleet]
+        #: the endpoints as opened, and the network of each (``--connect SPEC@FIRST``)
+        specs = [split_first_uav(spec) for spec in options.connect]
+        self.endpoint_specs = [spec for spec, _ in specs]
+        self.fleet_map = FleetMap(self.fleet, tuple(first for _, first in specs) or (0,))
+        #: the vehicle of each UAV flown (index = the daemon's UAV index)
+        self.keys = self.fleet_map.keys()
+        self._index_of_key = {key: i for i, key in enumerate(self.keys)}
         self.steps = options.steps or scenario.steps
         self.account = MissionAccount()
         self.link: SwarmLink | None = None
@@ -106,11 +112,15 @@ class MissionContext:
         return self.link
 
     def vehicle(self, uav: int) -> VehicleState:
-        return self.require_link().vehicles[self.system_ids[uav]]
+        return self.require_link().vehicles[self.keys[uav]]
 
-    def index_of(self, system_id: int) -> int:
-        """The daemon's UAV index of the vehicle of ``system_id`` (one of ``system_ids``)."""
-        return self.system_ids.index(system_id)
+    def index_of(self, key: VehicleKey) -> int:
+        """The daemon's UAV index of the vehicle of ``key`` (one of ``keys``)."""
+        return self._index_of_key[key]
+
+    def links(self) -> list[int]:
+        """The network of each endpoint, in ``--connect`` order (``SwarmLink``'s ``links``)."""
+        return [self.fleet_map.link_of_endpoint(k) for k in range(len(self.endpoint_specs))]
 
     def vehicles(self) -> list[VehicleState]:
         """The expected vehicles, index = UAV (each heard at least once)."""

@@ -178,7 +178,7 @@ class MissionDaemon:
         ctx, options = self.ctx, self.ctx.options
         if options.tlog_path is not None:
             self.tlog = TlogWriter(options.tlog_path, append=options.resume)
-        expected = set(ctx.system_ids)
+        expected = set(ctx.keys)
         # our heartbeat at 1 Hz of the vehicles' clock (at 10x, every 0.1 s of wall time): an
         # autopilot's GCS failsafe counts its own seconds without one
         beat_s = 1.0 if options.lockstep else max(0.05, 1.0 / options.time_scale)
@@ -189,10 +189,11 @@ class MissionDaemon:
             lockstep=options.lockstep,
         )
         link = ctx.link = SwarmLink.open(
-            options.connect,
+            ctx.endpoint_specs,
             self.tlog,
+            links=ctx.links(),
             heartbeat_period_s=min(1.0, beat_s),
-            accept_system_id=lambda s: s in expected,
+            accept_vehicle=lambda key: key in expected,
             signing_key=options.signing_key,
             plausibility=PlausibilityFilter(limits),
             may_move=self.gone,
@@ -215,7 +216,7 @@ class MissionDaemon:
     def gone(self, v: VehicleState) -> bool:
         """Vehicle ``v`` counts as gone (lost to silence or a closed link; a whole-swarm pause
         of a lockstep simulator is no one's silence): only then may its address move."""
-        return self.loss.reasons.get(self.ctx.index_of(v.system_id), "").startswith(GONE)
+        return self.loss.reasons.get(self.ctx.index_of(v.key), "").startswith(GONE)
 
     def say_notices(self) -> None:
         """Say, once each, the lines the plausibility filter has to say (a clock restarted, an
@@ -358,6 +359,7 @@ class MissionDaemon:
             self.ctx.require_link(),
             str(self.options.tlog_path) if self.options.tlog_path else None,
             None if self.resume_from is None else self.resume_from.step,
+            [key.label() for key in self.ctx.keys],
         )
         extra["ended"] = ended
         extra["ended_in_phase"] = phase

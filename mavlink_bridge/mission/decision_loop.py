@@ -212,7 +212,7 @@ class DecisionLoop:
         state = self.state = LoopState.from_checkpoint(
             resume_loop_state(ctx.account, resume_from, planner)
         )
-        account_outage(state, take_back)
+        account_outage(state, take_back, ctx.index_of)
         if take_back and not any(t.decision in (CONTINUE, LAUNCH) for t in take_back):
             self.ended_early = "completed at the resume: no plane can continue (all sent home)"
             ctx.say(f"mission {self.ended_early}")
@@ -312,8 +312,8 @@ class DecisionLoop:
         for i, v in enumerate(ctx.vehicles()):
             target = state.last_target[i]
             if active[i] and target is not None and v.has_position and not v.lost:
-                planes.append((v.system_id, positions[i], float(courses[i]), np.array(target)))
-                index[v.system_id] = i
+                planes.append((v.key, positions[i], float(courses[i]), np.array(target)))
+                index[v.key] = i
         if len(planes) < 2:
             return
         moves, stuck = held_apart(self.home.return_separation(), planes)
@@ -321,7 +321,7 @@ class DecisionLoop:
             self.home.reposition_to(ctx.vehicle(index[sid]), xy) for sid, xy in moves.items()
         ]
         for c in ctx.send(commands, deadline=deadline) if commands else []:
-            sid = c.vehicle.system_id
+            sid = c.vehicle.key
             if c.accepted:
                 state.last_target[index[sid]] = (float(moves[sid][0]), float(moves[sid][1]))
                 ctx.say(

@@ -397,7 +397,7 @@ class DecisionStep:
             return False
         self.counters.cameraless.append(uav)
         self.say(
-            f"warning: vehicle {v.system_id} has no camera ({why}): its engagements are off "
+            f"warning: vehicle {v.key} has no camera ({why}): its engagements are off "
             f"for this mission; give it one with `swarmplan payload` (docs/sitl.md)"
         )
         return True

@@ -36,6 +36,7 @@ import numpy as np
 from mavlink_bridge.mission.pacing import STEP_DEADLINE_SHARE
 from mavlink_bridge.safety.flight_envelope import FlightEnvelope
 from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.way_home.kept_apart import ReturnSeparation
 from planner.errors import UserError
 from planner.grid import Grid
@@ -147,8 +148,8 @@ class HoldWhenLate:
 
 
 def held_apart(
-    separation: ReturnSeparation, planes: list[tuple[int, np.ndarray, float, np.ndarray]]
-) -> tuple[dict[int, np.ndarray], list[int]]:
+    separation: ReturnSeparation, planes: list[tuple[VehicleKey, np.ndarray, float, np.ndarray]]
+) -> tuple[dict[VehicleKey, np.ndarray], list[VehicleKey]]:
     """While the daemon holds, every plane (system id, where, course, its last target) circles
     its last target, each proven clear of every threat but not of each other: the targets were
     chosen a step apart, for a step, and a hold may last many (held planes 0.26-0.76 km apart
@@ -163,17 +164,17 @@ def held_apart(
         (flight,) = separation.guided_flights(sid, xy, course, np.asarray(target, float)[None])
         flights.append((flight, course))
     kept: list = []
-    moves: dict[int, np.ndarray] = {}
-    stuck: list[int] = []
-    for flight, course in sorted(flights, key=lambda fc: (fc[0].arrival_s, fc[0].system_id)):
+    moves: dict[VehicleKey, np.ndarray] = {}
+    stuck: list[VehicleKey] = []
+    for flight, course in sorted(flights, key=lambda fc: (fc[0].arrival_s, fc[0].key)):
         if not separation.conflicts(flight, kept):
             kept.append(flight)
             continue
         found = separation.hold(flight, course, kept)
         if found is None:
-            stuck.append(flight.system_id)
+            stuck.append(flight.key)
             kept.append(flight)
             continue
-        moves[flight.system_id], moved = found
+        moves[flight.key], moved = found
         kept.append(moved)
     return moves, stuck

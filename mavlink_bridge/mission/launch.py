@@ -24,6 +24,7 @@ from mavlink_bridge.vehicles.fence_upload import FenceCircle, upload_fence
 from mavlink_bridge.vehicles.gcs_failsafe import set_gcs_failsafe
 from mavlink_bridge.vehicles.guided_commands import request_message_command, require_accepted
 from mavlink_bridge.vehicles.readiness import arm_when_ready
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_wire.protocol import mavlink
 from planner.errors import UserError
 from planner.geodesy import local_km_to_geodetic
@@ -63,7 +64,7 @@ def discover(launch: Launch) -> None:
     ctx = launch.ctx
     link = ctx.require_link()
     ctx.say(f"listening on {link.describe()} for {ctx.n} vehicles")
-    wait_for_vehicles(link, ctx.system_ids, ctx.options.discovery_timeout_s, ctx.say)
+    wait_for_vehicles(link, ctx.keys, ctx.options.discovery_timeout_s, ctx.say)
     ctx.say(f"all {ctx.n} vehicles heard; waiting for them to finish initialising")
 
 
@@ -73,11 +74,11 @@ def ready(launch: Launch) -> None:
     (``take_back``)."""
     ctx = launch.ctx
     link = ctx.require_link()
-    ids = ctx.system_ids
+    ids = ctx.keys
     if launch.resume_from is not None:
         vehicles = ctx.vehicles()
         link.pump_until(lambda: all(v.has_position for v in vehicles if v.armed), 2.0)
-        ids = [v.system_id for v in vehicles if not flying(v, climb_m(ctx))]
+        ids = [v.key for v in vehicles if not flying(v, climb_m(ctx))]
     wait_until_ready(link, ids, ctx.options.ready_timeout_s, wait=ctx.wait_sim)
 
 
@@ -165,7 +166,7 @@ def take_off(launch: Launch) -> None:
     options = ctx.options
     # (a plane a resumed daemon sent home flies home: ``take_back``)
     sent_home = launch.home.sent_home()
-    vehicles = [v for v in ctx.vehicles() if v.system_id not in sent_home]
+    vehicles = [v for v in ctx.vehicles() if v.key not in sent_home]
     climb = climb_m(ctx)
     attempts = options.launch_command_attempts
     if not vehicles:
@@ -176,20 +177,20 @@ def take_off(launch: Launch) -> None:
     require_accepted(
         ctx.send([autopilot_for(v).takeoff_command(v, climb) for v in on_ground], attempts)
     )
-    guided: set[int] = set()
+    guided: set[VehicleKey] = set()
     while len(guided) < len(vehicles):
         if not ctx.wait_sim(
-            lambda: any(v.relative_alt_m >= climb for v in vehicles if v.system_id not in guided),
+            lambda: any(v.relative_alt_m >= climb for v in vehicles if v.key not in guided),
             options.takeoff_timeout_s,
         ):
-            low = [str(v.system_id) for v in vehicles if v.system_id not in guided]
+            low = [str(v.key) for v in vehicles if v.key not in guided]
             raise UserError(
                 f"vehicle {', '.join(low)} did not climb to {climb:g} m within "
                 f"{options.takeoff_timeout_s:g} s of TAKEOFF; check its takeoff setup"
             )
-        up = [v for v in vehicles if v.system_id not in guided and v.relative_alt_m >= climb]
+        up = [v for v in vehicles if v.key not in guided and v.relative_alt_m >= climb]
         require_accepted(ctx.send([autopilot_for(v).guide_command(v) for v in up], attempts))
-        guided.update(v.system_id for v in up)
+        guided.update(v.key for v in up)
     ctx.say(f"airborne, {' / '.join(a.guided_name for a in autopilots_of(vehicles))}")
 
 

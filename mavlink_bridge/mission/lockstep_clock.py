@@ -87,9 +87,7 @@ class LockstepClock:
             self._check_held(vehicles, target)
             now = time.monotonic()
             if now - started > self.wall_timeout_s:
-                behind = [
-                    str(v.system_id) for v in vehicles if not v.lost and v.time_boot_ms < target
-                ]
+                behind = [str(v.key) for v in vehicles if not v.lost and v.time_boot_ms < target]
                 raise LockstepError(
                     f"vehicle {', '.join(behind)} did not reach simulated time {target / 1000:g} s "
                     f"within {self.wall_timeout_s:g} s of the grant: its simulator is not running "
@@ -109,7 +107,7 @@ class LockstepClock:
         simulator does not hold any more. Decisions would no longer take effect at the instants
         they were made for: stop, in one line that names what can have happened."""
         trust = self.link.plausibility
-        free = [v.system_id for v in vehicles if not v.lost and trust.running_free(v.system_id)]
+        free = [v.key for v in vehicles if not v.lost and trust.running_free(v.key)]
         if free:
             raise LockstepReleasedError(
                 f"vehicle {', '.join(map(str, free))} ran past the granted simulated time "

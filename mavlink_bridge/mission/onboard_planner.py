@@ -126,7 +126,7 @@ class OnboardPlanner:
     def _broadcast(self, messages: Sequence[Message]) -> None:
         if not messages:
             return
-        vehicle = self.link.vehicles.get(self.uav + 1)
+        vehicle = self.link.vehicle(self.uav + 1)
         if vehicle is None:
             return
         report = self.wire.report(self.uav, messages[0].step, messages)

@@ -196,9 +196,13 @@ class OperatorActions:
                 result = f"failed: {type(exc).__name__}: {exc}"
             self.log.append(
                 {
-                    "step": step, "time_utc": request.time_utc, "action": request.action,
-                    "uav": request.uav, "cell": request.cell and list(request.cell),
-                    "who": request.who, "result": result,
+                    "step": step,
+                    "time_utc": request.time_utc,
+                    "action": request.action,
+                    "uav": request.uav,
+                    "cell": request.cell and list(request.cell),
+                    "who": request.who,
+                    "result": result,
                 }  # fmt: skip
             )
             self.ctx.say(f"operator ({request.who}): {ACTIONS[request.action]}: {result}")
@@ -232,14 +236,14 @@ class OperatorActions:
         flying, skipped = rtl_recipients(fresh, self.ctx.options.lost_after_s)
         sent = send_planes_home(
             self.ctx, self.home, self.loss,
-            {v.system_id: SENT_HOME for v in flying}, SENT_HOME,
+            {v.key: SENT_HOME for v in flying}, SENT_HOME,
         )  # fmt: skip
         parts = []
         rtl = [c for c in sent if c.command == mavlink.MAV_CMD_DO_SET_MODE]
         if rtl:
-            accepted = [str(c.vehicle.system_id) for c in rtl if c.accepted]
+            accepted = [str(c.vehicle.key) for c in rtl if c.accepted]
             parts.append(f"RTL accepted by vehicle {', '.join(accepted) or 'none'}")
-        around = [str(c.vehicle.system_id) for c in sent if c not in rtl]
+        around = [str(c.vehicle.key) for c in sent if c not in rtl]
         if around:
             parts.append(f"guided home around the threats: vehicle {', '.join(around)}")
         if retired:

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -46,6 +47,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_bridge.way_home.around_threats import HomeRoutes
 from mavlink_wire.protocol import enum_name
@@ -96,7 +98,7 @@ class RangeAccount:
 class TakeBack:
     """The resumed daemon's decision for one plane, and why."""
 
-    system_id: int
+    key: VehicleKey
     decision: str  # CONTINUE, HOME or LAUNCH
     why: str
     mode: str
@@ -108,7 +110,7 @@ class TakeBack:
 
     def line(self) -> str:
         return (
-            f"resume: vehicle {self.system_id} ({self.mode}, {self.status}) "
+            f"resume: vehicle {self.key} ({self.mode}, {self.status}) "
             f"{_VERBS[self.decision]}: {self.why}"
         )
 
@@ -119,7 +121,7 @@ class TakeBack:
             return None if x is None or not math.isfinite(x) else round(x, 2)
 
         return {
-            "vehicle": self.system_id,
+            "vehicle": self.key.label(),
             "decision": self.decision,
             "why": self.why,
             "mode": self.mode,
@@ -151,7 +153,7 @@ class TakeBackJudge:
         flown_km = flown.flown_km
 
         def verdict(decision: str, why: str, way: float | None = None) -> TakeBack:
-            return TakeBack(v.system_id, decision, why, mode, status, flown_km, way)
+            return TakeBack(v.key, decision, why, mode, status, flown_km, way)
 
         inside = self.threat_inside(xy_km)
         if inside is not None:
@@ -238,12 +240,14 @@ def range_account(
     return RangeAccount(float(at_checkpoint_km), outage_s * speed / 1000.0, battery)
 
 
-def account_outage(state: LoopState, decisions: list[TakeBack]) -> None:
+def account_outage(
+    state: LoopState, decisions: list[TakeBack], index_of: Callable[[VehicleKey], int]
+) -> None:
     """Add what each plane that continues flew during the outage (beyond the straight chord
     its first step counts) to the planner's L_past and the envelope's account, so that both
     bring it home within L_max."""
     for t in decisions:
-        i = t.system_id - 1
+        i = index_of(t.key)
         if t.decision == CONTINUE and t.outage_extra_km > 0:
             state.flown_km[i] += t.outage_extra_km
             distance = getattr(state.planner, "distance_km", None)
@@ -279,7 +283,7 @@ def judge_fleet(
                 else "disarmed"
             )
             why = f"{where}: readied, armed and taken off as at a fresh launch"
-            decisions.append(TakeBack(v.system_id, LAUNCH, why, mode, status))
+            decisions.append(TakeBack(v.key, LAUNCH, why, mode, status))
             continue
         xy = ctx.local_km(v.lat_deg, v.lon_deg)
         home = (
@@ -303,7 +307,7 @@ def send_home(
     """The planes judged HOME: out of the mission for good (lost to the planner, with why)
     and on the daemon's safe flight home (RTL where the line home is clear, else guided
     around the threats; re-judged at every step by ``flight_home.guide_sent_home``)."""
-    home = {t.system_id: t.why for t in decisions if t.decision == HOME}
+    home = {t.key: t.why for t in decisions if t.decision == HOME}
     if home:
         send_planes_home(ctx, flight_home, loss, home, "sent home at the resume")
 
@@ -312,18 +316,18 @@ def send_planes_home(
     ctx: MissionContext,
     flight_home: FlightHomePhase,
     loss: LossWatch,
-    why: dict[int, str],
+    why: dict[VehicleKey, str],
     lost_reason: str,
 ) -> list[Command]:
-    """Planes (system id -> why) out of the mission for good: lost to the planner with
+    """Planes (vehicle key -> why) out of the mission for good: lost to the planner with
     ``lost_reason`` (``LossWatch.retire``) and on the daemon's safe flight home (RTL where the
     line home is clear, else guided around the threats; re-judged at every decision step by
     ``flight_home.guide_sent_home``). A resumed daemon's planes judged HOME, and the planes an
     operator sends home (``operator_actions.py``). Returns the commands sent, answered."""
-    by_id = {v.system_id: v for v in ctx.vehicles()}
-    for system_id, reason in why.items():
-        flight_home.send_home(system_id, reason)
-        loss.retire(system_id - 1, lost_reason)
+    by_id = {v.key: v for v in ctx.vehicles()}
+    for key, reason in why.items():
+        flight_home.send_home(key, reason)
+        loss.retire(ctx.index_of(key), lost_reason)
     planes = [by_id[s] for s in why if s in by_id]
     sent = ctx.send(flight_home.homeward_commands(planes, announce=True))
     for c in sent:

@@ -123,10 +123,12 @@ class MissionReport:
     events: list[LinkEvent] = field(default_factory=list)
 
 
-def link_event_rows(events: list[LinkEvent]) -> list[dict[str, Any]]:
+def link_event_rows(events: list[LinkEvent], labels: list[int | str]) -> list[dict[str, Any]]:
+    """The events as result.json lists them; ``labels``: each UAV's vehicle as
+    ``VehicleKey.label`` names it (its system id on one network, else "LINK:SYSID")."""
     rows = []
     for e in events:
-        row: dict[str, Any] = {"step": e.step, "uav": e.uav, "system_id": e.uav + 1}
+        row: dict[str, Any] = {"step": e.step, "uav": e.uav, "system_id": labels[e.uav]}
         row["event"] = e.event
         if e.reason:
             row["reason"] = e.reason
@@ -140,7 +142,12 @@ def lost_vehicle_lines(result: dict[str, Any]) -> list[str]:
     lost = result.get("lost_uavs") or []
     if not lost:
         return []
-    lines = [f"lost vehicles   {', '.join(str(i + 1) for i in lost)} (system ids)"]
+    names = result.get("vehicles")  # more than one network: "LINK:SYSID" by UAV
+
+    def name(uav: int) -> str:
+        return str(names[uav]) if names else str(uav + 1)
+
+    lines = [f"lost vehicles   {', '.join(name(i) for i in lost)} (system ids)"]
     for uav in lost:
         said = []
         for e in result.get("link_events") or []:
@@ -153,10 +160,10 @@ def lost_vehicle_lines(result: dict[str, Any]) -> list[str]:
         )
         if last == "back":
             said.append("not launched again mid-mission")
-        why_not = (result.get("rtl_not_sent") or {}).get(str(uav + 1))
+        why_not = (result.get("rtl_not_sent") or {}).get(name(uav))
         if why_not:
             said.append(f"no RTL: {why_not}")
-        lines.append(f"  vehicle {uav + 1:<5d} {'; '.join(said)}")
+        lines.append(f"  vehicle {name(uav):<5s} {'; '.join(said)}")
     return lines
 
 
@@ -165,8 +172,12 @@ def mavlink_extra(
     link: Any,
     tlog: str | None,
     resumed_from_step: int | None,
+    labels: list[int | str],
 ) -> dict[str, Any]:
-    """The result fields only a MAVLink run has (docs/daemon.md, "What the result measures")."""
+    """The result fields only a MAVLink run has (docs/daemon.md, "What the result measures").
+    ``labels``: each UAV's vehicle (``VehicleKey.label``); with more than one network they are
+    listed as ``vehicles`` ("LINK:SYSID" by UAV index), else the system id is UAV + 1."""
+    named = {"vehicles": labels} if any(isinstance(x, str) for x in labels) else {}
     return {
         "source": "mavlink",
         "endpoints": link.describe(),
@@ -175,7 +186,7 @@ def mavlink_extra(
         "looks_missed": account.looks_missed,
         "late_steps": account.late_steps,
         "uavs_without_camera": sorted(account.cameraless),
-        "link_events": link_event_rows(account.events),
+        "link_events": link_event_rows(account.events, labels),
         "lost_uavs": sorted({e.uav for e in account.events if e.event == "lost"}),
         "frames_received": link.messages_received,
         "stale_positions": link.plausibility.counts.stale_positions,
@@ -183,4 +194,5 @@ def mavlink_extra(
         "signing": None if link.signature_check is None else link.signature_check.counters(),
         "resumed_from_step": resumed_from_step,
         "tlog": tlog,
+        **named,
     }

@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_wire.protocol import mavlink
 from planner.constraints import segment_clearance
@@ -359,14 +360,14 @@ class TrackAudit:
 def position_listener(
     audit: TrackAudit,
     time_scale: float | None,
-    index_of: Callable[[int], int] = lambda system_id: system_id - 1,
+    index_of: Callable[[VehicleKey], int] = lambda key: key.system_id - 1,
 ) -> Callable[[VehicleState, mavlink.MAVLink_message], None]:
     """A ``SwarmLink`` listener feeding ``audit`` (made with a ``project`` from degrees) every
     GLOBAL_POSITION_INT a vehicle's state took in (not one dropped as stale or implausible)
     while it flies (1 m above home). A vehicle out of GUIDED (TAKEOFF aside: its mode
     as last heard may lag its first guided seconds) or reporting CRITICAL (a failsafe, a fence
     breach) counts under ``failsafe`` during the mission. ``time_scale`` None: one shared clock
-    (lockstep). ``index_of``: the audit's index of a vehicle's system id."""
+    (lockstep). ``index_of``: the audit's index of a vehicle's (link, system id)."""
 
     def listen(v: VehicleState, msg: mavlink.MAVLink_message) -> None:
         if msg.get_type() != "GLOBAL_POSITION_INT" or msg.get_srcComponent() != 1:
@@ -381,6 +382,6 @@ def position_listener(
         )
         arrival = None if time_scale is None else time.monotonic() * time_scale
         where = (v.lat_deg, v.lon_deg)  # the audit projects them all at once (``project``)
-        audit.add(index_of(v.system_id), v.time_boot_ms / 1e3, where, arrival, failsafe)
+        audit.add(index_of(v.key), v.time_boot_ms / 1e3, where, arrival, failsafe)
 
     return listen

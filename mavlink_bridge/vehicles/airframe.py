@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID
 from planner.config import PlannerConfig
@@ -60,7 +61,7 @@ SILENT_READ_WINDOW_S = 20.0
 class Airframe:
     """One vehicle's flight limits (SI units), and where they came from."""
 
-    system_id: int
+    system_id: VehicleKey  # (link, system id): said as the system id on one network
     min_airspeed_mps: float
     cruise_mps: float
     max_airspeed_mps: float
@@ -133,7 +134,7 @@ def airframe_from_params(vehicle: VehicleState, cfg: PlannerConfig) -> Airframe:
             defaulted.append(options[0][0])
     fields, capped = autopilot_for(vehicle).fly_limits(fields, vehicle.params)
     return Airframe(
-        vehicle.system_id, **fields, read=tuple(read), defaulted=tuple(defaulted), capped=capped
+        vehicle.key, **fields, read=tuple(read), defaulted=tuple(defaulted), capped=capped
     )
 
 
@@ -170,12 +171,12 @@ def read_airframes(
         return out + [name for name in autopilot_for(v).limit_names if name not in v.params]
 
     started = time.monotonic()
-    asked = {v.system_id: set(_all_names(v)) for v in vehicles}
+    asked = {v.key: set(_all_names(v)) for v in vehicles}
     while True:
         todo = [(v, missing(v)) for v in vehicles]
         todo = [(v, names) for v, names in todo if names]
         elapsed = time.monotonic() - started
-        silent = [v for v, _ in todo if not asked[v.system_id] & v.params.keys()]
+        silent = [v for v, _ in todo if not asked[v.key] & v.params.keys()]
         if not todo or elapsed >= (SILENT_READ_WINDOW_S if silent else window_s):
             break
         if elapsed >= window_s:  # only the silent ones are waited for now

@@ -1,7 +1,8 @@
 """Waiting for the swarm: every expected vehicle heard, then every one past its initialisation.
 
-Vehicle ``i`` of the scenario (0-based) is system id ``i + 1``, the way SITL instances and the
-simulator number them.
+The vehicles are waited for by their (link, system id) keys (``vehicle_key.FleetMap``: on one
+network vehicle ``i`` of the scenario, 0-based, is system id ``i + 1``, the way SITL instances and
+the simulator number them), and named in what is said as ``vehicle_key.VehicleKey`` says.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ import time
 from collections.abc import Callable
 
 from mavlink_bridge.vehicles.swarm_link import SwarmLink
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_wire.protocol import enum_name
 from planner.errors import UserError
 
@@ -18,13 +20,13 @@ class DiscoveryError(UserError):
     """Expected vehicles never appeared, or never finished initialising."""
 
 
-def _ids(ids: list[int]) -> str:
+def _ids(ids: list[VehicleKey]) -> str:
     return ", ".join(str(i) for i in ids)
 
 
 def wait_for_vehicles(
     link: SwarmLink,
-    expected_ids: list[int],
+    expected_ids: list[VehicleKey],
     timeout_s: float,
     progress: Callable[[str], None] | None = None,
 ) -> None:
@@ -54,7 +56,7 @@ def wait_for_vehicles(
 
 def wait_until_ready(
     link: SwarmLink,
-    system_ids: list[int],
+    system_ids: list[VehicleKey],
     timeout_s: float,
     wait: Callable[[Callable[[], bool], float], bool] | None = None,
 ) -> None:

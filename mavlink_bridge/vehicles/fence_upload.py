@@ -104,7 +104,7 @@ def upload_fence(
     for transfer in transfers:
         if transfer.result != mavlink.MAV_MISSION_ACCEPTED:
             raise MissionUploadError(
-                f"vehicle {transfer.vehicle.system_id} refused the fence upload: "
+                f"vehicle {transfer.vehicle.key} refused the fence upload: "
                 f"{enum_name('MAV_MISSION_RESULT', transfer.result or 0)}"
                 f" for {REFUSED_RETRY_S:g} s (an autopilot still initialising answers NO_SPACE or"
                 f" MAV_MISSION_ERROR; wait for STANDBY)"
@@ -154,7 +154,7 @@ class _FenceTransfer:
             return
         if now - self.heard > stall_timeout_s:
             raise MissionUploadError(
-                f"fence upload to vehicle {self.vehicle.system_id} stalled: nothing of it heard "
+                f"fence upload to vehicle {self.vehicle.key} stalled: nothing of it heard "
                 f"for {stall_timeout_s:g} s; check the link (and that the autopilot supports "
                 f"MISSION_TYPE_FENCE)"
             )
@@ -189,7 +189,7 @@ class _FenceTransfer:
             self.resends = 0
             if self.restarts > MAX_RESTARTS:
                 raise MissionUploadError(
-                    f"fence upload to vehicle {self.vehicle.system_id}: {MAX_RESTARTS} uploads "
+                    f"fence upload to vehicle {self.vehicle.key}: {MAX_RESTARTS} uploads "
                     f"without a MISSION_ACK; check the link"
                 )
             self.send_count()

@@ -49,7 +49,7 @@ def set_gcs_failsafe(
     ArduPlane's :data:`~autopilot_adapter.MISSION_FAILSAFE`, PX4's NAV_DLL_ACT and geofence
     settings), and wait until each confirms every value."""
     todo = {
-        (v.system_id, name): (v, value, ptype)
+        (v.key, name): (v, value, ptype)
         for v in vehicles
         for name, value, ptype in autopilot_for(v).failsafe_parameters()
     }

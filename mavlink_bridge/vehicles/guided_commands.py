@@ -71,8 +71,8 @@ class Command:
     def describe_failure(self) -> str:
         name = command_name(self.command)
         if self.ack is None:
-            return f"vehicle {self.vehicle.system_id} did not answer {name} ({self.attempts} tries)"
-        return f"vehicle {self.vehicle.system_id} refused {name}: {result_name(self.ack.result)}"
+            return f"vehicle {self.vehicle.key} did not answer {name} ({self.attempts} tries)"
+        return f"vehicle {self.vehicle.key} refused {name}: {result_name(self.ack.result)}"
 
     def send(self) -> None:
         """Send (or resend) the command."""

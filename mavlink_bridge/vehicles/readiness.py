@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from functools import partial
 
 from mavlink_bridge.vehicles.guided_commands import Command, arm_command, request_message_command
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_wire.protocol import mavlink, result_name
 from planner.errors import UserError
@@ -86,7 +87,7 @@ def readiness_of(vehicle: VehicleState) -> Readiness:
     reported = vehicle.sensors_present & vehicle.sensors_enabled
     reports_gps = vehicle.gps_fix_type >= 0 or bool(vehicle.sensors_present & GPS_BIT)
     return Readiness(
-        system_id=vehicle.system_id,
+        system_id=vehicle.key,
         reports_prearm=bool(reported & PREARM_BIT),
         prearm_ok=bool(vehicle.sensors_health & PREARM_BIT),
         reports_gps=reports_gps,
@@ -120,9 +121,9 @@ def arm_when_ready(
     started = time.monotonic()
     deadline = started + window_s
     next_progress = started + progress_period_s
-    home_asked: dict[int, float] = {}
-    next_arm: dict[int, float] = {}
-    refusals: dict[int, str] = {}
+    home_asked: dict[VehicleKey, float] = {}
+    next_arm: dict[VehicleKey, float] = {}
+    refusals: dict[VehicleKey, str] = {}
 
     def done() -> bool:
         return all(v.armed for v in vehicles)
@@ -134,11 +135,11 @@ def arm_when_ready(
         missing_home = [
             v
             for v in vehicles
-            if v.home is None and now - home_asked.get(v.system_id, -1e9) >= HOME_REQUEST_PERIOD_S
+            if v.home is None and now - home_asked.get(v.key, -1e9) >= HOME_REQUEST_PERIOD_S
         ]
         if missing_home:
             for v in missing_home:
-                home_asked[v.system_id] = now
+                home_asked[v.key] = now
             # one try each: the message itself is what counts, and it is asked for again
             home = mavlink.MAVLINK_MSG_ID_HOME_POSITION
             asked = send([request_message_command(v, home) for v in missing_home], 1)
@@ -149,7 +150,7 @@ def arm_when_ready(
         due = [
             v
             for v in vehicles
-            if not v.armed and readiness_of(v).ready and now >= next_arm.get(v.system_id, 0.0)
+            if not v.armed and readiness_of(v).ready and now >= next_arm.get(v.key, 0.0)
         ]
         if due:
             sent = send([arm_command(v) for v in due], arm_attempts)
@@ -159,9 +160,9 @@ def arm_when_ready(
             for cmd in sent:
                 # accepted or not, the next try waits (without the pause, a paced 20x mission
                 # sent one vehicle 160 arm commands in the second before its heartbeat said armed)
-                next_arm[cmd.vehicle.system_id] = time.monotonic() + ARM_RETRY_S
+                next_arm[cmd.vehicle.key] = time.monotonic() + ARM_RETRY_S
                 if not cmd.accepted and not cmd.vehicle.armed:
-                    refusals[cmd.vehicle.system_id] = (
+                    refusals[cmd.vehicle.key] = (
                         result_name(cmd.ack.result) if cmd.ack else "no answer"
                     )
         if progress is not None and time.monotonic() >= next_progress:
@@ -181,11 +182,10 @@ def _all_have_homes(vehicles: list[VehicleState]) -> bool:
     return all(v.home is not None for v in vehicles)
 
 
-def _newly_ready(vehicles: list[VehicleState], next_arm: dict[int, float]) -> bool:
+def _newly_ready(vehicles: list[VehicleState], next_arm: dict[VehicleKey, float]) -> bool:
     now = time.monotonic()
     return any(
-        not v.armed and now >= next_arm.get(v.system_id, 0.0) and readiness_of(v).ready
-        for v in vehicles
+        not v.armed and now >= next_arm.get(v.key, 0.0) and readiness_of(v).ready for v in vehicles
     )
 
 
@@ -201,7 +201,7 @@ def progress_line(vehicles: list[VehicleState], elapsed_s: float, window_s: floa
         text = ", ".join(missing) if missing else "ready, arming"
         if reasons:
             text += f" ({'; '.join(reasons)})"
-        waiting.append(f"vehicle {v.system_id}: {text}")
+        waiting.append(f"vehicle {v.key}: {text}")
     return (
         f"readiness: {armed}/{len(vehicles)} armed; {'; '.join(waiting)} "
         f"({elapsed_s:.0f}/{window_s:g} s)"
@@ -209,7 +209,7 @@ def progress_line(vehicles: list[VehicleState], elapsed_s: float, window_s: floa
 
 
 def _failure_line(
-    vehicles: list[VehicleState], window_s: float, started: float, refusals: dict[int, str]
+    vehicles: list[VehicleState], window_s: float, started: float, refusals: dict[VehicleKey, str]
 ) -> str:
     parts = []
     for v in vehicles:
@@ -217,9 +217,9 @@ def _failure_line(
             continue
         why = readiness_of(v).missing()
         if not why:
-            why = [f"arming refused ({refusals.get(v.system_id, 'no answer')})"]
+            why = [f"arming refused ({refusals.get(v.key, 'no answer')})"]
         reasons = v.prearm_reasons(since_s=started - 1.0)
-        text = f"vehicle {v.system_id} ({', '.join(why)}"
+        text = f"vehicle {v.key} ({', '.join(why)}"
         text += f": {'; '.join(reasons)})" if reasons else ")"
         parts.append(text)
     return (

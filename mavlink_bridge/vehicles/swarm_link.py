@@ -1,9 +1,10 @@
 """All the daemon's endpoints and the vehicles heard on them, pumped from one loop.
 
 ``SwarmLink.pump(timeout)`` waits for datagrams on every endpoint, parses them, logs every frame
-to the .tlog, routes each message to the ``VehicleState`` of its system id (a new vehicle is
-registered, and bound to its address, by its autopilot's HEARTBEAT that carries a vehicle type:
-``claims_vehicle``), and sends the daemon's own GCS heartbeat at 1 Hz.
+to the .tlog, routes each message to the ``VehicleState`` of its (link, system id)
+(``vehicle_key.py``; a new vehicle is registered, and bound to its address, by its autopilot's
+HEARTBEAT that carries a vehicle type: ``claims_vehicle``), and sends the daemon's own GCS
+heartbeat at 1 Hz.
 
 Only what is authentic or plausible changes a vehicle's state (``_dispatch``): with signing on,
 an unsigned frame (RADIO_STATUS / RADIO, which pass the signature check unsigned) changes
@@ -17,8 +18,10 @@ from __future__ import annotations
 import selectors
 import time
 from collections.abc import Callable, Iterable
+from typing import Any
 
 from mavlink_bridge.vehicles.telemetry_plausibility import PlausibilityFilter
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_wire.links import Address, Endpoint, VehicleLink, open_endpoint
 from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, mavlink
@@ -63,19 +66,24 @@ def claims_vehicle(msg: mavlink.MAVLink_message) -> bool:
 
 
 class SwarmLink:
-    """The endpoints, the vehicles by system id, and the receive loop."""
+    """The endpoints, the vehicles by (link, system id), and the receive loop. ``links[k]`` is
+    the network of endpoint ``k`` (``FleetMap.link_of_endpoint``; default: all one network, 0):
+    a vehicle is told apart by its network and its system id."""
 
     def __init__(
         self,
         endpoints: list[Endpoint],
         tlog: TlogWriter | None = None,
         heartbeat_period_s: float = 1.0,
-        accept_system_id: Callable[[int], bool] | None = None,
+        accept_vehicle: Callable[[VehicleKey], bool] | None = None,
         signing_key: bytes | None = None,
         plausibility: PlausibilityFilter | None = None,
         may_move: Callable[[VehicleState], bool] | None = None,
+        links: list[int] | None = None,
     ) -> None:
         self.endpoints = endpoints
+        links = links or [0] * len(endpoints)
+        self._link_of = {id(e): k for e, k in zip(endpoints, links, strict=True)}
         #: whether a vehicle's binding may move to a new address (the daemon: only a vehicle
         #: it counts as gone); without it, the bound address's silence alone decides
         self.may_move = may_move or (lambda vehicle: True)
@@ -87,8 +95,8 @@ class SwarmLink:
             endpoint.signature_check = self.signature_check
         self.tlog = tlog
         self.heartbeat_period_s = heartbeat_period_s
-        self.accept_system_id = accept_system_id or (lambda sysid: 1 <= sysid < 250)
-        self.vehicles: dict[int, VehicleState] = {}
+        self.accept_vehicle = accept_vehicle or (lambda key: 1 <= key.system_id < 250)
+        self.vehicles: dict[VehicleKey, VehicleState] = {}
         self._selector = selectors.DefaultSelector()
         self._watched: dict[int, int] = {}  # id(endpoint) -> the file descriptor selected on
         for endpoint in endpoints:
@@ -108,9 +116,7 @@ class SwarmLink:
         self.tunnel_listeners: list[Callable[[mavlink.MAVLink_message], None]] = []
 
     @classmethod
-    def open(
-        cls, specs: Iterable[str], tlog: TlogWriter | None = None, **kwargs: object
-    ) -> SwarmLink:
+    def open(cls, specs: Iterable[str], tlog: TlogWriter | None = None, **kwargs: Any) -> SwarmLink:
         """Open every endpoint (closing those already opened if one fails)."""
         opened: list[Endpoint] = []
         try:
@@ -120,7 +126,11 @@ class SwarmLink:
             for endpoint in opened:
                 endpoint.close()
             raise
-        return cls(opened, tlog, **kwargs)  # type: ignore[arg-type]
+        return cls(opened, tlog, **kwargs)
+
+    def vehicle(self, system_id: int, link: int = 0) -> VehicleState | None:
+        """The vehicle of ``system_id`` on network ``link`` (0: the only one), if heard."""
+        return self.vehicles.get(VehicleKey(link, system_id))
 
     def describe(self) -> str:
         """The endpoints as the user gave them, with the real port of udpin:...:0."""
@@ -195,22 +205,23 @@ class SwarmLink:
                 listen(msg)
             return
         sysid, compid = msg.get_srcSystem(), msg.get_srcComponent()
+        key = VehicleKey(self._link_of[id(endpoint)], sysid)
         where = (id(endpoint), address)
-        vehicle = self.vehicles.get(sysid)
+        vehicle = self.vehicles.get(key)
         if vehicle is None:
-            if not (claims_vehicle(msg) and self.accept_system_id(sysid)):
-                trust.unbound(sysid, where)  # nothing binds but a vehicle's HEARTBEAT (rule 2)
+            if not (claims_vehicle(msg) and self.accept_vehicle(key)):
+                trust.unbound(key, where)  # nothing binds but a vehicle's HEARTBEAT (rule 2)
                 return
-            if not trust.admit(sysid, msg, now):
+            if not trust.admit(key, msg, now):
                 return
             link = self._secure(VehicleLink(sysid, endpoint, address, self.tlog))
-            vehicle = VehicleState(sysid, link)
-            self.vehicles[sysid] = vehicle
-            trust.admit_address(sysid, compid, where, now, announces=True)
+            vehicle = VehicleState(sysid, link, key=key)
+            self.vehicles[key] = vehicle
+            trust.admit_address(key, compid, where, now, announces=True)
         else:
             announces, may_move = self._announces(vehicle, msg), self.may_move(vehicle)
-            verdict = trust.admit_address(sysid, compid, where, now, announces, may_move)
-            if verdict in ("refused", "unbound") or not trust.admit(sysid, msg, now):
+            verdict = trust.admit_address(key, compid, where, now, announces, may_move)
+            if verdict in ("refused", "unbound") or not trust.admit(key, msg, now):
                 return
             if compid != AUTOPILOT_COMPONENT_ID:
                 self._route_component(vehicle, compid, endpoint, address)

@@ -56,6 +56,7 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, mavlink
 
 #: the largest MAV_STATE (system_status) and MAV_RESULT values a vehicle can send
@@ -151,7 +152,7 @@ class VehicleTrust:
     """The plausibility state of one vehicle: its bound addresses, its believed clock and
     position, and the candidate new time base."""
 
-    system_id: int = 0
+    system_id: VehicleKey = VehicleKey(0, 0)
     vehicle_type: int | None = None
     bindings: dict[int, _Binding] = field(default_factory=dict)  # by component id
     fix: _Fix | None = None
@@ -162,7 +163,7 @@ class VehicleTrust:
     past_grant: int = 0
 
 
-def _rebase_notice(sysid: int, old: _Fix, new: _Fix) -> str:
+def _rebase_notice(sysid: VehicleKey, old: _Fix, new: _Fix) -> str:
     """What a new time base of vehicle ``sysid`` means: a clock that went back restarted; one
     that jumped ahead with its position (an autopilot whose position estimate settles after
     boot: ArduPlane SITL's first reports) moved on faster than it can fly."""
@@ -198,21 +199,21 @@ class PlausibilityFilter:
     def __init__(self, limits: PlausibilityLimits | None = None) -> None:
         self.limits = limits or PlausibilityLimits()
         self.counts = PlausibilityCounts()
-        self.vehicles: dict[int, VehicleTrust] = {}
+        self.vehicles: dict[VehicleKey, VehicleTrust] = {}
         #: lockstep: the horizon granted to the vehicles (ms); their clock cannot pass it
         self.granted_ms: int | None = None
         #: lines worth saying (a clock rebase, an address move), taken by the daemon
         self.notices: list[str] = []
         #: (system, component, where) of every second address refused so far
-        self._conflicts: set[tuple[int, int, tuple[int, Any]]] = set()
+        self._conflicts: set[tuple[VehicleKey, int, tuple[int, Any]]] = set()
         #: frames of (system, where) dropped while nothing was bound (``unbound``)
-        self._unbound: dict[tuple[int, tuple[int, Any]], int] = {}
+        self._unbound: dict[tuple[VehicleKey, tuple[int, Any]], int] = {}
 
     # ------------------------------------------------------------------ address
 
     def admit_address(
         self,
-        sysid: int,
+        sysid: VehicleKey,
         compid: int,
         where: tuple[int, Any],
         now_s: float,
@@ -258,7 +259,9 @@ class PlausibilityFilter:
         self._refused(sysid, compid, binding, where)
         return "refused"
 
-    def _refused(self, sysid: int, compid: int, binding: _Binding, where: tuple[int, Any]) -> None:
+    def _refused(
+        self, sysid: VehicleKey, compid: int, binding: _Binding, where: tuple[int, Any]
+    ) -> None:
         """Count a second address of a bound component once, and say it in one line (the
         first ``_CONFLICTS_SAID`` of them; a spoofer changing ports cannot flood the log)."""
         key = (sysid, compid, where)
@@ -280,7 +283,7 @@ class PlausibilityFilter:
                 "(address_conflicts), not said"
             )
 
-    def unbound(self, sysid: int, where: tuple[int, Any]) -> None:
+    def unbound(self, sysid: VehicleKey, where: tuple[int, Any]) -> None:
         """A frame of (``sysid``, bound to nothing) from ``where``: dropped, and counted while
         ``where`` is not bound to ``sysid`` (``_bind`` takes back the count of a vehicle's own
         frames before its first HEARTBEAT: ``unbound`` is what senders that never became a
@@ -294,7 +297,7 @@ class PlausibilityFilter:
         trust.bindings[compid] = _Binding(where, now_s)
         self.counts.unbound -= self._unbound.pop((trust.system_id, where), 0)
 
-    def _trust(self, sysid: int) -> VehicleTrust:
+    def _trust(self, sysid: VehicleKey) -> VehicleTrust:
         trust = self.vehicles.get(sysid)
         if trust is None:
             trust = self.vehicles[sysid] = VehicleTrust(system_id=sysid)
@@ -302,7 +305,7 @@ class PlausibilityFilter:
 
     # ------------------------------------------------------------------ content
 
-    def admit(self, sysid: int, msg: mavlink.MAVLink_message, now_s: float) -> bool:
+    def admit(self, sysid: VehicleKey, msg: mavlink.MAVLink_message, now_s: float) -> bool:
         """True if ``msg`` (already from the vehicle's bound address) may change its state."""
         trust = self._trust(sysid)
         check = _CHECKS.get(msg.get_type())
@@ -389,7 +392,7 @@ class PlausibilityFilter:
             self.limits.lockstep and self.granted_ms is not None and fix.time_ms > self.granted_ms
         )
 
-    def running_free(self, sysid: int) -> bool:
+    def running_free(self, sysid: VehicleKey) -> bool:
         """Lockstep: vehicle ``sysid`` has reported ``rebase_frames`` positions in a row past the
         granted horizon, from its own address: its simulator does not hold (lockstep released)."""
         trust = self.vehicles.get(sysid)

@@ -147,7 +147,7 @@ class LossWatch:
                 self.reasons[i] = why
                 reason = "silent" if why.startswith("silent") else why
                 self.account.events.append(LinkEvent(step, i, "lost", now, reason))
-                self.say(f"vehicle {v.system_id} lost at step {step} ({why}); the others go on")
+                self.say(f"vehicle {v.key} lost at step {step} ({why}); the others go on")
             elif (
                 v.lost
                 and why is not None
@@ -158,7 +158,7 @@ class LossWatch:
                 self.reasons[i] = why
                 self.account.events.append(LinkEvent(step, i, "back", now, why))
                 self.say(
-                    f"vehicle {v.system_id} is back at step {step} but {why}: it stays lost (a "
+                    f"vehicle {v.key} is back at step {step} but {why}: it stays lost (a "
                     f"plane is not launched into the swarm in flight; it rejoins armed and in "
                     f"GUIDED)"
                 )
@@ -166,4 +166,4 @@ class LossWatch:
                 v.lost = False
                 self.reasons.pop(i, None)
                 self.account.events.append(LinkEvent(step, i, "rejoined", now))
-                self.say(f"vehicle {v.system_id} rejoined at step {step}")
+                self.say(f"vehicle {v.key} rejoined at step {step}")

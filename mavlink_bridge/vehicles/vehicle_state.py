@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 from mavlink_bridge.vehicles.param_encoding import decode_param
 from mavlink_bridge.vehicles.telemetry_plausibility import on_earth
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_wire.links import VehicleLink
 from mavlink_wire.looks import look_part, parse_look_offsets
 from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, CAMERA_COMPONENT_ID, mavlink
@@ -52,10 +53,12 @@ class CommandAck:
 
 @dataclass
 class VehicleState:
-    """Telemetry, status and protocol state of one vehicle (system id = UAV index + 1)."""
+    """Telemetry, status and protocol state of one vehicle: ``system_id`` addresses it on its
+    network, ``key`` (link, system id) tells it apart from every other (vehicle_key.py)."""
 
     system_id: int
     link: VehicleLink
+    key: VehicleKey = VehicleKey(0, 0)  # (0, system_id) unless given
     last_heard_s: float = field(default_factory=time.monotonic)
     heartbeats: int = 0
     vehicle_type: int = -1
@@ -110,6 +113,10 @@ class VehicleState:
     #: links of components heard on another link than the autopilot (swarm_link routes by
     #: system and component id); a command to such a component goes there
     component_links: dict[int, VehicleLink] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.key.system_id == 0:
+            self.key = VehicleKey(0, self.system_id)
 
     # ------------------------------------------------------------------ derived
 

@@ -24,6 +24,7 @@ from mavlink_bridge.vehicles.guided_commands import (
     change_speed_command,
 )
 from mavlink_bridge.vehicles.swarm_link import SwarmLink
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.vehicles.vehicle_loss import link_down
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_bridge.way_home.around_threats import HomeRoutes
@@ -45,23 +46,23 @@ class FlightHome:
     now; ``detoured``: every one that was), holding for another's way home (``holding``: the
     point it circles; ``held``: every one that did; ``unresolved``: no hold cleared its way)."""
 
-    homing: dict[int, np.ndarray] = field(default_factory=dict)
-    detoured: set[int] = field(default_factory=set)
+    homing: dict[VehicleKey, np.ndarray] = field(default_factory=dict)
+    detoured: set[VehicleKey] = field(default_factory=set)
     #: keep the ways home d_min apart: only when the daemon stays to watch the flight home
     separate: bool = False
-    holding: dict[int, np.ndarray] = field(default_factory=dict)
+    holding: dict[VehicleKey, np.ndarray] = field(default_factory=dict)
     #: of ``holding``, the planes that fly through their point on the way home (a detour)
-    detouring: set[int] = field(default_factory=set)
-    held: set[int] = field(default_factory=set)
-    unresolved: set[int] = field(default_factory=set)
+    detouring: set[VehicleKey] = field(default_factory=set)
+    held: set[VehicleKey] = field(default_factory=set)
+    unresolved: set[VehicleKey] = field(default_factory=set)
     routes: HomeRoutes | None = None  # the way home around threats, for the plane model in force
     #: planes switched to RTL during the mission whose line home crossed a threat, guided out
     #: (``guide_stray_returns``)
-    strays: set[int] = field(default_factory=set)
+    strays: set[VehicleKey] = field(default_factory=set)
     #: who circles home slower than cruise, its home being near another's (``home_circles``)
     circles: HomeCircles = field(default_factory=HomeCircles)
     #: planes a resumed daemon sent home (resume_takeback.py), by system id: why
-    sent_home: dict[int, str] = field(default_factory=dict)
+    sent_home: dict[VehicleKey, str] = field(default_factory=dict)
 
 
 class HomeOptions(Protocol):
@@ -113,16 +114,16 @@ class FlightHomePhase:
         self.ctx = ctx
         self.state = FlightHome() if state is None else state
 
-    def send_home(self, system_id: int, why: str) -> None:
+    def send_home(self, key: VehicleKey, why: str) -> None:
         """A plane a resumed daemon sends home (``resume_takeback.py``): from now on it flies
         the safe way home (``guide_sent_home``), never the mission."""
-        self.state.sent_home[system_id] = why
+        self.state.sent_home[key] = why
 
-    def sent_home(self) -> set[int]:
+    def sent_home(self) -> set[VehicleKey]:
         """The planes a resumed daemon sent home, by system id."""
         return set(self.state.sent_home)
 
-    def result(self, sent_to: list[int], skipped: dict[int, str]) -> dict[str, Any]:
+    def result(self, sent_to: list[VehicleKey], skipped: dict[VehicleKey, str]) -> dict[str, Any]:
         """The flight home in the mission's result: RTL sent to (``sent_to`` by
         ``return_to_launch``, and every plane guided or held that got it during the watch),
         guided around threats, held for separation, the home circles' speeds, and why RTL was
@@ -131,9 +132,9 @@ class FlightHomePhase:
         # a vehicle guided around threats got its RTL during the watch, once the way was clear
         later = (flight.detoured | flight.held) - set(flight.homing) - set(flight.holding)
         return {
-            "rtl_sent_to": sorted(set(sent_to) | later),
-            "guided_home_around_threats": sorted(flight.detoured),
-            "held_for_separation_home": sorted(flight.held),
+            "rtl_sent_to": [k.label() for k in sorted(set(sent_to) | later)],
+            "guided_home_around_threats": [k.label() for k in sorted(flight.detoured)],
+            "held_for_separation_home": [k.label() for k in sorted(flight.held)],
             "home_circle_speeds_mps": {
                 str(k): round(v, 1) for k, v in sorted(flight.circles.speeds_mps.items())
             },
@@ -176,7 +177,7 @@ class FlightHomePhase:
         slows down and which homes are too close even then (kept in ``FlightHome.circles``)."""
         heard = self.ctx.link.vehicles.values() if self.ctx.link is not None else []
         homes = {
-            v.system_id: self.ctx.local_km(v.home[0], v.home[1])
+            v.key: self.ctx.local_km(v.home[0], v.home[1])
             for v in heard
             if v.home is not None and (v.airborne or v.lost)
         }
@@ -184,7 +185,7 @@ class FlightHomePhase:
             homes, self.ctx.plane, self.ctx.scenario.config.min_separation_km
         )
         self.state.circles = circles
-        by_speed: dict[float, list[int]] = {}
+        by_speed: dict[float, list[VehicleKey]] = {}
         for sid, speed in sorted(circles.speeds_mps.items()):
             by_speed.setdefault(round(speed), []).append(sid)
         for speed, ids in by_speed.items():
@@ -208,13 +209,11 @@ class FlightHomePhase:
         commanded before it (ArduPlane)."""
         speeds = self.state.circles.speeds_mps
         slow = [
-            change_speed_command(c.vehicle, speeds[c.vehicle.system_id])
+            change_speed_command(c.vehicle, speeds[c.vehicle.key])
             for c in sent
-            if c.command in RTL_COMMANDS and c.accepted and c.vehicle.system_id in speeds
+            if c.command in RTL_COMMANDS and c.accepted and c.vehicle.key in speeds
         ]
-        refused = [
-            c.vehicle.system_id for c in (self.ctx.send(slow) if slow else []) if not c.accepted
-        ]
+        refused = [c.vehicle.key for c in (self.ctx.send(slow) if slow else []) if not c.accepted]
         if refused:
             ids = ", ".join(map(str, refused))
             self.ctx.say(
@@ -253,16 +252,16 @@ class FlightHomePhase:
             if done and not (flight.homing or flight.holding):
                 return
             guided = flight.homing.keys() | flight.holding.keys()
-            flying = [v for v in vehicles if not v.lost and v.system_id in guided]
+            flying = [v for v in vehicles if not v.lost and v.key in guided]
             self.slow_home_circles(self.ctx.send(self.homeward_commands(flying, announce=False)))
-        still = [v for v in vehicles if not v.lost and v.system_id in flight.holding]
+        still = [v for v in vehicles if not v.lost and v.key in flight.holding]
         if still:
             self.ctx.say(
                 "warning: the watch of the flight home ends with vehicle(s) "
-                f"{', '.join(str(v.system_id) for v in still)} still holding: RTL sent"
+                f"{', '.join(str(v.key) for v in still)} still holding: RTL sent"
             )
             for v in still:
-                flight.holding.pop(v.system_id)
+                flight.holding.pop(v.key)
             self.slow_home_circles(self.ctx.send([autopilot_for(v).rtl_command(v) for v in still]))
             self.see_rtl(still)
 
@@ -304,17 +303,17 @@ class FlightHomePhase:
         for v in self.ctx.vehicles():
             if not (autopilot_for(v).returning(v.custom_mode) and v.armed and v.airborne):
                 continue
-            if v.system_id in self.state.sent_home:
+            if v.key in self.state.sent_home:
                 continue  # its flight home is guide_sent_home's
             if v.home is None or not v.has_position or v.link is None or link_down(v) is not None:
                 continue
             waypoint = self.way_home(routes, v)[3]
             if waypoint is None:  # RTL's line is clear (or no way is known)
                 continue
-            if v.system_id not in self.state.strays:
-                self.state.strays.add(v.system_id)
+            if v.key not in self.state.strays:
+                self.state.strays.add(v.key)
                 self.ctx.say(
-                    f"vehicle {v.system_id} is in RTL during the mission (a fence breach or a "
+                    f"vehicle {v.key} is in RTL during the mission (a fence breach or a "
                     f"failsafe) and its line home crosses a threat: guided out via "
                     f"({waypoint[0]:.1f}, {waypoint[1]:.1f}) km"
                 )
@@ -330,7 +329,7 @@ class FlightHomePhase:
         planes = [
             v
             for v in self.ctx.vehicles()
-            if v.system_id in sent and v.airborne and v.home is not None and link_down(v) is None
+            if v.key in sent and v.airborne and v.home is not None and link_down(v) is None
         ]
         return self.homeward_commands(planes, announce=False) if planes else []
 
@@ -338,7 +337,7 @@ class FlightHomePhase:
         self,
         end_leg_timing: Callable[[list[VehicleState]], object] | None = None,
         separate: bool = False,
-    ) -> tuple[list[int], dict[int, str]]:
+    ) -> tuple[list[VehicleKey], dict[VehicleKey, str]]:
         """RTL (at cruise speed) to every airborne vehicle still reachable whose way home is clear
         of threats; one whose is not is guided around them (``homeward_commands``, re-judged by
         ``watch_rtl``). Returns the system ids RTL was sent to and, for every vehicle not
@@ -366,8 +365,8 @@ class FlightHomePhase:
             if not c.accepted:
                 self.ctx.say(f"warning: {c.describe_failure()}")
         rtl = [c for c in results if c.command in RTL_COMMANDS]
-        sent = [c.vehicle.system_id for c in rtl]
-        accepted = [c.vehicle.system_id for c in rtl if c.accepted]
+        sent = [c.vehicle.key for c in rtl]
+        accepted = [c.vehicle.key for c in rtl if c.accepted]
         line = rtl_line(sent, accepted, skipped)
         if flight.homing:
             around = ", ".join(str(i) for i in sorted(flight.homing))
@@ -388,42 +387,42 @@ class FlightHomePhase:
         flight = self.state
         routes = self.home_routes()
         commands: list[Command] = []
-        ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]] = {}
+        ways: dict[VehicleKey, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]] = {}
         for v in vehicles:
             if v.home is not None and v.has_position:
-                ways[v.system_id] = self.way_home(routes, v)
+                ways[v.key] = self.way_home(routes, v)
         plan = self.hold_for_separation(vehicles, ways) if flight.separate else ReturnPlan()
         holds = plan.holds
-        deciding = {v.system_id for v in vehicles}
+        deciding = {v.key for v in vehicles}
         for sid, hold in holds.items():  # a plane in RTL held so that another leaves first
             if sid not in deciding and self.ctx.link is not None and sid in self.ctx.link.vehicles:
                 flight.holding[sid] = hold
                 commands.append(self.reposition_to(self.ctx.link.vehicles[sid], hold))
         for v in vehicles:
-            waypoint = ways[v.system_id][3] if v.system_id in ways else None
-            was_holding = flight.holding.pop(v.system_id, None)
-            hold = holds.get(v.system_id)
+            waypoint = ways[v.key][3] if v.key in ways else None
+            was_holding = flight.holding.pop(v.key, None)
+            hold = holds.get(v.key)
             if hold is not None:
-                flight.holding[v.system_id] = hold
-                flight.homing.pop(v.system_id, None)
+                flight.holding[v.key] = hold
+                flight.homing.pop(v.key, None)
                 if was_holding is None or not np.allclose(was_holding, hold):
                     commands.append(self.reposition_to(v, hold))
                 continue
-            before = flight.homing.get(v.system_id)
+            before = flight.homing.get(v.key)
             if waypoint is None:
-                flight.homing.pop(v.system_id, None)
-                if was_holding is not None and not announce and v.system_id not in plan.unresolved:
-                    self.ctx.say(f"vehicle {v.system_id}'s way home is clear: RTL sent")
+                flight.homing.pop(v.key, None)
+                if was_holding is not None and not announce and v.key not in plan.unresolved:
+                    self.ctx.say(f"vehicle {v.key}'s way home is clear: RTL sent")
                 if before is not None or was_holding is not None or announce:
                     commands.append(autopilot_for(v).rtl_command(v))
                 continue
-            flight.homing[v.system_id] = waypoint
-            flight.detoured.add(v.system_id)
+            flight.homing[v.key] = waypoint
+            flight.detoured.add(v.key)
             if before is not None and np.allclose(before, waypoint):
                 continue
             if before is None:
                 self.ctx.say(
-                    f"vehicle {v.system_id} flies home around the threats (RTL's straight line "
+                    f"vehicle {v.key} flies home around the threats (RTL's straight line "
                     f"would cross one): guided via ({waypoint[0]:.1f}, {waypoint[1]:.1f}) km"
                 )
             commands.append(self.reposition_to(v, waypoint))
@@ -452,7 +451,7 @@ class FlightHomePhase:
     def hold_for_separation(
         self,
         vehicles: list[VehicleState],
-        ways: dict[int, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]],
+        ways: dict[VehicleKey, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]],
     ) -> ReturnPlan:
         """Which vehicles must hold for another's way home, detour around it, or leave one after
         another, and where (``ReturnSeparation.plan``, returned): every other airborne vehicle
@@ -461,21 +460,21 @@ class FlightHomePhase:
         who conflicts with no way found."""
         flight = self.state
         separation = self.return_separation()
-        deciding = {v.system_id for v in vehicles}
+        deciding = {v.key for v in vehicles}
         # flights RTL straight home, as the plane model flies them: every other airborne vehicle
         # heard (nobody holds it any more) and the deciding ones whose line home is clear
-        rtl: list[tuple[int, np.ndarray, np.ndarray, float, float]] = []
+        rtl: list[tuple[VehicleKey, np.ndarray, np.ndarray, float, float]] = []
         for o in self.ctx.vehicles():
-            if o.system_id in deciding or o.lost or not o.airborne or o.home is None:
+            if o.key in deciding or o.lost or not o.airborne or o.home is None:
                 continue
             if o.has_position:
-                rtl.append((o.system_id, *self.place_and_home(o), o.course_rad, o.speed_mps))
+                rtl.append((o.key, *self.place_and_home(o), o.course_rad, o.speed_mps))
         set_count = len(rtl)
-        by_id = {v.system_id: v for v in vehicles}
+        by_id = {v.key: v for v in vehicles}
         for sid, (xy, home, course, waypoint) in ways.items():
             if waypoint is None:
                 rtl.append((sid, xy, home, course, by_id[sid].speed_mps))
-        flights = {leg.system_id: leg for leg in separation.flights_home(rtl)}
+        flights = {leg.key: leg for leg in separation.flights_home(rtl)}
         set_legs = [flights[w[0]] for w in rtl[:set_count]]
         waiting = []
         for sid, (xy, _home, course, waypoint) in ways.items():

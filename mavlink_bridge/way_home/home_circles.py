@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 
 
 @dataclass(frozen=True)
@@ -20,12 +21,12 @@ class HomeCircles:
     (:func:`home_circle_speeds`): ``speeds_mps`` for the planes that must fly slower than
     cruise, and the pairs of homes (system ids, km apart) too close even at the slowest."""
 
-    speeds_mps: dict[int, float] = field(default_factory=dict)
-    too_close: list[tuple[int, int, float]] = field(default_factory=list)
+    speeds_mps: dict[VehicleKey, float] = field(default_factory=dict)
+    too_close: list[tuple[VehicleKey, VehicleKey, float]] = field(default_factory=list)
 
 
 def home_circle_speeds(
-    homes_km: dict[int, np.ndarray], plane: PlaneModel, d_min_km: float
+    homes_km: dict[VehicleKey, np.ndarray], plane: PlaneModel, d_min_km: float
 ) -> HomeCircles:
     """The airspeed at which each plane circles its home at the end of a mission, so that two
     planes whose homes are close keep d_min there.

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
+
 #: how long the plane model's place on a loiter circle is trusted: beyond, a circling plane is
 #: anywhere on its circle (its phase drifts with every late command and gust)
 PHASE_TRUSTED_S = 20.0
@@ -25,7 +27,7 @@ class Homeward:
     is, its course and speed known: :meth:`HomewardFlights.flights_home`) the flight is the
     plane model's (the turn onto the way, the overshoot, the circle), every ``path_dt_s``."""
 
-    system_id: int
+    key: VehicleKey
     start_km: np.ndarray  # (2,)
     aim_km: np.ndarray  # (2,)
     speed_kmps: float

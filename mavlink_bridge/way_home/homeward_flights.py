@@ -25,6 +25,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from mavlink_bridge.vehicles.flight_prediction import predict_paths, wrap_angle
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.way_home.around_threats import HomeRoutes
 from mavlink_bridge.way_home.homeward import Homeward
 
@@ -40,7 +41,7 @@ class HomewardFlights:
     tolerance_frac: float = 0.15  # ... and the part growing with the time ahead
     sample_s: float = 2.0  # instants compared, this far apart (at 100 m/s: 0.2 km)
     #: planes that fly home slower than cruise (``home_circle_speeds``), by system id
-    speeds_mps: dict[int, float] = field(default_factory=dict)
+    speeds_mps: dict[VehicleKey, float] = field(default_factory=dict)
     #: how far a plane may be from where the plane model flies it (``flights_home``)
     track_km: float = 0.3
     #: a plane whose aim is more than this off its nose may turn about either way (the
@@ -55,7 +56,7 @@ class HomewardFlights:
 
     def leg(
         self,
-        system_id: int,
+        key: VehicleKey,
         xy_km: np.ndarray,
         aim_km: np.ndarray,
         at_home: bool,
@@ -64,10 +65,10 @@ class HomewardFlights:
         plane = self.routes.plane
         # RTL home at the home circle's speed; guided (to a hold, through a detour) at cruise,
         # which an autopilot goes back to at each change of mode (ArduPlane)
-        home_mps = self.speeds_mps.get(system_id, plane.speed_mps) if at_home else plane.speed_mps
+        home_mps = self.speeds_mps.get(key, plane.speed_mps) if at_home else plane.speed_mps
         travel_mps = home_mps if via_km is None else plane.speed_mps
         return Homeward(
-            system_id,
+            key,
             np.asarray(xy_km, float),
             np.asarray(aim_km, float),
             travel_mps / 1e3,
@@ -77,7 +78,7 @@ class HomewardFlights:
         )
 
     def flights_home(
-        self, ways: list[tuple[int, np.ndarray, np.ndarray, float, float]]
+        self, ways: list[tuple[VehicleKey, np.ndarray, np.ndarray, float, float]]
     ) -> list[Homeward]:
         """The RTL flights home of planes (system id, where, home, course in rad from east,
         airspeed now), each as the plane model flies it (``predict_paths``, all in one batch):
@@ -107,7 +108,7 @@ class HomewardFlights:
 
     def _predicted(
         self,
-        system_id: int,
+        key: VehicleKey,
         xy: np.ndarray,
         aim: np.ndarray,
         speed_mps: float,
@@ -125,7 +126,7 @@ class HomewardFlights:
             arrival = float(np.argmax(near) if near.any() else len(path) - 1) * self.sample_s
             variants.append(
                 Homeward(
-                    system_id,
+                    key,
                     xy,
                     aim,
                     speed_mps / 1e3,
@@ -232,7 +233,7 @@ class HomewardFlights:
 
     def guided_flights(
         self,
-        system_id: int,
+        key: VehicleKey,
         xy_km: np.ndarray,
         course_rad: float,
         points_km: np.ndarray,
@@ -266,7 +267,7 @@ class HomewardFlights:
         detour = then_km is not None
         return [
             self._predicted(
-                system_id,
+                key,
                 xy,
                 np.asarray(then_km, float) if detour else point,
                 speed,

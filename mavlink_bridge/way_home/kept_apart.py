@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.way_home.homeward import Homeward
 from mavlink_bridge.way_home.homeward_flights import HomewardFlights
 
@@ -100,7 +101,7 @@ class ReturnSeparation(HomewardFlights):
             if kept is not None:
                 return np.asarray(previous, float).copy(), kept
         candidates = self._hold_points(xy, course_rad)
-        holds = self.guided_flights(leg.system_id, xy, course_rad, candidates)
+        holds = self.guided_flights(leg.key, xy, course_rad, candidates)
         for point, hold in zip(candidates, holds, strict=True):  # nearest first (ring order)
             if not self.conflicts(hold, others, self.choose_margin_km):
                 return point.copy(), hold
@@ -127,9 +128,7 @@ class ReturnSeparation(HomewardFlights):
         )
         if not on_clear:
             return None
-        (flight,) = self.guided_flights(
-            leg.system_id, xy, course_rad, point[None], then_km, leg.at_home
-        )
+        (flight,) = self.guided_flights(leg.key, xy, course_rad, point[None], then_km, leg.at_home)
         return None if self.conflicts(flight, others) else flight
 
     def detour(
@@ -151,7 +150,7 @@ class ReturnSeparation(HomewardFlights):
             if kept is not None:
                 return np.asarray(previous, float).copy(), kept
         points = self._detour_points(xy, course_rad, aim)
-        ways = self.guided_flights(leg.system_id, xy, course_rad, points, aim, leg.at_home)
+        ways = self.guided_flights(leg.key, xy, course_rad, points, aim, leg.at_home)
         for point, way in zip(points, ways, strict=True):  # the shortest way first
             if not self.conflicts(way, others, self.choose_margin_km):
                 return point.copy(), way
@@ -186,8 +185,8 @@ class ReturnSeparation(HomewardFlights):
         course_rad: float,
         fixed: list[Homeward],
         blocking: list[Homeward],
-        released: dict[int, float],
-    ) -> tuple[int, np.ndarray, np.ndarray | None, Homeward, Homeward] | None:
+        released: dict[VehicleKey, float],
+    ) -> tuple[VehicleKey, np.ndarray, np.ndarray | None, Homeward, Homeward] | None:
         """Two planes that end the mission a few km apart with crossing ways: the one cleared
         first (``released``: system id -> course; its way home set in this plan, or already
         flying RTL, which a DO_REPOSITION takes out of it) flies its way through where
@@ -199,18 +198,18 @@ class ReturnSeparation(HomewardFlights):
         Returns (the holding plane, its point, ``leg``'s detour point or None, the hold's
         flight, ``leg``'s flight), or None when no pair clears it (or more than one plane is
         in the way: ``blocking``, those of ``fixed`` ``leg`` conflicts with)."""
-        if len(blocking) != 1 or blocking[0].system_id not in released:
+        if len(blocking) != 1 or blocking[0].key not in released:
             return None
         other = blocking[0]
         rest = [o for o in fixed if o is not other]
-        other_course = released[other.system_id]
+        other_course = released[other.key]
         holds = self._hold_points(other.start_km, other_course)
         detours = self._detour_points(leg.start_km, course_rad, leg.aim_km)
         ways: list[tuple[np.ndarray | None, Homeward]] = [(None, leg)] + list(
             zip(
                 detours,
                 self.guided_flights(
-                    leg.system_id, leg.start_km, course_rad, detours, leg.aim_km, leg.at_home
+                    leg.key, leg.start_km, course_rad, detours, leg.aim_km, leg.at_home
                 ),
                 strict=True,
             )
@@ -219,22 +218,22 @@ class ReturnSeparation(HomewardFlights):
         ways = [(via, way) for via, way in ways if not self.conflicts(way, rest, margin)]
         if not ways:
             return None
-        hold_flights = self.guided_flights(other.system_id, other.start_km, other_course, holds)
+        hold_flights = self.guided_flights(other.key, other.start_km, other_course, holds)
         for point, hold in zip(holds, hold_flights, strict=True):
             if self.conflicts(hold, rest, margin):
                 continue
             for via, way in ways:
                 if not self.conflict(way, hold, margin):
-                    return other.system_id, point.copy(), via, hold, way
+                    return other.key, point.copy(), via, hold, way
         return None
 
     def plan(
         self,
         set_legs: list[Homeward],
         waiting: list[tuple[Homeward, float]],
-        keep: dict[int, np.ndarray] | None = None,
-        detouring: set[int] | frozenset[int] = frozenset(),
-        movable: dict[int, float] | None = None,
+        keep: dict[VehicleKey, np.ndarray] | None = None,
+        detouring: set[VehicleKey] | frozenset[VehicleKey] = frozenset(),
+        movable: dict[VehicleKey, float] | None = None,
     ) -> ReturnPlan:
         """Which of the ``waiting`` planes (their leg home and their course) must hold, and
         where. ``set_legs`` are flights nobody can change any more; ``keep``: the points planes
@@ -249,27 +248,27 @@ class ReturnSeparation(HomewardFlights):
         the planes (system id -> course) that may be guided again to let another leave first
         (planes in RTL: a DO_REPOSITION takes them out of it)."""
         planning = _Planning(keep or {}, movable or {}, list(set_legs))
-        order = sorted(waiting, key=lambda lc: (lc[0].arrival_s, lc[0].system_id))
+        order = sorted(waiting, key=lambda lc: (lc[0].arrival_s, lc[0].key))
         for leg, course in order:
-            if leg.system_id not in detouring:
+            if leg.key not in detouring:
                 self._keep_hold(planning, leg, course)
         for leg, course in order:
-            if leg.system_id not in planning.kept:
+            if leg.key not in planning.kept:
                 self._find_way(planning, leg, course)
         for leg, course in order:
-            if leg.system_id in planning.kept:
+            if leg.key in planning.kept:
                 self._end_hold(planning, leg, course)
         return planning.plan
 
     def _keep_hold(self, planning: _Planning, leg: Homeward, course: float) -> None:
         """A plane holding now keeps its point while its flight there (as the plane model
         flies it) conflicts with none set; the planes after it are judged against it."""
-        point = planning.keep.get(leg.system_id)
+        point = planning.keep.get(leg.key)
         if point is None:
             return
-        (hold,) = self.guided_flights(leg.system_id, leg.start_km, course, point[None])
+        (hold,) = self.guided_flights(leg.key, leg.start_km, course, point[None])
         if not self.conflicts(hold, planning.fixed):
-            planning.kept[leg.system_id] = hold
+            planning.kept[leg.key] = hold
             planning.fixed.append(hold)
 
     def _find_way(self, planning: _Planning, leg: Homeward, course: float) -> None:
@@ -277,7 +276,7 @@ class ReturnSeparation(HomewardFlights):
         order, it holds (unless only planes that stay where they are block it), detours, has
         the plane in its way hold while it leaves first (``stagger``), or takes the way that
         comes least close (``_least_close``)."""
-        fixed, plan, sid = planning.fixed, planning.plan, leg.system_id
+        fixed, plan, sid = planning.fixed, planning.plan, leg.key
         blocking = [o for o in fixed if self.conflict(leg, o)]
         if not blocking:
             fixed.append(leg)
@@ -309,7 +308,7 @@ class ReturnSeparation(HomewardFlights):
         planning.released.pop(other, None)
         plan.holds[other] = hold_km
         plan.staggered[other] = sid
-        planning.fixed = [o for o in fixed if o.system_id != other] + [hold, way]
+        planning.fixed = [o for o in fixed if o.key != other] + [hold, way]
         if via is None:
             planning.released[sid] = course
         else:
@@ -324,7 +323,7 @@ class ReturnSeparation(HomewardFlights):
         Flying its leg on regardless took a plane of px4-3uav through the circle of another
         at its home (0.04 km); the planner's missed-claim rule does the same (the move that
         keeps the most separation)."""
-        xy, sid = leg.start_km, leg.system_id
+        xy, sid = leg.start_km, leg.key
         holds = self._hold_points(xy, course)
         detours = self._detour_points(xy, course, leg.aim_km)
         options: list[tuple[np.ndarray | None, bool, Homeward]] = [(None, False, leg)]
@@ -357,7 +356,7 @@ class ReturnSeparation(HomewardFlights):
         """A plane holding now flies home once its way is clear of what every other one does;
         where only planes that stay (circling their homes, holding) are in its way, waiting
         does not clear it: it detours. Else it keeps holding."""
-        plan, sid = planning.plan, leg.system_id
+        plan, sid = planning.plan, leg.key
         hold = planning.kept[sid]
         others = [o for o in planning.fixed if o is not hold]
         blocking = [o for o in others if self.conflict(leg, o)]
@@ -381,17 +380,19 @@ class ReturnSeparation(HomewardFlights):
 class ReturnPlan:
     """What :meth:`ReturnSeparation.plan` decided for the planes waiting for their way home."""
 
-    holds: dict[int, np.ndarray] = field(default_factory=dict)  # system id -> point to fly to
+    holds: dict[VehicleKey, np.ndarray] = field(default_factory=dict)  # vehicle -> point to fly to
     #: of ``holds``, the planes that fly through their point on the way (a detour), not wait
-    detours: list[int] = field(default_factory=list)
+    detours: list[VehicleKey] = field(default_factory=list)
     #: conflicting whatever they do: each takes the way that comes least close (a hold or a
     #: detour in ``holds``, else its leg home), ``closest_km`` to the others less their strays
-    unresolved: list[int] = field(default_factory=list)
-    closest_km: dict[int, float] = field(default_factory=dict)
+    unresolved: list[VehicleKey] = field(default_factory=list)
+    closest_km: dict[VehicleKey, float] = field(default_factory=dict)
     #: of ``holds``, planes held so that another can leave first (``stagger``): -> that plane
-    staggered: dict[int, int] = field(default_factory=dict)
+    staggered: dict[VehicleKey, VehicleKey] = field(default_factory=dict)
 
-    def news(self, holding: Iterable[int], unresolved: Iterable[int]) -> list[str]:
+    def news(
+        self, holding: Iterable[VehicleKey], unresolved: Iterable[VehicleKey]
+    ) -> list[str]:
         """What the daemon says of this plan: each plane newly unresolved (not in
         ``unresolved``), staggered, or newly holding or detouring (not in ``holding``)."""
         lines = []
@@ -425,16 +426,16 @@ class ReturnPlan:
 class _Planning:
     """One :meth:`ReturnSeparation.plan` as it goes."""
 
-    keep: dict[int, np.ndarray]  # the points planes hold at or detour through now
-    movable: dict[int, float]  # set planes that may be guided again: system id -> course
+    keep: dict[VehicleKey, np.ndarray]  # the points planes hold at or detour through now
+    movable: dict[VehicleKey, float]  # set planes that may be guided again: system id -> course
     fixed: list[Homeward]  # the flights set so far: each plane is judged against them
     plan: ReturnPlan = field(default_factory=ReturnPlan)
     #: planes holding at the point they hold at now: their flight there
-    kept: dict[int, Homeward] = field(default_factory=dict)
+    kept: dict[VehicleKey, Homeward] = field(default_factory=dict)
     #: waiting planes whose way is set as it is: their course
-    released: dict[int, float] = field(default_factory=dict)
+    released: dict[VehicleKey, float] = field(default_factory=dict)
 
     def stays(self, other: Homeward) -> bool:
         """``other`` stays where it is whatever the plane judged against it does: it circles
         its home, or holds (until that plane is out of its way)."""
-        return (other.at_home and other.settled) or other.system_id in self.kept
+        return (other.at_home and other.settled) or other.key in self.kept

@@ -15,32 +15,35 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from mavlink_bridge.vehicles.discovery import _ids
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.vehicles.vehicle_loss import link_down
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 
 
 def rtl_recipients(
     vehicles: Iterable[VehicleState], lost_after_s: float, now_s: float | None = None
-) -> tuple[list[VehicleState], dict[int, str]]:
+) -> tuple[list[VehicleState], dict[VehicleKey, str]]:
     """The vehicles RTL goes to (airborne, reachable), and for every other one (by system id)
     why not."""
     flying: list[VehicleState] = []
-    skipped: dict[int, str] = {}
-    for v in sorted(vehicles, key=lambda v: v.system_id):
+    skipped: dict[VehicleKey, str] = {}
+    for v in sorted(vehicles, key=lambda v: v.key):
         closed = link_down(v)
         silent = v.silent_for(now_s)
         if closed is not None:
-            skipped[v.system_id] = f"unreachable: {closed}"
+            skipped[v.key] = f"unreachable: {closed}"
         elif silent > lost_after_s:
-            skipped[v.system_id] = f"unreachable: silent {silent:.0f} s"
+            skipped[v.key] = f"unreachable: silent {silent:.0f} s"
         elif not v.airborne:
-            skipped[v.system_id] = "on the ground, disarmed" if not v.armed else "on the ground"
+            skipped[v.key] = "on the ground, disarmed" if not v.armed else "on the ground"
         else:
             flying.append(v)
     return flying, skipped
 
 
-def rtl_line(sent: list[int], accepted: list[int], skipped: dict[int, str]) -> str:
+def rtl_line(
+    sent: list[VehicleKey], accepted: list[VehicleKey], skipped: dict[VehicleKey, str]
+) -> str:
     """What the daemon says of its RTL: to whom, who accepted, and who not and why."""
     if sent:
         line = f"RTL sent to vehicle{'s' if len(sent) > 1 else ''} {_ids(sent)}"
@@ -70,7 +73,9 @@ class HomeWatch:
     vehicles: list[VehicleState]  # those heard, with a home
     near_km: float
     speed_mps: float
-    since_ms: dict[int, int] = field(default_factory=dict)  # system id -> first clock near home
+    since_ms: dict[VehicleKey, int] = field(
+        default_factory=dict
+    )  # vehicle -> first clock near home
 
     @property
     def circle_ms(self) -> float:
@@ -88,12 +93,12 @@ class HomeWatch:
     def home(self) -> bool:
         for v in self.vehicles:
             if away_km(v) > self.near_km:
-                self.since_ms.pop(v.system_id, None)
+                self.since_ms.pop(v.key, None)
             else:
-                self.since_ms.setdefault(v.system_id, v.time_boot_ms)
+                self.since_ms.setdefault(v.key, v.time_boot_ms)
         return all(v.lost or not v.armed or self.circled(v) for v in self.vehicles)
 
     def circled(self, v: VehicleState) -> bool:
         """Has ``v`` stayed near its home for a whole circle of its clock?"""
-        since = self.since_ms.get(v.system_id)
+        since = self.since_ms.get(v.key)
         return since is not None and v.time_boot_ms - since >= self.circle_ms

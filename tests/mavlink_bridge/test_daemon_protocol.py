@@ -184,9 +184,9 @@ def test_a_fence_upload_a_vehicle_ended_unheard_starts_over(udp_port, fake_swarm
     swarm = fake_swarm_factory(1, udp_port, fence_race=True)
     link = SwarmLink.open([f"udpin:127.0.0.1:{udp_port}"])
     try:
-        assert link.pump_until(lambda: 1 in link.vehicles, 5.0)
+        assert link.pump_until(lambda: link.vehicle(1) is not None, 5.0)
         circles = [FenceCircle(-35.30, 149.20, 2000.0), FenceCircle(-35.33, 149.25, 3000.0)]
-        upload_fence(link, [link.vehicles[1]], circles, stall_timeout_s=4.0)
+        upload_fence(link, [link.vehicle(1)], circles, stall_timeout_s=4.0)
     finally:
         link.close()
     vehicle = swarm.vehicles[0]

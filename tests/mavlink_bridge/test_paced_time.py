@@ -45,8 +45,8 @@ def test_acknowledgements_are_awaited_until_the_deadline_only(udp_port, fake_swa
     swarm = fake_swarm_factory(1, udp_port)
     link = SwarmLink.open([f"udpin:127.0.0.1:{udp_port}"])
     try:
-        link.pump_until(lambda: 1 in link.vehicles, 5.0)
-        vehicle = link.vehicles[1]
+        link.pump_until(lambda: link.vehicle(1) is not None, 5.0)
+        vehicle = link.vehicle(1)
         swarm.vehicles[0].silent.set()
         home = mavlink.MAVLINK_MSG_ID_HOME_POSITION
         (bounded,) = send_commands(
@@ -74,8 +74,8 @@ def test_a_step_s_commands_are_sent_several_times_before_its_deadline(
     daemon = MissionDaemon(paper10, options(udp_port, expect=1, time_scale=20.0))
     link = daemon.connect()
     try:
-        link.pump_until(lambda: 1 in link.vehicles, 5.0)
-        vehicle = link.vehicles[1]
+        link.pump_until(lambda: link.vehicle(1) is not None, 5.0)
+        vehicle = link.vehicle(1)
         swarm.vehicles[0].silent.set()  # hears nothing: no acknowledgement
         home = mavlink.MAVLINK_MSG_ID_HOME_POSITION
         started = time.monotonic()

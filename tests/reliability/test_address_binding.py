@@ -240,8 +240,8 @@ def test_a_vehicle_moves_only_by_its_own_heartbeat_after_its_address_fell_silent
     vehicle, stranger, rebooted = _Sender(port), _Sender(port), _Sender(port)
     try:
         vehicle.send(_heartbeat(FIXED_WING, ARDUPILOT))
-        assert link.pump_until(lambda: 1 in link.vehicles, 5.0)
-        assert link.vehicles[1].link.address == vehicle.address
+        assert link.pump_until(lambda: link.vehicle(1) is not None, 5.0)
+        assert link.vehicle(1).link.address == vehicle.address
         ack = ml.MAVLink_command_ack_message(ml.MAV_CMD_DO_REPOSITION, ml.MAV_RESULT_ACCEPTED)
         quad = _heartbeat(ml.MAV_TYPE_QUADROTOR, ARDUPILOT)
         stranger.send(ack, FAR_FUTURE)  # while the vehicle is alive: refused
@@ -249,12 +249,12 @@ def test_a_vehicle_moves_only_by_its_own_heartbeat_after_its_address_fell_silent
         for _ in range(5):
             stranger.send(ack, FAR_FUTURE, _heartbeat(GCS, INVALID), quad)
         _pump(link, 0.3)
-        assert link.vehicles[1].link.address == vehicle.address  # nothing there moved it
+        assert link.vehicle(1).link.address == vehicle.address  # nothing there moved it
         counts = link.plausibility.counts
         assert counts.address_moves == 0 and counts.address_conflicts == 1
         rebooted.send(_heartbeat(FIXED_WING, ARDUPILOT))  # the vehicle back on a new socket
         _pump(link, 0.3)
-        assert link.vehicles[1].link.address == rebooted.address
+        assert link.vehicle(1).link.address == rebooted.address
         assert counts.address_moves == 1
         link.send_heartbeat()
         assert rebooted.heard_heartbeat()  # the daemon's frames follow the vehicle
@@ -278,11 +278,11 @@ def test_with_signing_only_a_signed_heartbeat_binds():
         _pump(link, 0.3)
         assert not link.vehicles and link.signature_check.unsigned_refused == 5
         vehicle.send(_heartbeat(FIXED_WING, ARDUPILOT))
-        assert link.pump_until(lambda: 1 in link.vehicles, 5.0)
-        assert link.vehicles[1].link.address == vehicle.address
+        assert link.pump_until(lambda: link.vehicle(1) is not None, 5.0)
+        assert link.vehicle(1).link.address == vehicle.address
         stranger.send(_heartbeat(FIXED_WING, ARDUPILOT))
         _pump(link, 0.3)
-        assert link.vehicles[1].link.address == vehicle.address
+        assert link.vehicle(1).link.address == vehicle.address
     finally:
         link.close()
         stranger.sock.close()
@@ -302,16 +302,16 @@ def test_a_camera_claimed_by_a_stranger_is_taken_back_through_its_autopilot():
     camera_beat = _heartbeat(ml.MAV_TYPE_CAMERA, INVALID)
     try:
         vehicle.send(_heartbeat(FIXED_WING, ARDUPILOT))
-        assert link.pump_until(lambda: 1 in link.vehicles, 5.0)
+        assert link.pump_until(lambda: link.vehicle(1) is not None, 5.0)
         stranger.sock.sendto(bytes(camera_beat.pack(camera_of[stranger])), stranger.target)
-        assert link.pump_until(lambda: CAMERA in link.vehicles[1].component_links, 5.0)
+        assert link.pump_until(lambda: CAMERA in link.vehicle(1).component_links, 5.0)
         vehicle.sock.sendto(bytes(camera_beat.pack(camera_of[vehicle])), vehicle.target)
         _pump(link, 0.3)
-        assert link.vehicles[1].link_for(CAMERA).address == vehicle.address
+        assert link.vehicle(1).link_for(CAMERA).address == vehicle.address
         for _ in range(3):  # the stranger's camera HEARTBEATs go on: refused now
             stranger.sock.sendto(bytes(camera_beat.pack(camera_of[stranger])), stranger.target)
         _pump(link, 0.3)
-        assert link.vehicles[1].link_for(CAMERA).address == vehicle.address
+        assert link.vehicle(1).link_for(CAMERA).address == vehicle.address
         assert link.plausibility.counts.address_conflicts == 1
     finally:
         link.close()

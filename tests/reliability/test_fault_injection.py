@@ -175,7 +175,7 @@ def ten_vehicles_through(profile: FaultProfile, seed: int):
     """paper-10uav's simulator behind the fault relay, its vehicles found on a SwarmLink:
     yields (link, vehicles, relay); everything is stopped and closed after."""
     ids = list(range(1, load_scenario("paper-10uav").uav_count + 1))
-    link = SwarmLink.open(["udpin:127.0.0.1:0"], accept_system_id=lambda s: s in ids)
+    link = SwarmLink.open(["udpin:127.0.0.1:0"], accept_vehicle=lambda key: key.system_id in ids)
     relay = FaultRelay(link.endpoints[0].port, len(ids), profile, seed=seed)
     relay.start()
     sim = start_swarmplan(
@@ -185,7 +185,7 @@ def ten_vehicles_through(profile: FaultProfile, seed: int):
     )  # fmt: skip
     try:
         wait_for_vehicles(link, ids, 60)
-        yield link, [link.vehicles[i] for i in ids], relay
+        yield link, [link.vehicle(i) for i in ids], relay
     finally:
         stop(sim)
         relay.stop()

@@ -251,7 +251,7 @@ def test_spoofed_and_replayed_positions_from_the_vehicles_own_address_are_not_be
 
     def spoof(k: int) -> None:
         sysid = 1 + k % 3
-        v = link.vehicles.get(sysid)
+        v = link.vehicle(sysid)
         if v is None or not v.has_position:
             return
         here = (v.time_boot_ms, round(v.lat_deg * 1e7), round(v.lon_deg * 1e7))
