@@ -196,13 +196,9 @@ class OperatorActions:
                 result = f"failed: {type(exc).__name__}: {exc}"
             self.log.append(
                 {
-                    "step": step,
-                    "time_utc": request.time_utc,
-                    "action": request.action,
-                    "uav": request.uav,
-                    "cell": request.cell and list(request.cell),
-                    "who": request.who,
-                    "result": result,
+                    "step": step, "time_utc": request.time_utc, "action": request.action,
+                    "uav": request.uav, "cell": request.cell and list(request.cell),
+                    "who": request.who, "result": result,
                 }  # fmt: skip
             )
             self.ctx.say(f"operator ({request.who}): {ACTIONS[request.action]}: {result}")

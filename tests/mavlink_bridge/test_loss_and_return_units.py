@@ -149,7 +149,7 @@ def test_a_plane_back_from_a_reboot_disarmed_stays_lost_and_the_result_says_so()
     )
     result = {
         "lost_uavs": [0],
-        "link_events": link_event_rows(account.events),
+        "link_events": link_event_rows(account.events, [1]),
         "rtl_not_sent": {"1": "on the ground, disarmed"},
     }
     assert lost_vehicle_lines(result) == [
@@ -180,13 +180,13 @@ def test_rtl_goes_to_airborne_reachable_vehicles_only():
 
     to, why_not = rtl_recipients([silent, closed, armed_on_ground, grounded, flying], 3.0, 10.0)
     assert [v.system_id for v in to] == [1]
-    assert why_not == {
-        2: "on the ground, disarmed",
-        3: "on the ground",
-        4: "unreachable: connection closed by the vehicle",
-        5: "unreachable: silent 8 s",
+    assert {str(key): why for key, why in why_not.items()} == {
+        "2": "on the ground, disarmed",
+        "3": "on the ground",
+        "4": "unreachable: connection closed by the vehicle",
+        "5": "unreachable: silent 8 s",
     }
-    line = rtl_line([1], [], why_not)
+    line = rtl_line([flying.key], [], why_not)
     assert line.startswith("RTL sent to vehicle 1 (accepted by none); not to 2 (on the ground")
     assert rtl_line([], [], {}) == "RTL sent to no vehicle (none airborne and reachable)"
 

@@ -28,6 +28,7 @@ from mavlink_bridge.vehicles.gcs_failsafe import set_gcs_failsafe  # noqa: E402
 from mavlink_bridge.vehicles.guided_commands import engagement_command  # noqa: E402
 from mavlink_bridge.vehicles.swarm_link import SwarmLink  # noqa: E402
 from mavlink_bridge.vehicles.telemetry_plausibility import PlausibilityFilter  # noqa: E402
+from mavlink_bridge.vehicles.vehicle_key import VehicleKey  # noqa: E402
 from mavlink_bridge.vehicles.vehicle_state import CommandAck, VehicleState  # noqa: E402
 from planner.geodesy import local_km_to_geodetic  # noqa: E402
 from planner.scenario import load_scenario, parse_scenario  # noqa: E402
@@ -184,7 +185,7 @@ def ten_vehicles_through(profile: FaultProfile, seed: int):
         Path(os.devnull),
     )  # fmt: skip
     try:
-        wait_for_vehicles(link, ids, 60)
+        wait_for_vehicles(link, [VehicleKey(0, i) for i in ids], 60)
         yield link, [link.vehicle(i) for i in ids], relay
     finally:
         stop(sim)
