@@ -88,7 +88,7 @@ def fly(uavs: int, steps: int, out: Path) -> dict:
     daemon = subprocess.Popen(
         swarmplan("daemon", *connect, "--scenario", str(scenario), "--seed", "1",
                   "--steps", str(steps), "--lockstep", "--timeout", "120", "--no-view",
-                  "--out", str(run_out)),
+                  "--rtl-watch", "0", "--out", str(run_out)),
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO,
     )  # fmt: skip
     times: dict[str, float] = {}
@@ -96,8 +96,8 @@ def fly(uavs: int, steps: int, out: Path) -> dict:
     try:
         assert daemon.stdout is not None
         for line in daemon.stdout:
-            log.append(line)
             now = time.monotonic() - started
+            log.append(f"{now:8.2f} {line}")
             for phase, says in PHASES.items():
                 if says in line:
                     times[phase] = now  # (the last line of a phase: airframes say one each)

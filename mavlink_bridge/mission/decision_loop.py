@@ -234,7 +234,9 @@ class DecisionLoop:
         to ``steps``: wait for the decision instant, gather, plan, envelope, record, command
         batch, send, account, tell listeners, checkpoint (with ``elapsed_s()`` of the run)."""
         ctx = self.ctx
-        state = self.state = self.start_state(planner_cls, recorder_cls)
+        link = ctx.require_link()
+        with link.keepalive():  # (the planner's beliefs of hundreds of UAVs: many seconds)
+            state = self.state = self.start_state(planner_cls, recorder_cls)
         stages = self.stages = self.make_stages()
         pacing = self.pacing = self.make_pacing()
         first_step = 0
@@ -246,15 +248,16 @@ class DecisionLoop:
             instant = pacing.wait(step, state.consumed) if step > 0 else self.first_instant()
             if self.operator_ends(step, state):
                 break
-            inputs = stages.gather(state, step, instant.looks)
-            plan = stages.plan(state, inputs)
-            flight = stages.envelope(state, inputs, plan)
-            stages.record(state, inputs, plan, flight)
-            if step < ctx.steps:  # the decisions of the mission's steps, as offline counts them
-                state.recorder.record_modes(plan.decision.modes)
-                if step == 0 and state.recorder.turned_home_at_start:
-                    ctx.say(f"warning: {turned_home_warning(ctx.steps)}")
-            batch = stages.command_batch(state, inputs, plan, flight)
+            with link.keepalive():  # the step's computing: our heartbeat goes on meanwhile
+                inputs = stages.gather(state, step, instant.looks)
+                plan = stages.plan(state, inputs)
+                flight = stages.envelope(state, inputs, plan)
+                stages.record(state, inputs, plan, flight)
+                if step < ctx.steps:  # the mission's steps' decisions, as offline counts them
+                    state.recorder.record_modes(plan.decision.modes)
+                    if step == 0 and state.recorder.turned_home_at_start:
+                        ctx.say(f"warning: {turned_home_warning(ctx.steps)}")
+                batch = stages.command_batch(state, inputs, plan, flight)
             # how late the step's commands go out, measured once (pacing.Lateness)
             lateness = pacing.current.lateness(instant) if step > 0 else None
             held = self.holds(step, lateness)

@@ -15,9 +15,11 @@ logged and counted.
 
 from __future__ import annotations
 
+import contextlib
 import selectors
+import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from mavlink_bridge.vehicles.telemetry_plausibility import PlausibilityFilter
@@ -282,6 +284,28 @@ class SwarmLink:
             link.mav.heartbeat_send(
                 mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
             )
+
+    @contextlib.contextmanager
+    def keepalive(self) -> Iterator[None]:
+        """While the caller computes without touching the link (a decision step of hundreds of
+        UAVs, the ways home of a large swarm: many seconds), a thread sends our GCS heartbeat
+        when due, so that no vehicle sees us silent: an autopilot's GCS failsafe, a lockstep
+        simulator's ``--lockstep-timeout`` (it lets its clock run free after 10 s without a word
+        from us). Nothing else may use the link meanwhile (the heartbeat takes the vehicles'
+        encoders); the thread is stopped before this returns."""
+        stop = threading.Event()
+
+        def beat() -> None:
+            while not stop.wait(max(0.05, self.heartbeat_period_s / 2)):
+                self.send_heartbeat_if_due()
+
+        thread = threading.Thread(target=beat, name="gcs-heartbeat", daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            thread.join()
 
     def close(self) -> None:
         self._selector.close()

@@ -385,13 +385,14 @@ class FlightHomePhase:
         when the daemon stays to watch the flight home, a vehicle whose way would come within
         d_min of another's holds at a safe point until it is clear (``hold_for_separation``)."""
         flight = self.state
-        routes = self.home_routes()
         commands: list[Command] = []
         ways: dict[VehicleKey, tuple[np.ndarray, np.ndarray, float, np.ndarray | None]] = {}
-        for v in vehicles:
-            if v.home is not None and v.has_position:
-                ways[v.key] = self.way_home(routes, v)
-        plan = self.hold_for_separation(vehicles, ways) if flight.separate else ReturnPlan()
+        with self.ctx.require_link().keepalive():  # (hundreds of planes: seconds)
+            routes = self.home_routes()
+            for v in vehicles:
+                if v.home is not None and v.has_position:
+                    ways[v.key] = self.way_home(routes, v)
+            plan = self.hold_for_separation(vehicles, ways) if flight.separate else ReturnPlan()
         holds = plan.holds
         deciding = {v.key for v in vehicles}
         for sid, hold in holds.items():  # a plane in RTL held so that another leaves first
