@@ -4,15 +4,15 @@ MAVLink network flown end to end.
     python benchmarks/bench_launch.py [--uavs 10 100 300] [--steps 20] [--out DIR]
 
 Each point is paper-20uav's world (its targets and threats, random starts) with ``uavs.count``
-changed, flown by ``swarmplan sim --lockstep`` (one simulator per 150 vehicles, each sending to
-its own UDP port as system ids 1..150, ``--first-uav``) and one ``swarmplan daemon --lockstep``
-with one ``--connect udpin:127.0.0.1:PORT@FIRST`` per simulator (vehicles told apart by
-(link, system id); a single simulator is one network, as always). It prints the wall time from
-the daemon's start to each phase of the launch (every vehicle heard, ready and airframes read,
-fence uploaded, GCS failsafe set, armed, airborne) and to the first decision step, then the
-mission's steps, violations and wall time. Points above 150 vehicles are the >255-vehicle case
-in small: two simulators whose vehicles share system ids. Real processes on loopback UDP; run it
-on an idle machine (``nice`` the rest): the launch is mostly waiting on the simulators' clocks.
+changed. One ``swarmplan daemon --lockstep`` listens with one ``--connect
+udpin:127.0.0.1:0@FIRST`` per 150 UAVs (a single one, without ``@``, up to 150), and as soon as
+it says its ports, one ``swarmplan sim --lockstep --vehicles 150 --first-uav FIRST`` per network
+sends there, each numbering its vehicles from system id 1: above 150 UAVs the daemon tells them
+apart by (link, system id). It prints the wall time from the daemon's start to the end of each
+phase of the launch (every vehicle heard; ready and airframes read; fence uploaded; GCS
+failsafe set; armed; airborne) and to the first decision step, then the mission's steps,
+violations and wall time (RTL is sent at the end; the flight home is not watched,
+``--rtl-watch 0``). Real processes on loopback UDP; run it on an otherwise idle machine.
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import socket
 import subprocess
 import sys
 import time
@@ -52,24 +51,15 @@ def scenario_file(uavs: int, folder: Path) -> Path:
     return path
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def swarmplan(*args: str) -> list[str]:
-    return ["nice", "-n", "5", sys.executable, "-m", "swarmplan", *args]
+    return [sys.executable, "-m", "swarmplan", *args]
 
 
-def fly(uavs: int, steps: int, out: Path) -> dict:
-    """Start the simulators and the daemon; the wall time of each launch phase and the result."""
-    scenario = scenario_file(uavs, out)
-    firsts = list(range(0, uavs, PER_SIMULATOR))
-    ports = [free_port() for _ in firsts]
+def start_simulators(scenario: Path, uavs: int, ports: list[int], out: Path) -> list:
+    """One lockstep simulator per ``PER_SIMULATOR`` UAVs, sending to ``ports`` (in order)."""
     sims = []
-    connect: list[str] = []
-    for first, port in zip(firsts, ports, strict=True):
+    for k, port in enumerate(ports):
+        first = k * PER_SIMULATOR
         count = min(PER_SIMULATOR, uavs - first)
         sims.append(
             subprocess.Popen(
@@ -79,10 +69,17 @@ def fly(uavs: int, steps: int, out: Path) -> dict:
                 stdout=subprocess.DEVNULL, stderr=(out / f"sim{first}.log").open("w"), cwd=REPO,
             )
         )  # fmt: skip
-        connect += [
-            "--connect",
-            f"udpin:127.0.0.1:{port}" + (f"@{first}" if len(firsts) > 1 else ""),
-        ]
+    return sims
+
+
+def fly(uavs: int, steps: int, out: Path) -> dict:
+    """Start the daemon (on ports of its own choosing), then the simulators sending there; the
+    wall time from the daemon's start to each launch phase, and the result."""
+    scenario = scenario_file(uavs, out)
+    firsts = list(range(0, uavs, PER_SIMULATOR))
+    connect: list[str] = []
+    for first in firsts:
+        connect += ["--connect", "udpin:127.0.0.1:0" + (f"@{first}" if len(firsts) > 1 else "")]
     run_out = out / f"daemon-{uavs}"
     started = time.monotonic()
     daemon = subprocess.Popen(
@@ -92,12 +89,15 @@ def fly(uavs: int, steps: int, out: Path) -> dict:
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO,
     )  # fmt: skip
     times: dict[str, float] = {}
-    log = []
+    log, sims = [], []
     try:
         assert daemon.stdout is not None
         for line in daemon.stdout:
             now = time.monotonic() - started
             log.append(f"{now:8.2f} {line}")
+            if not sims and line.startswith("listening on "):
+                ports = [int(p) for p in re.findall(r"udpin:127\.0\.0\.1:(\d+)", line)]
+                sims = start_simulators(scenario, uavs, ports, out)
             for phase, says in PHASES.items():
                 if says in line:
                     times[phase] = now  # (the last line of a phase: airframes say one each)

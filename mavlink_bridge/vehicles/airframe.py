@@ -61,7 +61,7 @@ SILENT_READ_WINDOW_S = 20.0
 class Airframe:
     """One vehicle's flight limits (SI units), and where they came from."""
 
-    system_id: VehicleKey  # (link, system id): said as the system id on one network
+    key: VehicleKey  # the vehicle (vehicle_key.py)
     min_airspeed_mps: float
     cruise_mps: float
     max_airspeed_mps: float
@@ -82,7 +82,7 @@ class Airframe:
         speeds = f"{self.min_airspeed_mps:g}..{self.max_airspeed_mps:g}"
         turn = self.min_turn_radius_m(self.cruise_mps)
         text = (
-            f"vehicle {self.system_id}: airspeed {speeds} m/s (cruise {self.cruise_mps:g}), "
+            f"vehicle {self.key}: airspeed {speeds} m/s (cruise {self.cruise_mps:g}), "
             f"bank limit {self.bank_limit_deg:g} deg (turn radius {turn:.0f} m at cruise), "
             f"loiter radius {self.wp_loiter_radius_m:g} m"
         )
@@ -305,7 +305,7 @@ def scenario_warnings(airframes: list[Airframe], cfg: PlannerConfig) -> list[str
         if not a.min_airspeed_mps <= v <= a.max_airspeed_mps:
             fit_step = cell_m / a.cruise_mps
             lines.append(
-                f"vehicle {a.system_id} flies {a.min_airspeed_mps:g}..{a.max_airspeed_mps:g} m/s "
+                f"vehicle {a.key} flies {a.min_airspeed_mps:g}..{a.max_airspeed_mps:g} m/s "
                 f"but the scenario's UAV speed is {v:g} m/s: set speed_mps = {a.cruise_mps:g} in "
                 f"the scenario's [parameters] (its cruise) and step_s = {fit_step:.0f} (one "
                 f"{cfg.cell_km:g} km cell per step), or use an airframe that flies {v:g} m/s"
@@ -316,7 +316,7 @@ def scenario_warnings(airframes: list[Airframe], cfg: PlannerConfig) -> list[str
             need = math.ceil(math.sqrt(2.0) * cell_m / a.max_airspeed_mps)
             which = "a cell" if cell_m / step > a.max_airspeed_mps else "a diagonal cell"
             lines.append(
-                f"vehicle {a.system_id} cannot fly {which} of {cfg.cell_km:g} km in one "
+                f"vehicle {a.key} cannot fly {which} of {cfg.cell_km:g} km in one "
                 f"{step:g} s step (needs {diagonal:.1f} m/s diagonally, AIRSPEED_MAX "
                 f"{a.max_airspeed_mps:g}): it will fall behind the grid; set step_s >= {need} "
                 f"in the scenario's [parameters], or a smaller cell_km"

@@ -55,7 +55,7 @@ class NotReadyError(UserError):
 class Readiness:
     """What stands between one vehicle and arming, from its telemetry."""
 
-    system_id: int
+    key: VehicleKey
     reports_prearm: bool
     prearm_ok: bool
     reports_gps: bool
@@ -87,7 +87,7 @@ def readiness_of(vehicle: VehicleState) -> Readiness:
     reported = vehicle.sensors_present & vehicle.sensors_enabled
     reports_gps = vehicle.gps_fix_type >= 0 or bool(vehicle.sensors_present & GPS_BIT)
     return Readiness(
-        system_id=vehicle.key,
+        key=vehicle.key,
         reports_prearm=bool(reported & PREARM_BIT),
         prearm_ok=bool(vehicle.sensors_health & PREARM_BIT),
         reports_gps=reports_gps,
