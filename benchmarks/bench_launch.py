@@ -61,12 +61,13 @@ def start_simulators(scenario: Path, uavs: int, ports: list[int], out: Path) -> 
     for k, port in enumerate(ports):
         first = k * PER_SIMULATOR
         count = min(PER_SIMULATOR, uavs - first)
+        log = (out / f"sim{first}.log").open("w")  # (what it says: a lockstep released, ...)
         sims.append(
             subprocess.Popen(
                 swarmplan("sim", "--scenario", str(scenario), "--seed", "1", "--lockstep",
                           "--quiet", "--vehicles", str(count), "--first-uav", str(first),
                           "--gcs-port", str(port)),
-                stdout=subprocess.DEVNULL, stderr=(out / f"sim{first}.log").open("w"), cwd=REPO,
+                stdout=log, stderr=subprocess.STDOUT, cwd=REPO,
             )
         )  # fmt: skip
     return sims
