@@ -55,7 +55,9 @@ def swarmplan(*args: str) -> list[str]:
     return [sys.executable, "-m", "swarmplan", *args]
 
 
-def start_simulators(scenario: Path, uavs: int, ports: list[int], out: Path) -> list:
+def start_simulators(
+    scenario: Path, uavs: int, ports: list[int], out: Path, telemetry_hz: float
+) -> list:
     """One lockstep simulator per ``PER_SIMULATOR`` UAVs, sending to ``ports`` (in order)."""
     sims = []
     for k, port in enumerate(ports):
@@ -66,14 +68,14 @@ def start_simulators(scenario: Path, uavs: int, ports: list[int], out: Path) -> 
             subprocess.Popen(
                 swarmplan("sim", "--scenario", str(scenario), "--seed", "1", "--lockstep",
                           "--quiet", "--vehicles", str(count), "--first-uav", str(first),
-                          "--gcs-port", str(port)),
+                          "--gcs-port", str(port), "--telemetry-hz", str(telemetry_hz)),
                 stdout=log, stderr=subprocess.STDOUT, cwd=REPO,
             )
         )  # fmt: skip
     return sims
 
 
-def fly(uavs: int, steps: int, out: Path) -> dict:
+def fly(uavs: int, steps: int, out: Path, telemetry_hz: float) -> dict:
     """Start the daemon (on ports of its own choosing), then the simulators sending there; the
     wall time from the daemon's start to each launch phase, and the result."""
     scenario = scenario_file(uavs, out)
@@ -98,7 +100,7 @@ def fly(uavs: int, steps: int, out: Path) -> dict:
             log.append(f"{now:8.2f} {line}")
             if not sims and line.startswith("listening on "):
                 ports = [int(p) for p in re.findall(r"udpin:127\.0\.0\.1:(\d+)", line)]
-                sims = start_simulators(scenario, uavs, ports, out)
+                sims = start_simulators(scenario, uavs, ports, out, telemetry_hz)
             for phase, says in PHASES.items():
                 if says in line:
                     times[phase] = now  # (the last line of a phase: airframes say one each)
@@ -127,6 +129,13 @@ def main() -> None:
     parser.add_argument("--uavs", type=int, nargs="+", default=[10, 100, 300])
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--out", type=Path, default=Path("/tmp/bench_launch"))
+    parser.add_argument(
+        "--telemetry-hz",
+        type=float,
+        default=2.0,
+        help="the simulators' position and attitude rate (default 2: at 10 Hz, 300 vehicles "
+        "send the daemon ~9k messages a second)",
+    )
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     names = ["heard", "airframes", "fence", "failsafe", "armed", "airborne", "first_step"]
@@ -136,7 +145,7 @@ def main() -> None:
         + "  steps  exit  violations"
     )
     for uavs in args.uavs:
-        point = fly(uavs, args.steps, args.out)
+        point = fly(uavs, args.steps, args.out, args.telemetry_hz)
         cells = " ".join(
             f"{point['times'][n]:>9.1f}s" if n in point["times"] else f"{'-':>10}" for n in names
         )

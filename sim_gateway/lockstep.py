@@ -64,6 +64,10 @@ class LockstepGate:
         if time_boot_ms / 1000.0 > self.horizon_s:
             self.grants += 1  # horizons granted (a repeated or older grant only keeps it alive)
             self.horizon_s = time_boot_ms / 1000.0
+        elif time_boot_ms / 1000.0 == self.horizon_s and self.held_at_s == self.horizon_s:
+            # granted again where we hold: the ground station has not heard our hold marker (a
+            # datagram lost, or dropped by its full socket after a long computation): again
+            self.held_at_s = None
 
     def allows(self, next_time_s: float) -> bool:
         """May the simulator tick to ``next_time_s``?"""
