@@ -328,9 +328,11 @@ class MissionDaemon:
         stages = self.loop.stages
         try:
             self.operator.watched_home()  # the planes it sent home: watched like the others
-            # an interrupted daemon does not stay to watch the flight home, so holds no plane
+            # a daemon that does not stay to watch the flight home (interrupted, or
+            # ``--rtl-watch 0``) holds no plane: nobody would release it
+            watched = completed and self.options.rtl_watch_s != 0
             sent_to, skipped = self.home.return_to_launch(
-                None if stages is None else stages.end_leg_timing, separate=completed
+                None if stages is None else stages.end_leg_timing, separate=watched
             )
             if completed:  # (an interrupted daemon does not stay to watch)
                 self.home.watch_rtl()
