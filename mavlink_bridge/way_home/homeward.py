@@ -9,6 +9,7 @@ plane circles its aim, where on the circle it is stops being known (``PHASE_TRUS
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -73,6 +74,21 @@ class Homeward:
         if self.path_km is not None:
             return self.path_arrival_s
         return self.length_km / max(self.speed_kmps, 1e-6)
+
+    @cached_property
+    def extent_km(self) -> tuple[np.ndarray, np.ndarray]:
+        """The corners (lowest x and y, highest x and y) of a box holding every place
+        :meth:`positions` gives, at any instant, of this flight and its ``alternatives``: two
+        flights whose boxes are far apart cannot come near each other, whenever they fly."""
+        places = [self.aim_km[None]]
+        for v in self.variants:
+            if v.path_km is not None:
+                places.append(v.path_km)
+            places.append(np.stack([v.start_km, v.aim_km]))
+            if v.via_km is not None:
+                places.append(v.via_km[None])
+        every = np.concatenate(places)
+        return every.min(axis=0), every.max(axis=0)
 
     def circling(self, t_s: np.ndarray) -> np.ndarray:
         """At which instants a predicted flight counts as anywhere on its circle: once it is

@@ -288,3 +288,54 @@ def test_on_a_small_area_a_plane_with_no_clear_way_home_takes_the_one_that_keeps
     # the line passes through plane 2's circle; the way taken keeps clear of it
     assert s.clearance_km(way, circling) < 0 < s.clearance_km(taken, circling)
     assert closest > min(s.clearance_km(way, coming), s.clearance_km(way, circling))
+
+
+def crowd(n: int, seed: int) -> tuple[ReturnSeparation, list[tuple[object, float]]]:
+    """``n`` planes ending a mission anywhere in a 100 km square (threats as paper-20uav's
+    first three), each 0-20 km from its home on any course: their flights home as the plane
+    model flies them."""
+    rng = np.random.default_rng(seed)
+    plane = PlaneModel()
+    threats, radii = np.array([[30.0, 70.0], [60.0, 40.0], [80.0, 80.0]]), np.full(3, 5.0)
+    routes = HomeRoutes(Grid(100, 100, 1.0), threats, radii, plane, margin_km=1.0)
+    s = ReturnSeparation(routes, 1.0, slack_km=float(plane.loiter_radius_km()))
+    homes = rng.uniform(4.0, 96.0, (n, 2))
+    xy = np.clip(homes + rng.uniform(-20.0, 20.0, (n, 2)), 1.0, 99.0)
+    courses = rng.uniform(-np.pi, np.pi, n)
+    ways = [(k + 1, xy[k], homes[k], courses[k], plane.speed_mps) for k in range(n)]
+    return s, list(zip(s.flights_home(ways), courses, strict=True))
+
+
+def test_flights_whose_boxes_are_apart_are_clear_whenever_they_fly():
+    """``apart_km`` bounds ``clearance_km`` from below for every kind of flight (RTL as the
+    plane model flies it, a guided hold, a detour, a straight leg), so the pairs it spares
+    are clear: the plan is the same as with every pair of instants compared."""
+    s, waiting = crowd(12, seed=3)
+    flights = [leg for leg, _ in waiting]
+    spared = [s.apart_km(a, b) > 1.0 for a in flights for b in flights]
+    assert sum(spared) > len(spared) / 2  # most pairs of the crowd
+    leg, course = waiting[0]
+    holds = s._hold_points(leg.start_km, course)[::8]
+    flights += s.guided_flights(leg.key, leg.start_km, course, holds)
+    flights += s.guided_flights(
+        leg.key, leg.start_km, course, np.array([[50.0, 50.0]]), leg.aim_km, at_home=True
+    )
+    flights.append(s.leg(99, np.array([40.0, 10.0]), np.array([45.0, 12.0]), True))
+    flights.append(s.leg(98, np.array([5.0, 5.0]), np.array([9.0, 5.0]), False, np.array([7, 8])))
+    bounds = [(s.apart_km(a, b), s.clearance_km(a, b)) for a in flights for b in flights]
+    assert all(bound <= clearance + 1e-9 for bound, clearance in bounds)
+
+
+def test_a_crowd_is_planned_home_as_without_the_spared_comparisons():
+    class EveryPair(ReturnSeparation):
+        def apart_km(self, a, b) -> float:
+            return -np.inf
+
+    s, waiting = crowd(30, seed=1)
+    plan = s.plan([], waiting)
+    every = EveryPair(**{f: getattr(s, f) for f in s.__dataclass_fields__}).plan([], waiting)
+    assert plan.holds.keys() == every.holds.keys() and plan.holds  # (someone holds)
+    assert all(np.array_equal(plan.holds[k], every.holds[k]) for k in plan.holds)
+    assert (plan.detours, plan.unresolved, plan.staggered) == (
+        every.detours, every.unresolved, every.staggered,
+    )
