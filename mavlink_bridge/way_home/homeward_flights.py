@@ -257,6 +257,17 @@ class HomewardFlights:
     def conflicts(self, leg: Homeward, others: list[Homeward], margin_km: float = 0.0) -> bool:
         return any(self.conflict(leg, o, margin_km) for o in others)
 
+    def closest_km(self, leg: Homeward, others: list[Homeward]) -> float:
+        """``min(clearance_km(leg, o) for o in others)`` (inf for none), nearest boxes first
+        (``apart_km``): a flight whose box is farther than the closest clearance found so far
+        cannot be closer, and is not compared instant by instant."""
+        best = math.inf
+        for bound, k in sorted((self.apart_km(leg, o), k) for k, o in enumerate(others)):
+            if bound - APART_ROUNDING_KM >= best:
+                break
+            best = min(best, self.clearance_km(leg, others[k]))
+        return best
+
     def guided_flights(
         self,
         key: VehicleKey,

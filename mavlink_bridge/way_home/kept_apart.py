@@ -339,8 +339,7 @@ class ReturnSeparation(HomewardFlights):
                 strict=True,
             )
         ]
-        closest = [min((self.clearance_km(f, o) for o in fixed), default=math.inf)
-                   for _, _, f in options]  # fmt: skip
+        closest = [self.closest_km(f, fixed) for _, _, f in options]
         best = int(np.argmax(closest))
         point, is_detour, flight = options[best]
         planning.plan.unresolved.append(sid)
