@@ -51,19 +51,30 @@ def neighbour_moves(
 ) -> np.ndarray:
     """(M, 2, 2) km: the moves (start, end) a neighbour last heard ``age`` steps ago at
     ``cell`` with ``heading`` may make in this step. Heard this step: each of its candidate
-    moves, and holding its cell. Heard earlier: it may be anywhere within ``age`` moves by
-    now, and one more on: every cell within ``age + 1`` moves, each taken as a point (start
-    = end) it may occupy."""
+    moves, and holding its cell. Heard earlier: it may have come to any cell within ``age``
+    moves by now (a move is one cell, any way, or none), and from each of them it may move to
+    any cell next to it, or hold: every such move, flown over the step. (Taking every cell
+    within ``age + 1`` moves as a point occupied for the whole step instead would put it at
+    the node's own cell at the step's start whenever that is within reach of its move: every
+    option of the node then looks as bad as holding, and the node holds where the neighbour
+    may come.)"""
     here = np.array(cell, dtype=np.int64)
     if age == 0:
         cand, _ = candidate_moves(here[None, :], np.array([heading]), max_turn_deg)
         ends = np.concatenate([cand[0], here[None, :]])
         starts = np.repeat(here[None, :], len(ends), axis=0)
     else:
-        r = np.arange(-(age + 1), age + 2)
-        square = np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
-        starts = ends = here[None, :] + square
+        reached = here[None, :] + _square(age)  # where it may be at the step's start
+        step = _square(1)  # its move from there: any neighbouring cell, or none
+        starts = np.repeat(reached, len(step), axis=0)
+        ends = starts + np.tile(step, (len(reached), 1))
     return (np.stack([starts, ends], axis=1) + 0.5) * cell_km
+
+
+def _square(radius: int) -> np.ndarray:
+    """(S, 2): the cell offsets within ``radius`` moves (Chebyshev distance), (0, 0) included."""
+    r = np.arange(-radius, radius + 1)
+    return np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
 
 
 def move_gaps(start: np.ndarray, ends: np.ndarray, moves: np.ndarray) -> np.ndarray:

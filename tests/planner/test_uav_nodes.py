@@ -9,6 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from planner.grid import candidate_moves
 from planner.registry import register
 from planner.scenario import UavStart, load_scenario
 from planner.swarm_bus import LinkModel, NodeSwarmPlanner, SwarmBus
@@ -158,3 +159,41 @@ def test_a_claim_whose_senders_state_was_lost_still_counts() -> None:
         decision = planner.step(np.array([first, second]), np.array([4, 0]), [None, None])
         ends = decision.next_cells
         assert np.hypot(*(ends[0] - ends[1])) * cell_km >= 1.0 - 1e-9, (seed, ends.tolist())
+
+
+class _FirstUavLostAtStepOneBus(SwarmBus):
+    """A link that carries everything at step 0 and loses every message of UAV 0 at step 1: UAV 1
+    last heard of UAV 0 a step ago, and misses its claim."""
+
+    def send(self, sender, messages, positions_km):
+        if sender == 0 and messages and messages[0].step == 1:
+            return set()
+        return super().send(sender, messages, positions_km)
+
+
+@pytest.mark.parametrize("heading", [0, 1])
+def test_a_claim_missed_of_a_neighbour_heard_a_step_ago(heading: int) -> None:
+    # paper-10uav seed 7 at 50 km, 10 % loss, step 211: UAV 1 (here at (35, 31)) last heard of
+    # UAV 0 a step earlier, one cell behind it diagonally, and missed its state and claim; UAV 0
+    # (claiming first) may take UAV 1's cell, expecting it to move on. Every move UAV 0 can make
+    # from where it is must stay d_min from UAV 1's, at every instant: there, UAV 1 held and
+    # UAV 0 came into its cell
+    scenario = load_scenario("paper-2uav")
+    cfg = scenario.config
+    first = [np.array([33, 29]), np.array([34, 30])]  # UAV 0 at steps 0 and 1, heading 1 (NE)
+    second = [np.array([34, 30]) + (heading == 0) * np.array([0, 1]), np.array([35, 31])]
+    starts = [UavStart(*((first[0] + 0.5) * cfg.cell_km), 45.0),
+              UavStart(*((second[0] + 0.5) * cfg.cell_km), 45.0 * heading)]  # fmt: skip
+    candidates, _ = candidate_moves(first[1][None, :], np.array([1]), cfg.max_turn_deg)
+    its_moves = [*candidates[0], first[1]]  # UAV 0's moves from where it is, and its hold
+    for seed in range(1, 5):  # the nodes' rankings differ by seed
+        planner = NodeSwarmPlanner(scenario, starts, seed)
+        planner.bus = _FirstUavLostAtStepOneBus(planner.nodes, LinkModel())
+        headings = np.array([1, heading])
+        planner.step(np.array([first[0], second[0]]), headings, [None, None])
+        decision = planner.step(np.array([first[1], second[1]]), headings, [None, None])
+        assert planner.claim_stats().missed == 1  # UAV 1 missed UAV 0's claim
+        end = decision.next_cells[1]
+        for move in its_moves:
+            closest = _closest_during_step(first[1], move, second[1], end) * cfg.cell_km
+            assert closest >= cfg.min_separation_km - 1e-9, (seed, move.tolist(), end.tolist())
