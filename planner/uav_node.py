@@ -11,7 +11,8 @@ neighbours that could conflict; one whose claim has not arrived by the node's tu
 deadline) may make any move it can (``planner.claim_deadline.neighbour_moves``, holding
 included), and the node keeps clear of all of them, holds where none can reach, or takes the
 choice that keeps the most separation (``planner.claim_deadline.choose_under_deadline``,
-counted in ``ClaimStats``).
+counted in ``ClaimStats``). So does a node that heard a request to step aside but not how it
+ended: the blocker may be at either cell, the asker at its claim or holding (``_unsettled``).
 """
 
 from __future__ import annotations
@@ -44,7 +45,9 @@ from planner.transition import ClaimBoard, claim_board, claim_next, claim_priori
 class ClaimStats:
     """C_c without a centre, counted over a mission."""
 
-    missed: int = 0  # steps with neighbours' claims not heard by the deadline, that could conflict
+    # steps with neighbours' claims not heard by the deadline that could conflict, or with a
+    # request to step aside whose end (the blocker's new claim, the asker's last) was not heard
+    missed: int = 0
     avoided: int = 0  # ... where the node took a move none of their moves comes near
     held: int = 0  # ... where it held a cell none of their moves comes near
     squeezed: int = 0  # ... where neither was left: the choice keeping the most separation
@@ -60,6 +63,7 @@ class _Inbox:
     threats: dict[int, ThreatsFound] = field(default_factory=dict)
     tracks: dict[int, TrackIntent] = field(default_factory=dict)
     claims: dict[int, CellClaim] = field(default_factory=dict)
+    requests: dict[int, tuple[int, tuple[int, int]]] = field(default_factory=dict)  # to step aside
 
 
 class UavNode:
@@ -131,6 +135,8 @@ class UavNode:
         box[message.uav] = message
         if isinstance(message, UavState):
             self.last_heard[message.uav] = message
+        if isinstance(message, CellClaim) and message.displace is not None:
+            self.inbox.requests[message.uav] = message.displace
         if isinstance(message, CellClaim) and self._board is not None:
             self._take_claim(message)
 
@@ -242,15 +248,16 @@ class UavNode:
 
     def claim(self) -> list[Message]:
         """This node's claim on its board (``planner.transition.claim_next``), after the
-        claims it heard; when a higher-priority neighbour's claim is missing, by
+        claims it heard; when a higher-priority neighbour's claim is missing, or the end of a
+        request to step aside is (``_unsettled``), by
         ``planner.claim_deadline.choose_under_deadline`` instead (no request to step aside)."""
         board, ranking = self._board, self._ranking
         assert board is not None and ranking is not None
         i, b = self.uav, self.beliefs
         if not b.flying[0]:
             return []
-        missed = self._missed_moves()
-        if not len(missed):
+        missed, unsettled = self._missed_moves(), self._unsettled()
+        if not len(missed) and not len(unsettled):
             moved = claim_next(i, board)
             displace = None
             if moved is not None:
@@ -258,9 +265,10 @@ class UavNode:
                 displace = (int(moved), (int(round(alt[0])), int(round(alt[1]))))
             return [self._claim_message(displace)]
         here = b.grid.centre_km(b.cells)[0]
+        known = board.senses[i] & ~np.isnan(board.claimed[:, 0])  # claims sensed, holds
         choice = choose_under_deadline(
-            here, board.spots[i], board.ranked[i], board.allowed[i], self._heard_claims(),
-            missed, board.limit,
+            here, board.spots[i], board.ranked[i], board.allowed[i],
+            np.concatenate([board.claimed[known], unsettled]), missed, board.limit,
         )  # fmt: skip
         self.stats.missed += 1
         setattr(self.stats, choice.rule, getattr(self.stats, choice.rule) + 1)
@@ -272,19 +280,22 @@ class UavNode:
             board.claimed[i] = board.spots[i, choice.candidate]
         return [self._claim_message(None)]
 
-    def _heard_claims(self) -> np.ndarray:
-        """(H, 2) km: the claims on this node's board it senses (and the UAVs holding still),
-        and the cell of every claimant that asked a blocker to step aside (it holds there when
-        the blocker does not answer, and that hold may not reach this node)."""
-        board = self._board
-        assert board is not None
-        known = board.senses[self.uav] & ~np.isnan(board.claimed[:, 0])
-        points = [board.claimed[known]]
-        for j, claim in self.inbox.claims.items():
-            state = self.last_heard.get(j)
-            if claim.displace is not None and state is not None and j != self.uav:
-                points.append((np.array(state.cell, float)[None, :] + 0.5) * self.cfg.cell_km)
-        return np.concatenate(points)
+    def _unsettled(self) -> np.ndarray:
+        """(U, 2) km: where a request to step aside that this node heard may have put the two
+        UAVs it concerns, beyond their claims on the board, while the node has not heard how it
+        ended: the claimant at its own cell until its final claim or its hold is heard (it holds
+        when the blocker's answer does not reach it), and the blocker at the cell it was asked
+        to take until its new claim there is heard (it stepped aside)."""
+        points = []
+        for asker, (blocker, cell) in self.inbox.requests.items():
+            state = self.last_heard.get(asker)
+            final = self.inbox.claims[asker].displace is None
+            if asker != self.uav and not final and state is not None:
+                points.append(state.cell)
+            answer = self.inbox.claims.get(blocker)
+            if blocker != self.uav and (answer is None or answer.cell != cell):
+                points.append(cell)
+        return (np.array(points, float).reshape(-1, 2) + 0.5) * self.cfg.cell_km
 
     def hold_claim(self) -> CellClaim:
         """The claim of this node holding its cell (a request to step aside unanswered)."""

@@ -14,6 +14,7 @@ from planner.registry import register
 from planner.scenario import UavStart, load_scenario
 from planner.swarm_bus import LinkModel, NodeSwarmPlanner, SwarmBus
 from planner.swarm_messages import CellClaim, Look, TrackIntent, UavState
+from planner.uav_node import UavNode
 from sim_gateway.offline_runner import run_offline
 
 built: list[NodeSwarmPlanner] = []
@@ -197,3 +198,54 @@ def test_a_claim_missed_of_a_neighbour_heard_a_step_ago(heading: int) -> None:
         for move in its_moves:
             closest = _closest_during_step(first[1], move, second[1], end) * cfg.cell_km
             assert closest >= cfg.min_separation_km - 1e-9, (seed, move.tolist(), end.tolist())
+
+
+def _asked_to_step_aside(seed: int, final_heard: bool):
+    """UAV 2 (the node under test, claiming last) at (50, 50) heading east; UAV 0 claimed a cell
+    X, and UAV 1, boxed in, claimed X too and asked UAV 0 to step aside to UAV 2's first choice;
+    UAV 2 heard that (and UAV 1's final claim when ``final_heard``), but not UAV 0's answer.
+    Returns UAV 2's claim and the cells where the request may have put UAVs 0 and 1."""
+    scenario = load_scenario("paper-2uav")
+    cell_km = scenario.config.cell_km
+    me = (50, 50)
+
+    def ready() -> tuple[UavNode, tuple[int, int]]:
+        node = UavNode(scenario, [UavStart(50.5 * cell_km, 50.5 * cell_km, 0.0)] * 3, seed, 2)
+        node.begin(np.array(me), 0, None, None)
+        for j, cell in heard.items():
+            where = tuple(float(v) for v in (np.array(cell) + 0.5) * cell_km)
+            node.receive(UavState(j, 0, cell, 4, where, node.beliefs.radius_km[0], True))
+        node.hear()
+        for j in heard:
+            node.receive(TrackIntent(j, 0, (-1, -1), j))  # both claim before UAV 2
+        node.rank()
+        board = node._board
+        first = board.spots[2, board.ranked[2, 0]] / cell_km - 0.5
+        return node, (int(first[0]), int(first[1]))
+
+    heard: dict[int, tuple[int, int]] = {}
+    _, alt = ready()  # UAV 2's first choice alone
+    x = (alt[0] + 1, alt[1] + 1)  # the cell UAV 0 claimed first, sqrt 2 from alt
+    heard = {0: (alt[0] + 1, alt[1]), 1: (alt[0] + 2, alt[1] + 2)}
+    node, first = ready()
+    assert first == alt  # its first choice is still the cell UAV 0 was asked to take
+    node.receive(CellClaim(0, 0, x, 2, (alt,)))
+    asked = CellClaim(1, 0, x, 5, (), (0, alt))
+    node.receive(asked)
+    if final_heard:
+        node.receive(dataclasses.replace(asked, displace=None))
+    [claim] = node.claim()
+    return claim, {0: [x, alt], 1: [x] if final_heard else [x, heard[1]]}
+
+
+@pytest.mark.parametrize("final_heard", [False, True])
+def test_a_blocker_asked_to_step_aside_whose_answer_was_missed(final_heard: bool) -> None:
+    # a node that heard a request to step aside but not the blocker's answer must keep clear of
+    # the cell the blocker was asked to take (it may have stepped aside), and, until it hears
+    # the asker's final claim or hold, of the asker's own cell (it holds when the answer does
+    # not reach it)
+    for seed in range(1, 5):  # the node's first choice differs by seed
+        claim, may_be = _asked_to_step_aside(seed, final_heard)
+        for uav, cells in may_be.items():
+            for cell in cells:
+                assert np.hypot(*np.subtract(claim.cell, cell)) >= 1.0 - 1e-9, (seed, uav, cell)
