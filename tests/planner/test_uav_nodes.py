@@ -249,3 +249,38 @@ def test_a_blocker_asked_to_step_aside_whose_answer_was_missed(final_heard: bool
         for uav, cells in may_be.items():
             for cell in cells:
                 assert np.hypot(*np.subtract(claim.cell, cell)) >= 1.0 - 1e-9, (seed, uav, cell)
+
+
+def _claimed_onto(seed: int) -> tuple[CellClaim, tuple[int, int], UavNode]:
+    """UAV 2 (the node under test, claiming last) at (50, 50) heading east; UAV 0, one cell
+    behind it, claims UAV 2's cell (it expects UAV 2 to move on) and UAV 2 hears it; UAV 1,
+    last heard a step ago two cells ahead, claims before UAV 2 and its claim is missed: it may
+    now be next to any of UAV 2's options. Returns UAV 2's claim, its cell (UAV 0's claim) and
+    the node."""
+    scenario = load_scenario("paper-2uav")
+    cell_km = scenario.config.cell_km
+    me, behind, ahead = (50, 50), (49, 50), (52, 50)
+    node = UavNode(scenario, [UavStart(50.5 * cell_km, 50.5 * cell_km, 0.0)] * 3, seed, 2)
+    node.begin(np.array(me), 0, None, None)
+    radius = node.beliefs.radius_km[0]
+    where = tuple(float(v) for v in (np.array(behind) + 0.5) * cell_km)
+    node.receive(UavState(0, 0, behind, 0, where, radius, True))
+    where = tuple(float(v) for v in (np.array(ahead) + 0.5) * cell_km)
+    node.last_heard[1] = UavState(1, -1, ahead, 4, where, radius, True)  # a step before
+    node.hear()
+    for j in (0, 1):
+        node.receive(TrackIntent(j, 0, (-1, -1), j))  # both claim before UAV 2
+    node.rank()
+    node.receive(CellClaim(0, 0, me, 0, ()))
+    [claim] = node.claim()
+    return claim, me, node
+
+
+def test_a_heard_claim_on_the_nodes_cell_comes_before_a_missed_neighbour() -> None:
+    # paper-10uav seed 8, 50 km, 30 % loss, step 103: UAV 5 heard UAV 4 claim its cell, and
+    # held there because a neighbour whose claim it missed might reach every other option:
+    # a heard claim is certain, a missed neighbour's move only possible
+    for seed in range(1, 5):  # the node's ranking differs by seed
+        claim, taken, node = _claimed_onto(seed)
+        assert node.stats.squeezed == 1  # no option is clear of UAV 1's possible moves
+        assert np.hypot(*np.subtract(claim.cell, taken)) >= 1.0 - 1e-9, (seed, claim.cell)
