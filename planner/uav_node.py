@@ -12,7 +12,10 @@ deadline) may make any move it can (``planner.claim_deadline.neighbour_moves``, 
 included), and the node keeps clear of all of them, holds where none can reach, or takes the
 choice that keeps the most separation (``planner.claim_deadline.choose_under_deadline``,
 counted in ``ClaimStats``). So does a node that heard a request to step aside but not how it
-ended: the blocker may be at either cell, the asker at its claim or holding (``_unsettled``).
+ended: the blocker may be at either cell, the asker at its claim or holding (``_unsettled``),
+and, at the end of the claim window, a node that took the cell of a lower-priority neighbour
+whose claim it never heard (``_recheck``): that neighbour may have missed this node's claim
+and held.
 """
 
 from __future__ import annotations
@@ -46,7 +49,9 @@ class ClaimStats:
     """C_c without a centre, counted over a mission."""
 
     # steps with neighbours' claims not heard by the deadline that could conflict, or with a
-    # request to step aside whose end (the blocker's new claim, the asker's last) was not heard
+    # request to step aside whose end (the blocker's new claim, the asker's last) was not heard;
+    # or where the node took the cell of a lower-priority neighbour whose claim it had not
+    # heard by the end of the claim window (``UavNode._recheck``)
     missed: int = 0
     avoided: int = 0  # ... where the node took a move none of their moves comes near
     held: int = 0  # ... where it held a cell none of their moves comes near
@@ -264,6 +269,14 @@ class UavNode:
                 alt = board.spots[moved, board.choice[moved]] / self.cfg.cell_km - 0.5
                 displace = (int(moved), (int(round(alt[0])), int(round(alt[1]))))
             return [self._claim_message(displace)]
+        self._by_deadline(unsettled, missed)
+        return [self._claim_message(None)]
+
+    def _by_deadline(self, unsettled: np.ndarray, missed: np.ndarray) -> None:
+        """This node's move or hold on its board by ``choose_under_deadline``: clear of the
+        claims it heard and ``unsettled`` (points), and of the ``missed`` moves; counted."""
+        board, b, i = self._board, self.beliefs, self.uav
+        assert board is not None
         here = b.grid.centre_km(b.cells)[0]
         known = board.senses[i] & ~np.isnan(board.claimed[:, 0])  # claims sensed, holds
         choice = choose_under_deadline(
@@ -278,7 +291,6 @@ class UavNode:
         else:
             board.choice[i] = choice.candidate
             board.claimed[i] = board.spots[i, choice.candidate]
-        return [self._claim_message(None)]
 
     def _unsettled(self) -> np.ndarray:
         """(U, 2) km: where a request to step aside that this node heard may have put the two
@@ -344,6 +356,37 @@ class UavNode:
         return near[(np.hypot(*(near[:, 1] - here).T) <= reach)
                     | (np.hypot(*(near[:, 0] - here).T) <= reach)]  # fmt: skip
 
+    def _recheck(self) -> None:
+        """At the end of the claim window: C_c lets this node claim the cell of a neighbour that
+        claims after it, which is expected to move on (``claim_next``, as the central planner
+        does). When the neighbour's claim has not arrived by then, the neighbour may have
+        missed this node's claim too, and a node that missed it keeps clear of this node's
+        every move, holding included, or holds when squeezed: the two met in one cell
+        (paper-10uav seed 2 at 10 km, 10 % loss, step 225, UAVs 0 and 6; seed 4 at 10 km, 30 %,
+        UAVs 2 and 9; seed 9 at 50 km, 30 %, UAVs 1 and 7, each the lower-priority UAV with no
+        option clear of the other's moves). So the node takes its move again by the deadline
+        rule (``choose_under_deadline``) with that neighbour as a missed claim (its moves,
+        holding included) beside the claims it heard and the neighbours missed at its turn.
+        With every claim heard (a perfect link) this never applies: the nodes decide what the
+        central planner decides."""
+        board, cfg, i = self._board, self.cfg, self.uav
+        assert board is not None
+        if self._hold or not self.beliefs.flying[0]:
+            return
+        silent = []
+        for j, state in self.inbox.states.items():
+            intent = self.inbox.tracks.get(j)
+            if j == i or not state.flying or j in self.inbox.claims or intent is None:
+                continue
+            if intent.priority < self.priority:
+                continue  # it claims first: its claim was awaited at this node's turn
+            there = (np.array(state.cell, float) + 0.5) * cfg.cell_km
+            if np.hypot(*(there - board.claimed[i])) < board.limit:
+                silent.append(neighbour_moves(state.cell, state.heading, 0, cfg.max_turn_deg,
+                                              cfg.cell_km))  # fmt: skip
+        if silent:
+            self._by_deadline(self._unsettled(), np.concatenate([self._missed_moves(), *silent]))
+
     def answer(self, claim: CellClaim) -> list[Message]:
         """A claim that asks this UAV to step aside: move, and say so, when the cell keeps clear
         of the claims this node knows of (``answered`` by its new claim)."""
@@ -382,8 +425,10 @@ class UavNode:
     # ------------------------------------------------------------------ the decision
 
     def finish(self) -> StepDecision:
-        """The UAV's decision (one row), then the forecast to the next step."""
+        """The UAV's decision (one row, after ``_recheck``), then the forecast to the next
+        step."""
         assert self._board is not None and self._ranking is not None and self._seen is not None
+        self._recheck()
         pick = np.array([int(self._board.choice[self.uav])])
         decision = self.planner.finish_decision(self._ranking, pick, self._seen.flying)
         if self._hold and self._seen.flying[0]:
