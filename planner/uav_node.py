@@ -272,17 +272,22 @@ class UavNode:
         self._by_deadline(unsettled, missed)
         return [self._claim_message(None)]
 
-    def _by_deadline(self, unsettled: np.ndarray, missed: np.ndarray) -> None:
+    def _by_deadline(
+        self, unsettled: np.ndarray, missed: np.ndarray, fallback: np.ndarray | None = None
+    ) -> None:
         """This node's move or hold on its board by ``choose_under_deadline``: clear of the
-        claims it heard and ``unsettled`` (points), and of the ``missed`` moves; counted."""
+        claims it heard and ``unsettled`` (points), and of the ``missed`` moves; when squeezed,
+        clear of the ``fallback`` moves instead, if that leaves an option; counted."""
         board, b, i = self._board, self.beliefs, self.uav
         assert board is not None
         here = b.grid.centre_km(b.cells)[0]
         known = board.senses[i] & ~np.isnan(board.claimed[:, 0])  # claims sensed, holds
-        choice = choose_under_deadline(
-            here, board.spots[i], board.ranked[i], board.allowed[i],
-            np.concatenate([board.claimed[known], unsettled]), missed, board.limit,
-        )  # fmt: skip
+        heard = np.concatenate([board.claimed[known], unsettled])
+        options = (here, board.spots[i], board.ranked[i], board.allowed[i], heard)
+        choice = choose_under_deadline(*options, missed, board.limit)
+        if choice.rule == "squeezed" and fallback is not None:
+            second = choose_under_deadline(*options, fallback, board.limit)
+            choice = second if second.rule != "squeezed" else choice
         self.stats.missed += 1
         setattr(self.stats, choice.rule, getattr(self.stats, choice.rule) + 1)
         if choice.hold:
@@ -359,33 +364,44 @@ class UavNode:
     def _recheck(self) -> None:
         """At the end of the claim window: C_c lets this node claim the cell of a neighbour that
         claims after it, which is expected to move on (``claim_next``, as the central planner
-        does). When the neighbour's claim has not arrived by then, the neighbour may have
-        missed this node's claim too, and a node that missed it keeps clear of this node's
-        every move, holding included, or holds when squeezed: the two met in one cell
-        (paper-10uav seed 2 at 10 km, 10 % loss, step 225, UAVs 0 and 6; seed 4 at 10 km, 30 %,
-        UAVs 2 and 9; seed 9 at 50 km, 30 %, UAVs 1 and 7, each the lower-priority UAV with no
-        option clear of the other's moves). So the node takes its move again by the deadline
-        rule (``choose_under_deadline``) with that neighbour as a missed claim (its moves,
-        holding included) beside the claims it heard and the neighbours missed at its turn.
-        With every claim heard (a perfect link) this never applies: the nodes decide what the
-        central planner decides."""
+        does). The neighbour may have missed this node's claim, though, and a node that missed
+        it keeps clear of this node's every move, holding included, or holds when squeezed:
+        two adjacent UAVs flying at each other met in one cell (paper-10uav seed 2 at 10 km,
+        10 % loss, step 225, UAVs 0 and 6; seed 4 at 10 km, 30 %, UAVs 2 and 9; seed 9 at
+        50 km, 30 %, UAVs 1 and 7: each time the lower-priority UAV had no option clear of the
+        other's moves). So when such a neighbour's claim is to hold where it is (certain), or
+        has not arrived by the end of the window, the node takes its move again by the deadline
+        rule (``choose_under_deadline``), beside the claims it heard and the neighbours missed
+        at its turn. A neighbour whose claim did not arrive counts as a missed claim: its
+        moves, holding included. When no option is clear of them all, the node keeps clear of
+        its hold alone (``fallback``): had the neighbour heard this node's claim it would move
+        to a cell clear of it, often the node's own (seed 4 at 10 km, 30 %, step 227: a node
+        that held there was run into), so the node moves on past it where it can. With every
+        claim heard (a perfect link) a neighbour holds only when a request to step aside went
+        unanswered, and otherwise never: the nodes decide what the central planner decides."""
         board, cfg, i = self._board, self.cfg, self.uav
         assert board is not None
         if self._hold or not self.beliefs.flying[0]:
             return
-        silent = []
+        stuck, silent, holds = False, [], []
         for j, state in self.inbox.states.items():
-            intent = self.inbox.tracks.get(j)
-            if j == i or not state.flying or j in self.inbox.claims or intent is None:
-                continue
-            if intent.priority < self.priority:
-                continue  # it claims first: its claim was awaited at this node's turn
+            intent, claim = self.inbox.tracks.get(j), self.inbox.claims.get(j)
+            if j == i or not state.flying or intent is None or intent.priority < self.priority:
+                continue  # not flying, or its claim was awaited at this node's turn
+            if claim is not None and tuple(claim.cell) != tuple(state.cell):
+                continue  # it moves on
             there = (np.array(state.cell, float) + 0.5) * cfg.cell_km
-            if np.hypot(*(there - board.claimed[i])) < board.limit:
+            if np.hypot(*(there - board.claimed[i])) >= board.limit:
+                continue
+            stuck = True
+            if claim is None:
                 silent.append(neighbour_moves(state.cell, state.heading, 0, cfg.max_turn_deg,
                                               cfg.cell_km))  # fmt: skip
-        if silent:
-            self._by_deadline(self._unsettled(), np.concatenate([self._missed_moves(), *silent]))
+                holds.append(np.stack([there, there])[None])
+        if stuck:
+            missed = self._missed_moves()
+            self._by_deadline(self._unsettled(), np.concatenate([missed, *silent]),
+                              np.concatenate([missed, *holds]) if holds else None)  # fmt: skip
 
     def answer(self, claim: CellClaim) -> list[Message]:
         """A claim that asks this UAV to step aside: move, and say so, when the cell keeps clear

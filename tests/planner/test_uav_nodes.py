@@ -317,3 +317,36 @@ def test_a_node_that_took_a_silent_neighbours_cell_does_not_rely_on_it_moving(
                                 [None, None])  # fmt: skip
         ends = decision.next_cells
         assert np.hypot(*(ends[0] - ends[1])) * cell_km >= d_min - 1e-9, (seed, ends.tolist())
+
+
+class _SecondClaimLostBus(SwarmBus):
+    """A link that loses UAV 1's claims and carries all else: UAV 1 hears UAV 0's claim,
+    UAV 0 never hears UAV 1's."""
+
+    def send(self, sender, messages, positions_km):
+        kept = [m for m in messages if not (sender == 1 and isinstance(m, CellClaim))]
+        return super().send(sender, kept, positions_km) if kept else set()
+
+
+@pytest.mark.parametrize(("offset", "heading"), [((1, 0), 0), ((1, 1), 1), ((0, 1), 2)])
+def test_a_node_whose_claim_was_heard_is_not_run_into_when_it_missed_the_answer(
+    offset, heading
+) -> None:
+    # paper-10uav seed 4 at 10 km, 30 % loss, step 227: UAV 0 (claiming first) took UAV 1's
+    # cell; UAV 1 heard it and took UAV 0's cell, as C_c allows; UAV 0 missed that claim and
+    # must keep clear of UAV 1 holding (it may have missed UAV 0's claim) without holding
+    # where UAV 1 may come
+    scenario = load_scenario("paper-2uav")
+    cell_km, d_min = scenario.config.cell_km, scenario.config.min_separation_km
+    a = np.array([50, 50])
+    b = a + np.array(offset)
+    starts = [UavStart(*((a + 0.5) * cell_km), 45.0 * heading),
+              UavStart(*((b + 0.5) * cell_km), 45.0 * ((heading + 4) % 8))]  # fmt: skip
+    for seed in range(1, 13):  # the rankings differ by seed
+        planner = NodeSwarmPlanner(scenario, starts, seed)
+        planner.bus = _SecondClaimLostBus(planner.nodes, LinkModel())
+        decision = planner.step(np.array([a, b]), np.array([heading, (heading + 4) % 8]),
+                                [None, None])  # fmt: skip
+        assert planner.nodes[0].priority < planner.nodes[1].priority
+        ends = decision.next_cells
+        assert np.hypot(*(ends[0] - ends[1])) * cell_km >= d_min - 1e-9, (seed, ends.tolist())
