@@ -377,8 +377,9 @@ class UavNode:
         its hold alone (``fallback``): had the neighbour heard this node's claim it would move
         to a cell clear of it, often the node's own (seed 4 at 10 km, 30 %, step 227: a node
         that held there was run into), so the node moves on past it where it can. With every
-        claim heard (a perfect link) a neighbour holds only when a request to step aside went
-        unanswered, and otherwise never: the nodes decide what the central planner decides."""
+        claim heard (a perfect link) this applies only to a neighbour that holds after its
+        request to step aside went unanswered: the nodes still fly the central run's tracks
+        (tests/planner/test_uav_nodes.py, seeds 1-3)."""
         board, cfg, i = self._board, self.cfg, self.uav
         assert board is not None
         if self._hold or not self.beliefs.flying[0]:
