@@ -8,6 +8,7 @@ the batched ``planner.hapf_aco.HapfAcoPlanner`` decides, bit for bit.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -112,7 +113,8 @@ class SwarmBus:
 
     def _claim(self, i: int, positions_km: np.ndarray) -> None:
         """Node ``i``'s turn in C_c's order; a request to a blocker to step aside is answered
-        before the next node's turn (the deadline), or ``i`` holds."""
+        before the next node's turn (the deadline), and ``i`` says how it ended, as on the
+        radio: its claim is final (answered), or it holds."""
         claims = self.nodes[i].claim()
         heard = self.send(i, claims, positions_km)
         for claim in claims:
@@ -122,8 +124,8 @@ class SwarmBus:
             answer = self.nodes[j].answer(claim) if j in heard else []
             answered = i in self.send(j, answer, positions_km)
             self.nodes[i].displaced(answered)
-            if not answered:  # it holds: say so
-                self.send(i, [self.nodes[i].hold_claim()], positions_km)
+            end = dataclasses.replace(claim, displace=None) if answered else None
+            self.send(i, [end or self.nodes[i].hold_claim()], positions_km)
 
 
 class NodeSwarmPlanner:

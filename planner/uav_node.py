@@ -11,7 +11,11 @@ neighbours that could conflict; one whose claim has not arrived by the node's tu
 deadline) may make any move it can (``planner.claim_deadline.neighbour_moves``, holding
 included), and the node keeps clear of all of them, holds where none can reach, or takes the
 choice that keeps the most separation (``planner.claim_deadline.choose_under_deadline``,
-counted in ``ClaimStats``).
+counted in ``ClaimStats``). So does a node that heard a request to step aside but not how it
+ended: the blocker may be at either cell, the asker at its claim or holding (``_unsettled``),
+and, at the end of the claim window, a node that took the cell of a lower-priority neighbour
+whose claim it never heard (``_recheck``): that neighbour may have missed this node's claim
+and held.
 """
 
 from __future__ import annotations
@@ -44,7 +48,11 @@ from planner.transition import ClaimBoard, claim_board, claim_next, claim_priori
 class ClaimStats:
     """C_c without a centre, counted over a mission."""
 
-    missed: int = 0  # steps with neighbours' claims not heard by the deadline, that could conflict
+    # steps with neighbours' claims not heard by the deadline that could conflict, or with a
+    # request to step aside whose end (the blocker's new claim, the asker's last) was not heard;
+    # or where the node took the cell of a lower-priority neighbour whose claim it had not
+    # heard by the end of the claim window (``UavNode._recheck``)
+    missed: int = 0
     avoided: int = 0  # ... where the node took a move none of their moves comes near
     held: int = 0  # ... where it held a cell none of their moves comes near
     squeezed: int = 0  # ... where neither was left: the choice keeping the most separation
@@ -60,6 +68,7 @@ class _Inbox:
     threats: dict[int, ThreatsFound] = field(default_factory=dict)
     tracks: dict[int, TrackIntent] = field(default_factory=dict)
     claims: dict[int, CellClaim] = field(default_factory=dict)
+    requests: dict[int, tuple[int, tuple[int, int]]] = field(default_factory=dict)  # to step aside
 
 
 class UavNode:
@@ -131,6 +140,8 @@ class UavNode:
         box[message.uav] = message
         if isinstance(message, UavState):
             self.last_heard[message.uav] = message
+        if isinstance(message, CellClaim) and message.displace is not None:
+            self.inbox.requests[message.uav] = message.displace
         if isinstance(message, CellClaim) and self._board is not None:
             self._take_claim(message)
 
@@ -242,26 +253,41 @@ class UavNode:
 
     def claim(self) -> list[Message]:
         """This node's claim on its board (``planner.transition.claim_next``), after the
-        claims it heard; when a higher-priority neighbour's claim is missing, by
+        claims it heard; when a higher-priority neighbour's claim is missing, or the end of a
+        request to step aside is (``_unsettled``), by
         ``planner.claim_deadline.choose_under_deadline`` instead (no request to step aside)."""
         board, ranking = self._board, self._ranking
         assert board is not None and ranking is not None
         i, b = self.uav, self.beliefs
         if not b.flying[0]:
             return []
-        missed = self._missed_moves()
-        if not len(missed):
+        missed, unsettled = self._missed_moves(), self._unsettled()
+        if not len(missed) and not len(unsettled):
             moved = claim_next(i, board)
             displace = None
             if moved is not None:
                 alt = board.spots[moved, board.choice[moved]] / self.cfg.cell_km - 0.5
                 displace = (int(moved), (int(round(alt[0])), int(round(alt[1]))))
             return [self._claim_message(displace)]
+        self._by_deadline(unsettled, missed)
+        return [self._claim_message(None)]
+
+    def _by_deadline(
+        self, unsettled: np.ndarray, missed: np.ndarray, fallback: np.ndarray | None = None
+    ) -> None:
+        """This node's move or hold on its board by ``choose_under_deadline``: clear of the
+        claims it heard and ``unsettled`` (points), and of the ``missed`` moves; when squeezed,
+        clear of the ``fallback`` moves instead, if that leaves an option; counted."""
+        board, b, i = self._board, self.beliefs, self.uav
+        assert board is not None
         here = b.grid.centre_km(b.cells)[0]
-        choice = choose_under_deadline(
-            here, board.spots[i], board.ranked[i], board.allowed[i], self._heard_claims(),
-            missed, board.limit,
-        )  # fmt: skip
+        known = board.senses[i] & ~np.isnan(board.claimed[:, 0])  # claims sensed, holds
+        heard = np.concatenate([board.claimed[known], unsettled])
+        options = (here, board.spots[i], board.ranked[i], board.allowed[i], heard)
+        choice = choose_under_deadline(*options, missed, board.limit)
+        if choice.rule == "squeezed" and fallback is not None:
+            second = choose_under_deadline(*options, fallback, board.limit)
+            choice = second if second.rule != "squeezed" else choice
         self.stats.missed += 1
         setattr(self.stats, choice.rule, getattr(self.stats, choice.rule) + 1)
         if choice.hold:
@@ -270,21 +296,23 @@ class UavNode:
         else:
             board.choice[i] = choice.candidate
             board.claimed[i] = board.spots[i, choice.candidate]
-        return [self._claim_message(None)]
 
-    def _heard_claims(self) -> np.ndarray:
-        """(H, 2) km: the claims on this node's board it senses (and the UAVs holding still),
-        and the cell of every claimant that asked a blocker to step aside (it holds there when
-        the blocker does not answer, and that hold may not reach this node)."""
-        board = self._board
-        assert board is not None
-        known = board.senses[self.uav] & ~np.isnan(board.claimed[:, 0])
-        points = [board.claimed[known]]
-        for j, claim in self.inbox.claims.items():
-            state = self.last_heard.get(j)
-            if claim.displace is not None and state is not None and j != self.uav:
-                points.append((np.array(state.cell, float)[None, :] + 0.5) * self.cfg.cell_km)
-        return np.concatenate(points)
+    def _unsettled(self) -> np.ndarray:
+        """(U, 2) km: where a request to step aside that this node heard may have put the two
+        UAVs it concerns, beyond their claims on the board, while the node has not heard how it
+        ended: the claimant at its own cell until its final claim or its hold is heard (it holds
+        when the blocker's answer does not reach it), and the blocker at the cell it was asked
+        to take until its new claim there is heard (it stepped aside)."""
+        points = []
+        for asker, (blocker, cell) in self.inbox.requests.items():
+            state = self.last_heard.get(asker)
+            final = self.inbox.claims[asker].displace is None
+            if asker != self.uav and not final and state is not None:
+                points.append(state.cell)
+            answer = self.inbox.claims.get(blocker)
+            if blocker != self.uav and (answer is None or answer.cell != cell):
+                points.append(cell)
+        return (np.array(points, float).reshape(-1, 2) + 0.5) * self.cfg.cell_km
 
     def hold_claim(self) -> CellClaim:
         """The claim of this node holding its cell (a request to step aside unanswered)."""
@@ -333,6 +361,49 @@ class UavNode:
         return near[(np.hypot(*(near[:, 1] - here).T) <= reach)
                     | (np.hypot(*(near[:, 0] - here).T) <= reach)]  # fmt: skip
 
+    def _recheck(self) -> None:
+        """At the end of the claim window: C_c lets this node claim the cell of a neighbour that
+        claims after it, which is expected to move on (``claim_next``, as the central planner
+        does). The neighbour may have missed this node's claim, though, and a node that missed
+        it keeps clear of this node's every move, holding included, or holds when squeezed:
+        two adjacent UAVs flying at each other met in one cell (paper-10uav seed 2 at 10 km,
+        10 % loss, step 225, UAVs 0 and 6; seed 4 at 10 km, 30 %, UAVs 2 and 9; seed 9 at
+        50 km, 30 %, UAVs 1 and 7: each time the lower-priority UAV had no option clear of the
+        other's moves). So when such a neighbour's claim is to hold where it is (certain), or
+        has not arrived by the end of the window, the node takes its move again by the deadline
+        rule (``choose_under_deadline``), beside the claims it heard and the neighbours missed
+        at its turn. A neighbour whose claim did not arrive counts as a missed claim: its
+        moves, holding included. When no option is clear of them all, the node keeps clear of
+        its hold alone (``fallback``): had the neighbour heard this node's claim it would move
+        to a cell clear of it, often the node's own (seed 4 at 10 km, 30 %, step 227: a node
+        that held there was run into), so the node moves on past it where it can. With every
+        claim heard (a perfect link) this applies only to a neighbour that holds after its
+        request to step aside went unanswered: the nodes still fly the central run's tracks
+        (tests/planner/test_uav_nodes.py, seeds 1-3)."""
+        board, cfg, i = self._board, self.cfg, self.uav
+        assert board is not None
+        if self._hold or not self.beliefs.flying[0]:
+            return
+        stuck, silent, holds = False, [], []
+        for j, state in self.inbox.states.items():
+            intent, claim = self.inbox.tracks.get(j), self.inbox.claims.get(j)
+            if j == i or not state.flying or intent is None or intent.priority < self.priority:
+                continue  # not flying, or its claim was awaited at this node's turn
+            if claim is not None and tuple(claim.cell) != tuple(state.cell):
+                continue  # it moves on
+            there = (np.array(state.cell, float) + 0.5) * cfg.cell_km
+            if np.hypot(*(there - board.claimed[i])) >= board.limit:
+                continue
+            stuck = True
+            if claim is None:
+                silent.append(neighbour_moves(state.cell, state.heading, 0, cfg.max_turn_deg,
+                                              cfg.cell_km))  # fmt: skip
+                holds.append(np.stack([there, there])[None])
+        if stuck:
+            missed = self._missed_moves()
+            self._by_deadline(self._unsettled(), np.concatenate([missed, *silent]),
+                              np.concatenate([missed, *holds]) if holds else None)  # fmt: skip
+
     def answer(self, claim: CellClaim) -> list[Message]:
         """A claim that asks this UAV to step aside: move, and say so, when the cell keeps clear
         of the claims this node knows of (``answered`` by its new claim)."""
@@ -371,8 +442,10 @@ class UavNode:
     # ------------------------------------------------------------------ the decision
 
     def finish(self) -> StepDecision:
-        """The UAV's decision (one row), then the forecast to the next step."""
+        """The UAV's decision (one row, after ``_recheck``), then the forecast to the next
+        step."""
         assert self._board is not None and self._ranking is not None and self._seen is not None
+        self._recheck()
         pick = np.array([int(self._board.choice[self.uav])])
         decision = self.planner.finish_decision(self._ranking, pick, self._seen.flying)
         if self._hold and self._seen.flying[0]:
