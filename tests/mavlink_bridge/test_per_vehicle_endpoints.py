@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import socket
 import subprocess
 import threading
@@ -58,41 +59,44 @@ class TcpVehicleServer(threading.Thread):
         super().__init__(daemon=True)
         self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.udp.bind(("127.0.0.1", udp_port))
-        self.udp.settimeout(0.02)
+        self.udp.setblocking(False)
         self.server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.server.bind(("127.0.0.1", 0))
         self.server.listen(1)
-        self.server.settimeout(0.02)
         self.port = self.server.getsockname()[1]
         self.vehicle: tuple[str, int] | None = None
         self.done = threading.Event()
 
     def run(self) -> None:
+        """Relay both ways as frames come (select: every datagram waiting, then the stream)."""
         client = None
         parser = mavlink.MAVLink(None)
         parser.robust_parsing = True
         while not self.done.is_set():
-            if client is None:
-                try:
-                    client, _ = self.server.accept()
-                    client.settimeout(0.02)
-                except (TimeoutError, OSError):
-                    pass
-            try:
-                data, self.vehicle = self.udp.recvfrom(65535)
-                if client is not None:
-                    client.sendall(data)
-            except (TimeoutError, OSError):
-                pass
-            if client is not None:
+            ready, _, _ = select.select([self.udp, client or self.server], [], [], 0.05)
+            if self.server in ready:
+                client, _ = self.server.accept()
+            if self.udp in ready:
+                while True:
+                    try:
+                        data, self.vehicle = self.udp.recvfrom(65535)
+                    except (BlockingIOError, OSError):
+                        break
+                    if client is not None:
+                        try:
+                            client.sendall(data)
+                        except OSError:  # the daemon went: its end of the stream is closed
+                            client.close()
+                            client = None
+            if client is not None and client in ready:
                 try:
                     chunk = client.recv(65536)
-                except (TimeoutError, OSError):
-                    chunk = None
+                except OSError:
+                    chunk = b""
                 if chunk == b"":
                     client.close()
                     client = None
-                elif chunk and self.vehicle is not None:
+                elif self.vehicle is not None:
                     for msg in parser.parse_buffer(chunk) or ():
                         self.udp.sendto(msg.get_msgbuf(), self.vehicle)
         if client is not None:
