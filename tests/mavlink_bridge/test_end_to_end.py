@@ -44,9 +44,9 @@ def run_demo(out: Path, seed: int, steps: int, timeout: float = 100) -> dict:
 def test_lockstep_demo_gives_the_same_result_for_a_seed(tmp_path):
     """Two `swarmplan demo --json` runs of one seed over real loopback UDP: the same tracks,
     coverage, engagements; everything but the run's own bookkeeping is identical."""
-    a = run_demo(tmp_path / "a", seed=4, steps=30)
-    b = run_demo(tmp_path / "b", seed=4, steps=30)
-    assert a["source"] == "mavlink" and a["steps"] == 30
+    a = run_demo(tmp_path / "a", seed=4, steps=20)
+    b = run_demo(tmp_path / "b", seed=4, steps=20)
+    assert a["source"] == "mavlink" and a["steps"] == 20
     assert [u["track_km"] for u in a["uavs"]] == [u["track_km"] for u in b["uavs"]]
     for key in ("coverage", "coverage_curve", "engaged_count", "engaged_value", "engagements"):
         assert a[key] == b[key], key
