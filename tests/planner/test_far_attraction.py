@@ -43,6 +43,6 @@ def test_paper_2uav_engages_more_of_its_targets_with_the_far_attraction():
     without = scenario.with_config(far_weight=0.0)
 
     def engaged(s) -> int:
-        return sum(run_offline(s, seed)["engaged_count"] for seed in range(1, 13))
+        return sum(run_offline(s, seed, account=False)["engaged_count"] for seed in range(1, 13))
 
     assert engaged(scenario) >= engaged(without) + 6
