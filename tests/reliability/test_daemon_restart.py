@@ -67,7 +67,7 @@ def test_killed_daemon_resumes_from_its_checkpoint_and_finishes(tmp_path: Path):
         "daemon", "--connect", f"udpin:127.0.0.1:{port}", "--scenario", "paper-10uav",
         "--seed", "5", "--steps", str(STEPS), "--time-scale", str(SPEEDUP), "--timeout", "30",
         "--signing-key-file", str(key_file), "--checkpoint", str(ckpt), "--out", str(out),
-        "--json",
+        "--json", "--rtl-watch", "0",  # the restart is the point, not the flight home
     ]  # fmt: skip
     first = start_swarmplan(daemon_args, daemon_log)
     second = None
