@@ -262,7 +262,7 @@ def test_paper_10uav_confirms_at_0_7_and_misses_less_for_it():
     # Ten UAVs examine many suspects, some false ones reach 0.6: confirming at 0.7 (the
     # scenario's) more than halves the engage misses (seeds 1-60, 250 steps: 0.32 per run
     # against 0.73) and engages as many (13.78 against 13.58; docs/parameters.md). Here 24
-    # seeds of the first 100 steps (3 misses against 6).
+    # seeds of the first 100 steps (5 misses against 11).
     scenario = load_scenario("paper-10uav")
     assert scenario.config.confirm_threshold == 0.7
 

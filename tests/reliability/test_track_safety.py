@@ -433,7 +433,7 @@ def test_a_daemon_late_beyond_the_bound_holds_and_says_so(tmp_path: Path):
     daemon = start_swarmplan(
         ["daemon", "--connect", f"udpin:127.0.0.1:{port}", "--scenario", str(scenario),
          "--time-scale", str(speedup), "--lost-after", "10", "--checkpoint", str(ckpt),
-         "--out", str(out), "--timeout", "30"],
+         "--out", str(out), "--timeout", "30", "--rtl-watch", "0"],
         daemon_log,
     )  # fmt: skip
     try:
