@@ -294,7 +294,10 @@ def test_a_plane_switched_to_rtl_mid_mission_is_guided_out_not_through(tmp_path:
     assert "vehicle 1 is in RTL during the mission" in log, log[-3000:]
     truth = last_json(sim_log)["safety"]
     assert truth["threat_entries"] == 0, truth
-    assert truth["by_mode"]["rtl"]["min_threat_margin_km"] > 0
+    # in RTL outside the zone, or guided out before the simulator flew it a tick in RTL (None:
+    # the daemon's guided target came first; one CI run in several)
+    rtl_margin = truth["by_mode"]["rtl"]["min_threat_margin_km"]
+    assert rtl_margin is None or rtl_margin > 0, truth
 
 
 #: two planes starting 2.24 km apart (random starts may be as close as 2 cells) that fly 8 steps
