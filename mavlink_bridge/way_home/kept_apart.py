@@ -394,7 +394,7 @@ class ReturnPlan:
     ) -> list[str]:
         """What the daemon says of this plan: each plane newly unresolved (not in
         ``unresolved``), staggered, or newly holding or detouring (not in ``holding``)."""
-        lines = []
+        lines, holding = [], set(holding)
         for sid in sorted(set(self.unresolved) - set(unresolved)):
             point = self.holds.get(sid)
             how = "it flies via" if sid in self.detours else "it holds at"
@@ -412,7 +412,7 @@ class ReturnPlan:
                     "first: their ways home cross, and they are too close for either to wait "
                     "or go around the other alone"
                 )
-            elif sid not in self.unresolved and sid not in set(holding):
+            elif sid not in self.unresolved and sid not in holding:
                 how = "flies home via" if sid in self.detours else "holds at"
                 lines.append(
                     f"vehicle {sid} {how} {at}: its way home would come within d_min of "
