@@ -208,11 +208,10 @@ class HomewardFlights:
         clear of the predicted phase and passed 0.22 km from the plane, at 30 % loss and 20x);
         on a straight line, ``slack_km`` on the way and its circle's reach once there."""
         flown = leg.speed_kmps * t
+        on_way, there = self._strays(leg)
         if leg.predicted:
-            circle = 0.55 * leg.circle_km  # the circle bounds it: no track error on top
-            return np.where(leg.circling(t), circle, np.minimum(self.track_km, flown))
-        at_aim = np.minimum(leg.stray_at_aim_km, flown)
-        return np.where(t >= leg.arrival_s, at_aim, np.minimum(self.slack_km, flown))
+            return np.where(leg.circling(t), there, np.minimum(on_way, flown))
+        return np.where(t >= leg.arrival_s, np.minimum(there, flown), np.minimum(on_way, flown))
 
     def conflict(self, a: Homeward, b: Homeward, margin_km: float = 0.0) -> bool:
         """``clearance_km(a, b) < d_min_km + margin_km``: never where the boxes holding the
@@ -235,12 +234,13 @@ class HomewardFlights:
 
     def _most_stray_km(self, leg: Homeward) -> float:
         """The most ``_stray_km`` gives ``leg`` or any of its variants, at any instant."""
-        return max(
-            max(0.55 * v.circle_km, self.track_km)
-            if v.predicted
-            else max(v.stray_at_aim_km, self.slack_km)
-            for v in leg.variants
-        )
+        return max(max(self._strays(v)) for v in leg.variants)
+
+    def _strays(self, leg: Homeward) -> tuple[float, float]:
+        """The most ``leg``'s plane may stray on its way and once there (``_stray_km``)."""
+        if leg.predicted:
+            return self.track_km, 0.55 * leg.circle_km  # the circle bounds it: no track error
+        return self.slack_km, leg.stray_at_aim_km
 
     def _conflict(self, a: Homeward, b: Homeward, margin_km: float) -> bool:
         limit = self.d_min_km + margin_km
