@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planner.grid import candidate_moves
+from planner.grid import candidate_moves, square_offsets
 
 #: How many steps a neighbour last heard of is still predicted (its reach grows a cell a step).
 PREDICT_STEPS = 5
@@ -68,17 +68,11 @@ def neighbour_moves(
         ends = np.concatenate([cand[0], here[None, :]])
         starts = np.repeat(here[None, :], len(ends), axis=0)
     else:
-        reached = here[None, :] + _square(age)  # where it may be at the step's start
-        step = _square(1)  # its move from there: any neighbouring cell, or none
+        reached = here[None, :] + square_offsets(age)  # where it may be at the step's start
+        step = square_offsets(1)  # its move from there: any neighbouring cell, or none
         starts = np.repeat(reached, len(step), axis=0)
         ends = starts + np.tile(step, (len(reached), 1))
     return (np.stack([starts, ends], axis=1) + 0.5) * cell_km
-
-
-def _square(radius: int) -> np.ndarray:
-    """(S, 2): the cell offsets within ``radius`` moves (Chebyshev distance), (0, 0) included."""
-    r = np.arange(-radius, radius + 1)
-    return np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
 
 
 def move_gaps(start: np.ndarray, ends: np.ndarray, moves: np.ndarray) -> np.ndarray:

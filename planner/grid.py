@@ -138,6 +138,13 @@ def disc_overlap(
     return offsets[inside], fractions[0, inside]
 
 
+def square_offsets(radius: int) -> np.ndarray:
+    """(S, 2) int: the cell offsets within ``radius`` moves (Chebyshev distance), (0, 0)
+    included, row by row."""
+    span = np.arange(-radius, radius + 1)
+    return np.stack(np.meshgrid(span, span, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
 def disc_overlap_at(
     points_km: np.ndarray, radius_km: float, cell_km: float, samples: int = 32
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -146,8 +153,7 @@ def disc_overlap_at(
     cell offsets (K, 2) of a window that holds every such disc and ``fractions`` (M, K)."""
     points = np.asarray(points_km, dtype=float).reshape(-1, 2)
     r = int(np.ceil(radius_km / cell_km + 0.5 + (np.abs(points).max(initial=0.0) > 0)))
-    span = np.arange(-r, r + 1)
-    offsets = np.stack(np.meshgrid(span, span, indexing="ij"), axis=-1).reshape(-1, 2)
+    offsets = square_offsets(r)
     u = ((np.arange(samples) + 0.5) / samples - 0.5) * cell_km
     # (M, K, samples, samples) distances of the sample points of every window cell
     dx = offsets[None, :, 0, None] * cell_km + u[None, None, :] - points[:, None, 0, None]
