@@ -68,6 +68,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="pace the simulator at this many simulated seconds per wall second instead of "
         "lockstep (default: lockstep, as fast as possible and repeatable for a seed)",
     )
+    parser.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=30.0,
+        help="seconds to wait for the simulator's vehicles to be heard (default 30; more on a "
+        "busy machine)",
+    )
     option_groups.add_out_option(parser, "runs/<scenario>-seed<S>-demo")
     onboard_demo.add_arguments(parser)
     option_groups.add_leg_timing_option(parser)
@@ -226,7 +233,7 @@ def demo_options(
         connect=["udpin:127.0.0.1:0"],
         seed=args.seed,
         steps=steps,
-        discovery_timeout_s=30.0,
+        discovery_timeout_s=args.timeout,
         ready_timeout_s=60.0,
         takeoff_timeout_s=60.0,
         lost_after_s=3.0 if lockstep else paced_lost_after_s(args.speedup),

@@ -34,7 +34,8 @@ def test_a_demo_whose_simulator_is_never_heard_says_so_in_one_line(tmp_path: Pat
     environ["PYTHONPATH"] = f"{inject}{os.pathsep}{environ['PYTHONPATH']}"
     out = tmp_path / "out"
     done = run_swarmplan(
-        ["demo", "paper-2uav", "--steps", "2", "--no-view", "--no-signing", "--out", str(out)],
+        ["demo", "paper-2uav", "--steps", "2", "--no-view", "--no-signing", "--timeout", "6",
+         "--out", str(out)],
         100,
         environ,
     )
@@ -44,7 +45,7 @@ def test_a_demo_whose_simulator_is_never_heard_says_so_in_one_line(tmp_path: Pat
     started = re.search(r"simulator started \(pid (\d+)", done.stderr)
     assert started, done.stderr[-2000:]
     pid = int(started.group(1))
-    said = f"swarmplan demo: error: the demo's simulator (pid {pid}) was not heard within 30 s"
+    said = f"swarmplan demo: error: the demo's simulator (pid {pid}) was not heard within 6 s"
     assert error.startswith(said), error
     assert "0 of 2 vehicles" in error and str(out / "sim.log") in error
     assert "--expect" not in error  # the daemon's advice

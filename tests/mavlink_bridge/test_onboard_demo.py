@@ -1,6 +1,6 @@
 """The swarm without a centre end to end (``swarmplan demo --onboard``): the simulator, one
 ``swarmplan node`` process per UAV and the coordinator, on loopback UDP with free ports. Three
-UAVs of paper-10uav, a few steps at 5x: the planes come home with zero violations (the
+UAVs of paper-10uav, a few steps at 10x: the planes come home with zero violations (the
 simulator's truth) and the result has the link's figures; the coordinator killed mid-mission,
 the nodes fly on, bring the planes home and each writes its part."""
 
@@ -71,7 +71,7 @@ def _sim_truth(sim_log: Path) -> dict:
 
 def _demo(scenario: Path, out: Path, log: Path):
     args = ["demo", str(scenario), "--seed", "2", "--onboard", "--steps", str(STEPS),
-            "--speedup", "5", "--radio-range-km", "60", "--out", str(out), "--json"]  # fmt: skip
+            "--speedup", "10", "--radio-range-km", "60", "--out", str(out), "--json"]  # fmt: skip
     return loopback.start_swarmplan(args, log, stdout_pipe=True)
 
 
