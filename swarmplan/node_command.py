@@ -113,8 +113,9 @@ def main(args: argparse.Namespace) -> int:
     def factory(link: SwarmLink):
         def build(planning, starts, seed):
             period = scenario.config.step_s / max(args.time_scale, 1e-6)
+            say = daemon.options.progress or (lambda text: None)
             planner = OnboardPlanner(planning, starts, seed, uav=args.uav, link=link,
-                                     period_wall_s=lambda: period)  # fmt: skip
+                                     period_wall_s=lambda: period, say=say)  # fmt: skip
             planners.append(planner)
             return planner
 

@@ -58,6 +58,7 @@ class NodeLinkStats:
     messages_missed: int = 0  # gaps in a neighbour's message sequence (range or loss)
     late_messages: int = 0  # of a step already decided
     undecodable: int = 0  # reports that are no scenario's messages
+    unsendable: int = 0  # own reports that did not fit the wire (said, not sent)
     neighbours_heard: list[int] = field(default_factory=list)  # per step: states heard
     phase_timeouts: dict[str, int] = field(default_factory=lambda: {
         "states": 0, "intents": 0, "claims": 0, "answers": 0})  # fmt: skip
@@ -81,6 +82,7 @@ class NodeLinkStats:
             "messages_missed": self.messages_missed,
             "late_messages": self.late_messages,
             "undecodable": self.undecodable,
+            "unsendable": self.unsendable,
             "neighbours_heard": self.neighbours_heard,
             "phase_timeouts": self.phase_timeouts,
             "claim_deadlines": dataclasses.asdict(claims),
@@ -102,6 +104,7 @@ class OnboardPlanner:
     def __init__(
         self, scenario: Scenario, starts: Sequence[UavStart], seed: int, *, uav: int,
         link: SwarmLink, period_wall_s: Callable[[], float],
+        say: Callable[[str], None] = lambda text: None,
     ) -> None:  # fmt: skip
         swarm = list(scenario.starts_for_seed(seed))
         swarm[uav] = starts[0]
@@ -110,6 +113,7 @@ class OnboardPlanner:
         self.beliefs, self.cfg = self.node.beliefs, self.node.cfg
         self.link = link
         self.period_wall_s = period_wall_s
+        self.say = say
         self.wire = NodeWire.for_scenario(scenario)
         self.sender = SwarmSender(uav)
         self.reassembler = SwarmReassembler(signature=None)  # (the link checked signatures)
@@ -130,7 +134,14 @@ class OnboardPlanner:
         if vehicle is None:
             return
         report = self.wire.report(self.uav, messages[0].step, messages)
-        for msg in self.sender.messages(report):
+        try:
+            frames = self.sender.messages(report)
+        except WireError as exc:
+            # never a crash mid-flight: the neighbours take it as lost (their claim deadline)
+            self.stats.unsendable += 1
+            self.say(f"warning: step {report.step}: a report not sent, {exc} ({report!r:.400})")
+            return
+        for msg in frames:
             vehicle.link.mav.send(msg)
             self._sent += len(msg.get_msgbuf())
             self.stats.frames_sent += 1
