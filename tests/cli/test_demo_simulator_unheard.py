@@ -25,6 +25,7 @@ with open("/proc/self/cmdline", "rb") as f:
 
 
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="needs Linux's /proc")
+@pytest.mark.xdist_group("realtime")  # waits on the wall clock (tests/xdist_lanes.py)
 @pytest.mark.timeout(120)
 def test_a_demo_whose_simulator_is_never_heard_says_so_in_one_line(tmp_path: Path):
     inject = tmp_path / "inject"

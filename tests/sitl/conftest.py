@@ -52,12 +52,15 @@ def sitl_swarm(sitl_binary: Path, tmp_path: Path) -> Iterator:
         swarm.stop()
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups, however invoked
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Under pytest-xdist (the suite's ``-n 2``), the SITL tests run one after another on one
-    worker: each starts several autopilot instances, and two missions at once on a 2-core
-    machine would fly late (pytest-xdist hands the largest group out first: that worker flies
-    them from the suite's start)."""
+    """Under pytest-xdist, the SITL tests run one after another on one worker: each starts
+    several autopilot instances, and two missions at once on a 2-core machine would fly late
+    (pytest-xdist hands the largest group out first: that worker flies them from the suite's
+    start). The tests at real time (marked ``xdist_group("realtime")``) wait on the wall
+    clock and run on a lane of their own instead (tests/xdist_lanes.py)."""
     here = Path(__file__).parent
     for item in items:
-        if here in Path(item.fspath).parents:
+        grouped = item.get_closest_marker("xdist_group") is not None
+        if here in Path(item.fspath).parents and not grouped:
             item.add_marker(pytest.mark.xdist_group("sitl"))

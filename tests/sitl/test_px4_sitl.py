@@ -45,6 +45,7 @@ def flew_and_returned(run, system_ids: list[int], guided: str, rtl: str) -> dict
     return seen
 
 
+@pytest.mark.xdist_group("realtime")  # waits on the wall clock (tests/xdist_lanes.py)
 @pytest.mark.timeout(240)
 def test_two_px4_planes_at_real_time_arm_take_off_fly_two_steps_and_go_home_on_sigterm(
     px4_sitl, tmp_path

@@ -64,6 +64,7 @@ def test_three_planes_with_the_payload_simulator_search_look_and_engage(sitl_bin
     assert sorted(home) == [1, 2, 3], result["rtl_not_sent"]
 
 
+@pytest.mark.xdist_group("realtime")  # waits on the wall clock (tests/xdist_lanes.py)
 @pytest.mark.timeout(300)
 def test_two_planes_at_real_time_become_ready_arm_take_off_and_fly_two_steps(sitl_binary, tmp_path):
     """The 1x readiness check; the flight home is watched for 3 s only (at 1x it took 49 s of
