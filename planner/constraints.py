@@ -21,7 +21,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from planner.field_rows import CountRows, FieldRows
+from planner.field_rows import CountRows, FieldRows, rows_reaching
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, Grid, turn_options
 
 
@@ -189,25 +189,48 @@ class SafetyModel:
             shape=(grid.size, grid.size),
         )
 
+    @cached_property
+    def _reversed_hop_graph(self) -> csr_matrix:
+        """``_reversed_graph`` with every move one (cell moves *to* a cell): scipy's
+        ``unweighted`` search, without making the ones again at every search."""
+        graph = self._reversed_graph.copy()
+        graph.data[:] = 1.0
+        return graph
+
+    @cached_property
+    def _dead_ends(self) -> np.ndarray:
+        """(nx, ny): the cells no move of ``home_edge_safe`` leaves (no way home, however far
+        a field is searched)."""
+        return ~self.home_edge_safe.any(axis=0)
+
+    def _search(self, graph: csr_matrix) -> Callable[[int, float], np.ndarray]:
+        """``search(home, reach)``: the shortest ways over ``graph`` from every cell to
+        ``home``, as far as ``reach`` (inf beyond), (nx, ny)."""
+        return lambda home, reach: dijkstra(graph, indices=home, limit=reach).reshape(
+            self.grid.shape
+        )
+
     def distance_home_km(self, home_flat: int) -> np.ndarray:
         """Shortest threat-avoiding path length (km) from every cell to ``home_flat``, (nx, ny);
         computed once per home and model (Dijkstra from the home on the reversed graph)."""
-        row = self._distance_rows(np.array([home_flat]))[0]  # may grow the rows: read after
-        return self._distances.data[row]
+        fields = self._distances
+        if home_flat not in fields or np.isfinite(fields.reach[fields.rows([home_flat])[0]]):
+            fields.put(home_flat, self._search(self._reversed_graph)(home_flat, np.inf))
+        return fields.data[fields.rows(np.array([home_flat]), self.step)[0]]
 
     def distances_home_at(self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """``distance_home_km(homes_flat[i])[x[i], y[i]]`` for arrays of UAVs (homes (M,), cells
         (M, ...)), in one gather."""
-        rows = self._distance_rows(np.asarray(homes_flat))
+        rows = self._distance_rows(np.asarray(homes_flat), x, y)
         return self._distances.data[rows.reshape((-1,) + (1,) * (np.ndim(x) - 1)), x, y]
 
-    def _distance_rows(self, homes: np.ndarray) -> np.ndarray:
-        missing = [h for h in dict.fromkeys(homes.tolist()) if h not in self._distances]
-        if missing:
-            fresh = dijkstra(self._reversed_graph, indices=missing).reshape(-1, *self.grid.shape)
-            for h, field in zip(missing, fresh, strict=True):
-                self._distances.put(h, field)
-        return self._distances.rows(homes, self.step)
+    def _distance_rows(self, homes: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The rows of the km fields of ``homes``, exact at the cells (x, y) asked."""
+        lengths = (self.grid.cell_km * HEADING_LENGTHS[0], self.grid.cell_km * HEADING_LENGTHS[1])
+        return rows_reaching(
+            self._distances, homes, (x, y), self._search(self._reversed_graph), lengths,
+            self._dead_ends, self.step,
+        )  # fmt: skip
 
     def hops_home_at(
         self,
@@ -267,7 +290,6 @@ class SafetyModel:
             field = dijkstra(
                 self._reversed_state_graph,
                 indices=home + size * np.arange(8),  # the home cell, any heading
-                unweighted=True,
                 min_only=True,
                 limit=limits[home],
             )
@@ -284,12 +306,10 @@ class SafetyModel:
         order) whose safe move lands on the fewest moves home. Fields of the cell moves computed
         once per home and model, the turns where asked."""
         homes = np.asarray(homes_flat)
-        missing = [h for h in dict.fromkeys(homes.tolist()) if h not in self._hops]
-        if missing:
-            fresh = dijkstra(self._reversed_graph, indices=missing, unweighted=True)
-            for h, field in zip(missing, fresh.reshape(-1, *self.grid.shape), strict=True):
-                self._hops.put(h, field)
-        rows = self._hops.rows(homes, self.step).reshape((-1,) + (1,) * (np.ndim(x) - 1))
+        rows = rows_reaching(
+            self._hops, homes, (x, y), self._search(self._reversed_hop_graph), (1.0, 1.0),
+            self._dead_ends, self.step,
+        ).reshape((-1,) + (1,) * (np.ndim(x) - 1))  # fmt: skip
         here = self._hops.take((rows, x, y))
         best = np.full(np.broadcast(rows, x, y).shape, np.inf)
         direction = np.zeros(best.shape, dtype=np.int64)
@@ -311,7 +331,8 @@ class SafetyModel:
         """The turn-limited safe moves between (heading, cell) states, state ``h * size +
         flat``: from (h, c) to (h', c + step(h')) for every h' within phi_max of h whose move
         from c is in ``home_edge_safe`` and lands in a viable state; edges reversed (hops *to*
-        a state)."""
+        a state), each of weight one (no edge twice: searched as it is, it counts moves as
+        scipy's ``unweighted`` search does, without making the ones again each time)."""
         grid = self.grid
         size = grid.size
         flat = np.arange(size).reshape(grid.shape)

@@ -68,3 +68,22 @@ def test_counts_beyond_sixteen_bits_are_kept_exactly() -> None:
     rows.put(9, np.array([70000.0, 1.0, np.inf]))  # widens the store
     got = rows.take((rows.rows(np.array([7, 9])),))
     assert np.array_equal(got, [[0.0, 12.0, np.inf], [70000.0, 1.0, np.inf]])
+
+
+def test_fields_are_searched_only_as_far_as_the_cells_asked() -> None:
+    """A UAV near its home asks its fields near it: they are searched about as far (a search
+    of the whole area costs ten times as much on 200 x 200 cells) and answer what the whole
+    area's search answers; a cell asked beyond is searched for again, further."""
+    known = np.ones(len(_threats()[1]), dtype=bool)
+    model, whole = _make(known, None), _make(known, None)
+    home = np.array([GRID.flat(np.array([10, 10]))])
+    x, y, h = np.array([[12, 13, 14]]), np.array([[9, 10, 11]]), np.array([[0, 1, 2]])
+    near = [model.distances_home_at(home, x, y), model._cell_hops(home, x, y, h)]
+    assert np.array_equal(near[0], whole.distance_home_km(int(home[0]))[x, y])
+    assert np.array_equal(near[1], whole._cell_hops(home, x, y, h))
+    for fields in (model._distances, model._hops):
+        assert fields.data[0, 90, 90] in (np.inf, CountRows.NONE)  # not searched so far
+    far = [model.distances_home_at(home, x + 70, y + 80), model._cell_hops(home, x + 70, y + 80, h)]
+    assert np.all(np.isfinite(far[0])) and np.all(np.isfinite(far[1]))
+    assert np.array_equal(far[0], whole.distance_home_km(int(home[0]))[x + 70, y + 80])
+    assert np.array_equal(far[1], whole._cell_hops(home, x + 70, y + 80, h))
