@@ -16,13 +16,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from functools import cached_property
+from weakref import WeakKeyDictionary
 
 import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from planner.field_rows import CountRows, FieldRows, rows_reaching
+from planner.field_rows import Borrow, CountRows, FieldRows, rows_reaching
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, Grid, turn_options
+from planner.shared_fields import borrowed_field, changed_cells
 
 
 def segment_clearance(
@@ -55,7 +57,8 @@ class SafetyModel:
 
     def __init__(self, grid: Grid, threat_xy: np.ndarray, threat_r: np.ndarray, margin_km: float,
                  max_turn_deg: float, home_margin_km: float | None = None,
-                 searched: dict[int, float] | None = None) -> None:  # fmt: skip
+                 searched: dict[int, float] | None = None, homes: int = 4) -> None:  # fmt: skip
+        """``homes``: how many homes the model may be asked for (room for their fields)."""
         self.grid = grid
         self.threat_xy = threat_xy.reshape(-1, 2)
         self.threat_r = threat_r + margin_km
@@ -71,13 +74,17 @@ class SafetyModel:
             self.home_edge_safe = self._safe_moves(wide) | (self.edge_safe & in_band[None])
         self.viable = self._viability_kernel()
         shape = (grid.nx, grid.ny)
-        self._distances = FieldRows(shape, np.float64)  # per home: ``distance_home_km``
-        self._hops = CountRows(shape)  # per home: the fewest cell moves home
-        self._states = CountRows((8, *shape))  # per home: ``_state_hops``'s search
+        self._distances = FieldRows(shape, np.float64, homes)  # per home: ``distance_home_km``
+        self._hops = CountRows(shape, homes)  # per home: the fewest cell moves home
+        self._states = CountRows((8, *shape), homes)  # per home: ``_state_hops``'s search
         #: home cell -> how far its state search went (``searched``: the searches of an earlier
         #: model of the same threats, dropped by ``SafetyModels``, to be made as far again)
         self.state_limits: dict[int, float] = dict(searched or {})
         self.step = 0  # the decision step the model is asked at (``SafetyModels``)
+        #: the other models of the swarm, to borrow fields from (set by ``SafetyModels``)
+        self.lenders: Callable[[], list[SafetyModel]] = list
+        #: per kind of field, per other model: the cells where the moves differ
+        self._changed: dict[str, WeakKeyDictionary[SafetyModel, np.ndarray]] = {}
 
     def drop_unread(self, step: int) -> None:
         """Free the fields per home not read at ``step`` nor the step before: read again, they
@@ -203,19 +210,45 @@ class SafetyModel:
         a field is searched)."""
         return ~self.home_edge_safe.any(axis=0)
 
-    def _search(self, graph: csr_matrix) -> Callable[[int, float], np.ndarray]:
-        """``search(home, reach)``: the shortest ways over ``graph`` from every cell to
-        ``home``, as far as ``reach`` (inf beyond), (nx, ny)."""
-        return lambda home, reach: dijkstra(graph, indices=home, limit=reach).reshape(
-            self.grid.shape
-        )
+    @property
+    def _km_lengths(self) -> tuple[float, float]:
+        """A straight and a diagonal move's lengths (km)."""
+        return (self.grid.cell_km * HEADING_LENGTHS[0], self.grid.cell_km * HEADING_LENGTHS[1])
+
+    def _borrow(self, kind: str) -> Borrow:
+        """``borrow`` of ``rows_reaching`` for the fields ``kind`` (the attribute's name):
+        from the other models of the swarm (``planner.shared_fields``)."""
+        moves = self._state_moves if kind == "_states" else self.home_edge_safe
+        changed = self._changed.setdefault(kind, WeakKeyDictionary())
+
+        def changed_from(other: SafetyModel) -> Callable[[], np.ndarray]:
+            def cells() -> np.ndarray:
+                if other not in changed:
+                    theirs = other._state_moves if kind == "_states" else other.home_edge_safe
+                    changed[other] = changed_cells(moves, theirs)
+                return changed[other]
+
+            return cells
+
+        lengths = self._km_lengths if kind == "_distances" else (1.0, 1.0)
+        return lambda home, reach: borrowed_field(
+            ((getattr(m, kind), changed_from(m)) for m in self.lenders()),
+            home, reach, self.grid.ny, lengths,
+        )  # fmt: skip
+
+    def _search(self, graph: str) -> Callable[[int, float], np.ndarray]:
+        """``search(home, reach)``: the shortest ways over the graph named ``graph`` (made at
+        the first search) from every cell to ``home``, as far as ``reach`` (inf beyond)."""
+        return lambda home, reach: dijkstra(
+            getattr(self, graph), indices=home, limit=reach
+        ).reshape(self.grid.shape)
 
     def distance_home_km(self, home_flat: int) -> np.ndarray:
         """Shortest threat-avoiding path length (km) from every cell to ``home_flat``, (nx, ny);
         computed once per home and model (Dijkstra from the home on the reversed graph)."""
         fields = self._distances
         if home_flat not in fields or np.isfinite(fields.reach[fields.rows([home_flat])[0]]):
-            fields.put(home_flat, self._search(self._reversed_graph)(home_flat, np.inf))
+            fields.put(home_flat, self._search("_reversed_graph")(home_flat, np.inf))
         return fields.data[fields.rows(np.array([home_flat]), self.step)[0]]
 
     def distances_home_at(self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -226,10 +259,9 @@ class SafetyModel:
 
     def _distance_rows(self, homes: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """The rows of the km fields of ``homes``, exact at the cells (x, y) asked."""
-        lengths = (self.grid.cell_km * HEADING_LENGTHS[0], self.grid.cell_km * HEADING_LENGTHS[1])
         return rows_reaching(
-            self._distances, homes, (x, y), self._search(self._reversed_graph), lengths,
-            self._dead_ends, self.step,
+            self._distances, homes, (x, y), self._search("_reversed_graph"), self._km_lengths,
+            self._dead_ends, self.step, borrow=self._borrow("_distances"),
         )  # fmt: skip
 
     def hops_home_at(
@@ -278,23 +310,20 @@ class SafetyModel:
         model, and searched again only when asked further than it was."""
         limit = np.inf if within is None else float(within + HOP_SEARCH_SLACK)
         limits = self.state_limits
-        missing = [
-            h
-            for h in dict.fromkeys(homes.tolist())
-            if h not in self._states or limits[h] < limit  # none yet, or searched less far
-        ]
-        size = self.grid.size
-        for home in missing:
+        for home in dict.fromkeys(homes.tolist()):
             # as far as asked, and never less far than this home was searched before
             limits[home] = max(limit, limits.get(home, -np.inf))
-            field = dijkstra(
-                self._reversed_state_graph,
-                indices=home + size * np.arange(8),  # the home cell, any heading
-                min_only=True,
-                limit=limits[home],
-            )
-            self._states.put(home, field.reshape(8, *self.grid.shape))
-        rows = self._states.rows(homes, self.step).reshape((-1,) + (1,) * (np.ndim(x) - 1))
+        size = self.grid.size
+
+        def search(home: int, reach: float) -> np.ndarray:
+            states = home + size * np.arange(8)  # the home cell, any heading
+            field = dijkstra(self._reversed_state_graph, indices=states, min_only=True, limit=reach)
+            return field.reshape(8, *self.grid.shape)
+
+        rows = rows_reaching(
+            self._states, homes, (headings, x, y), search, (1.0, 1.0), self._dead_end_states,
+            self.step, limits.__getitem__, self._borrow("_states"),
+        ).reshape((-1,) + (1,) * (np.ndim(x) - 1))  # fmt: skip
         return self._states.take((rows, headings, x, y))
 
     def _cell_hops(
@@ -307,8 +336,8 @@ class SafetyModel:
         once per home and model, the turns where asked."""
         homes = np.asarray(homes_flat)
         rows = rows_reaching(
-            self._hops, homes, (x, y), self._search(self._reversed_hop_graph), (1.0, 1.0),
-            self._dead_ends, self.step,
+            self._hops, homes, (x, y), self._search("_reversed_hop_graph"), (1.0, 1.0),
+            self._dead_ends, self.step, borrow=self._borrow("_hops"),
         ).reshape((-1,) + (1,) * (np.ndim(x) - 1))  # fmt: skip
         here = self._hops.take((rows, x, y))
         best = np.full(np.broadcast(rows, x, y).shape, np.inf)
@@ -327,6 +356,21 @@ class SafetyModel:
         return here + np.where(here > 0, turns, 0).astype(float)
 
     @cached_property
+    def _state_moves(self) -> np.ndarray:
+        """(8, nx, ny): the moves of ``_reversed_state_graph`` by heading and cell: a move the
+        planner may make (``home_edge_safe``), into a state with a way on (``viable``)."""
+        return np.stack(
+            [self.home_edge_safe[h] & self._shifted(self.viable[h], h) for h in range(8)]
+        )
+
+    @cached_property
+    def _dead_end_states(self) -> np.ndarray:
+        """(8, nx, ny): the (heading, cell) states no move of ``_reversed_state_graph`` leaves
+        (none of the headings within phi_max has a move in ``_state_moves``)."""
+        moves = self._state_moves
+        return ~np.stack([np.any(moves[(h + self.turns) % 8], axis=0) for h in range(8)])
+
+    @cached_property
     def _reversed_state_graph(self) -> csr_matrix:
         """The turn-limited safe moves between (heading, cell) states, state ``h * size +
         flat``: from (h, c) to (h', c + step(h')) for every h' within phi_max of h whose move
@@ -338,9 +382,7 @@ class SafetyModel:
         flat = np.arange(size).reshape(grid.shape)
         rows, cols = [], []
         for h_next in range(8):
-            # a move the planner may make: safe, and into a state with a way on (``viable``)
-            lands_viable = self._shifted(self.viable[h_next], h_next)
-            start = flat[self.home_edge_safe[h_next] & lands_viable]
+            start = flat[self._state_moves[h_next]]
             end = start + grid.flat(HEADING_STEPS[h_next]) + size * h_next
             for t in self.turns:
                 rows.append(end)
@@ -380,6 +422,7 @@ class SafetyModels:
         model = self._models.get(key)
         if model is None:
             model = self._models[key] = self._make(known, self._searched.pop(key, None))
+            model.lenders = lambda: [m for m in self._models.values() if m is not model]
         self._asked[key] = max(step, self._asked.get(key, step))
         model.step = self._asked[key]
         return model

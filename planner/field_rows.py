@@ -31,14 +31,16 @@ FIRST_REACH_CELLS = 5
 class FieldRows:
     """Fields of one shape and type, one row per home cell (flat index)."""
 
-    def __init__(self, shape: tuple[int, ...], dtype: type) -> None:
-        self.data = np.empty((0, *shape), dtype=dtype)
+    def __init__(self, shape: tuple[int, ...], dtype: type, rows: int = 0) -> None:
+        """Room for ``rows`` fields from the start (the homes of a swarm: a row takes memory
+        only once written, and growing the array copies every field kept)."""
+        self.data = np.empty((rows, *shape), dtype=dtype)
         self._rows: dict[int, int] = {}  # home cell -> row of ``data``
         self._index: dict[bytes, np.ndarray] = {}  # a homes array's bytes -> its rows
         self._free: list[int] = []  # rows of dropped fields
-        self._read = np.zeros(0, dtype=np.int64)  # per row: the last step it was read at
+        self._read = np.zeros(rows, dtype=np.int64)  # per row: the last step it was read at
         #: per row: how far from its home the field was searched (inf: all of it)
-        self.reach = np.zeros(0)
+        self.reach = np.zeros(rows)
 
     def __contains__(self, home: int) -> bool:
         return home in self._rows
@@ -73,6 +75,10 @@ class FieldRows:
         self._read[rows] = step
         return rows
 
+    def row_of(self, home: int) -> int:
+        """The row of ``home`` (stored), not counted as read."""
+        return self._rows[home]
+
     def drop_unread(self, step: int) -> None:
         """Free the fields not read at ``step`` nor the step before."""
         stale = [h for h, row in self._rows.items() if self._read[row] < step - 1]
@@ -88,16 +94,19 @@ class CountRows(FieldRows):
 
     NONE = np.iinfo(np.uint16).max
 
-    def __init__(self, shape: tuple[int, ...]) -> None:
-        super().__init__(shape, np.uint16)
+    def __init__(self, shape: tuple[int, ...], rows: int = 0) -> None:
+        super().__init__(shape, np.uint16, rows)
 
     def put(self, home: int, field: np.ndarray, reach: float = np.inf) -> None:
-        finite = np.isfinite(field)
         if self.data.dtype == np.uint16:
-            if np.max(field, where=finite, initial=0) >= self.NONE:
+            # a field searched less far than NONE holds no count as large
+            widen = reach >= self.NONE and (
+                np.max(field, where=np.isfinite(field), initial=0) >= self.NONE
+            )
+            if widen:
                 self.data = self.take(slice(None)).astype(np.float32)
             else:
-                field = np.where(finite, field, self.NONE)
+                field = np.minimum(field, self.NONE)  # inf -> NONE
         super().put(home, field, reach)
 
     def take(self, index: tuple | slice) -> np.ndarray:
@@ -108,51 +117,68 @@ class CountRows(FieldRows):
         return counts.astype(float)
 
 
+def free_distance(
+    home: int, x: np.ndarray, y: np.ndarray, ny: int, move_lengths: tuple[float, float]
+) -> np.ndarray:
+    """The length of the fewest moves from each cell (x, y) to ``home`` (a flat cell) with no
+    threats in the way (no way is shorter), straight and diagonal moves of ``move_lengths``."""
+    straight, diagonal = move_lengths
+    dx, dy = np.abs(x - home // ny), np.abs(y - home % ny)
+    near, far = np.minimum(dx, dy), np.maximum(dx, dy)
+    return straight * (far - near) + diagonal * near
+
+
+#: ``borrow(home, (wanted, most))``: a field of ``home`` exact as far as ``wanted`` or more
+#: (inf beyond ``most``), from elsewhere, and how far it is exact; or None
+Borrow = Callable[[int, tuple[float, float]], "tuple[np.ndarray, float] | None"]
+
+
 def rows_reaching(
     fields: FieldRows,
     homes: np.ndarray,
-    cells: tuple[np.ndarray, np.ndarray],
+    cells: tuple[np.ndarray, ...],
     search: Callable[[int, float], np.ndarray],
     move_lengths: tuple[float, float],
     dead_end: np.ndarray,
     step: int,
+    bound: Callable[[int], float] = lambda home: np.inf,
+    borrow: Borrow | None = None,
 ) -> np.ndarray:
     """The rows of ``fields`` for ``homes`` (M,) read at ``step``, each home's field searched far
-    enough that its values at the cells ``cells`` = (x, y), (M, ...) asked for it, are exact.
+    enough that its values at the cells ``cells`` (index arrays (M, ...) into a field, the last
+    two x and y) asked for it are exact as far as ``bound(home)``, and inf beyond.
 
     ``search(home, reach)`` makes the field of ``home`` (a flat cell) as far as ``reach`` (inf
     beyond); ``move_lengths`` are a straight and a diagonal move's lengths in the field's unit
-    (no way to a cell is shorter than the moves to it with no threats in the way); ``dead_end``
-    (nx, ny) bool marks the cells no move leaves, inf in a field searched however far. A cell
-    still inf in a field searched short of the whole area is searched for again twice as far,
-    or over the whole area once twice as far passes ``2 (nx + ny)`` straight moves."""
-    x, y = cells
+    (``free_distance``); ``dead_end`` (a field's shape, bool) marks where no move leads on, inf
+    in a field searched however far. A missing field is borrowed (``borrow``,
+    ``planner.shared_fields``) when it can be, else searched as far again as the farthest cell
+    asked by ``free_distance``, and a little. A value still inf in a field searched short of
+    ``bound`` is searched for again twice as far (as far as ``bound``, or over the whole area
+    once twice as far passes ``2 (nx + ny)`` straight moves)."""
+    x, y = cells[-2:]
     homes = np.asarray(homes, dtype=np.int64)
-    straight, diagonal = move_lengths
-    ny = dead_end.shape[1]
-
-    def free_distance(home: int, xs: np.ndarray, ys: np.ndarray) -> float:
-        """The farthest of the cells (xs, ys) from ``home`` with no threats in the way."""
-        dx, dy = np.abs(xs - home // ny), np.abs(ys - home % ny)
-        near, far = np.minimum(dx, dy), np.maximum(dx, dy)
-        return float(np.max(straight * (far - near) + diagonal * near))
-
+    ny = dead_end.shape[-1]
+    whole = 2.0 * move_lengths[0] * sum(dead_end.shape[-2:])
     for home in dict.fromkeys(homes.tolist()):
         if home not in fields:
             asked = homes == home
-            reach = FIRST_REACH_FACTOR * free_distance(home, x[asked], y[asked])
-            reach += FIRST_REACH_CELLS * straight
-            fields.put(home, search(home, reach), reach)
-    whole = 2.0 * straight * sum(dead_end.shape)
+            free = float(free_distance(home, x[asked], y[asked], ny, move_lengths).max())
+            reach = FIRST_REACH_FACTOR * free + FIRST_REACH_CELLS * move_lengths[0]
+            reach = min(reach, bound(home))
+            lent = None if borrow is None else borrow(home, (reach, bound(home)))
+            field, reach = (search(home, reach), reach) if lent is None else lent
+            fields.put(home, field, reach)
     while True:
         rows = fields.rows(homes, step)
         shaped = rows.reshape((-1,) + (1,) * (np.ndim(x) - 1))
-        unknown = ~np.isfinite(fields.take((shaped, x, y))) & ~dead_end[x, y]
-        short = unknown.reshape(len(homes), -1).any(axis=1) & np.isfinite(fields.reach[rows])
+        unknown = ~np.isfinite(fields.take((shaped, *cells))) & ~dead_end[cells]
+        bounds = np.array([bound(home) for home in homes.tolist()])
+        short = unknown.reshape(len(homes), -1).any(axis=1) & (fields.reach[rows] < bounds)
         if not short.any():
             return rows
         short_rows = dict(zip(homes[short].tolist(), rows[short].tolist(), strict=True))
         for home, row in short_rows.items():
             reach = 2.0 * fields.reach[row]
-            reach = np.inf if reach > whole else reach
+            reach = min(np.inf if reach > whole else reach, bound(home))
             fields.put(home, search(home, reach), reach)

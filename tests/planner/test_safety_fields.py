@@ -87,3 +87,31 @@ def test_fields_are_searched_only_as_far_as_the_cells_asked() -> None:
     assert np.all(np.isfinite(far[0])) and np.all(np.isfinite(far[1]))
     assert np.array_equal(far[0], whole.distance_home_km(int(home[0]))[x + 70, y + 80])
     assert np.array_equal(far[1], whole._cell_hops(home, x + 70, y + 80, h))
+
+
+def test_a_threat_far_from_home_leaves_the_fields_near_it_to_be_borrowed() -> None:
+    """A UAV that hears of a threat far from its home moves to the model of its new set of
+    threats: that model takes the fields near the home from the model the UAV left (the ways
+    home there do not come near the new threat) instead of searching them, and answers what a
+    model that searched them answers."""
+    xy, _ = _threats()
+    home_cell = np.array([10, 10])
+    farthest = int(np.argmax(np.hypot(*(xy - GRID.centre_km(home_cell)).T)))
+    before = np.ones(len(xy), dtype=bool)
+    before[farthest] = False
+    after = np.ones(len(xy), dtype=bool)
+    models = SafetyModels(_make)
+    home = np.array([GRID.flat(home_cell)])
+    x, y, h = np.array([[12, 13, 14]]), np.array([[9, 10, 11]]), np.array([[0, 1, 2]])
+
+    def _near(model: SafetyModel) -> list[np.ndarray]:
+        return [model.distances_home_at(home, x, y), model._cell_hops(home, x, y, h),
+                model._state_hops(home, x, y, h, 30)]  # fmt: skip
+
+    _near(models.get(before, 0))
+    borrower = models.get(after, 1)
+    got = _near(borrower)
+    expected = _near(_make(after, None))
+    assert all(np.array_equal(a, b) for a, b in zip(got, expected, strict=True))
+    searched = {"_reversed_graph", "_reversed_hop_graph", "_reversed_state_graph"}
+    assert not searched & set(vars(borrower))  # no graph of its own built: nothing searched
