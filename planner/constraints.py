@@ -14,7 +14,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from functools import cached_property
 from weakref import WeakKeyDictionary
 
@@ -81,8 +81,8 @@ class SafetyModel:
         #: model of the same threats, dropped by ``SafetyModels``, to be made as far again)
         self.state_limits: dict[int, float] = dict(searched or {})
         self.step = 0  # the decision step the model is asked at (``SafetyModels``)
-        #: the other models of the swarm, to borrow fields from (set by ``SafetyModels``)
-        self.lenders: Callable[[], list[SafetyModel]] = list
+        #: the models of the swarm, to borrow fields from (set by ``SafetyModels``)
+        self.lenders: Callable[[], Iterable[SafetyModel]] = tuple
         #: per kind of field, per other model: the cells where the moves differ
         self._changed: dict[str, WeakKeyDictionary[SafetyModel, np.ndarray]] = {}
 
@@ -232,7 +232,7 @@ class SafetyModel:
 
         lengths = self._km_lengths if kind == "_distances" else (1.0, 1.0)
         return lambda home, reach: borrowed_field(
-            ((getattr(m, kind), changed_from(m)) for m in self.lenders()),
+            ((getattr(m, kind), changed_from(m)) for m in self.lenders() if m is not self),
             home, reach, self.grid.ny, lengths,
         )  # fmt: skip
 
@@ -380,17 +380,19 @@ class SafetyModel:
         grid = self.grid
         size = grid.size
         flat = np.arange(size).reshape(grid.shape)
-        rows, cols = [], []
+        ends, cols = [], []
         for h_next in range(8):
             start = flat[self._state_moves[h_next]]
-            end = start + grid.flat(HEADING_STEPS[h_next]) + size * h_next
-            for t in self.turns:
-                rows.append(end)
-                cols.append(start + size * ((h_next - t) % 8))
-        rows_all, cols_all = np.concatenate(rows), np.concatenate(cols)
-        return csr_matrix(
-            (np.ones(len(rows_all)), (rows_all, cols_all)), shape=(8 * size, 8 * size)
-        )
+            ends.append(start + grid.flat(HEADING_STEPS[h_next]) + size * h_next)
+            # the states it is reached from, one per turn, side by side
+            cols.append(start[:, None] + size * ((h_next - self.turns[None, :]) % 8))
+        # built as compressed rows at once: the ends come in increasing order, each with one
+        # edge per turn (no sorting of (row, column) pairs)
+        per_row = np.zeros(8 * size, dtype=np.int64)
+        per_row[np.concatenate(ends)] = len(self.turns)
+        indptr = np.concatenate([[0], np.cumsum(per_row)])
+        indices = np.concatenate([c.ravel() for c in cols])
+        return csr_matrix((np.ones(len(indices)), indices, indptr), shape=(8 * size, 8 * size))
 
 
 class SafetyModels:
@@ -422,7 +424,7 @@ class SafetyModels:
         model = self._models.get(key)
         if model is None:
             model = self._models[key] = self._make(known, self._searched.pop(key, None))
-            model.lenders = lambda: [m for m in self._models.values() if m is not model]
+            model.lenders = self._models.values  # no reference to the model: dropped, it goes
         self._asked[key] = max(step, self._asked.get(key, step))
         model.step = self._asked[key]
         return model
