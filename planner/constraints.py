@@ -22,7 +22,8 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from planner.field_rows import Borrow, CountRows, FieldRows, rows_reaching
+from planner.field_pool import FieldPool, FieldsView
+from planner.field_rows import Borrow, rows_reaching
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, Grid, turn_options
 from planner.shared_fields import borrowed_field, changed_cells
 
@@ -73,10 +74,7 @@ class SafetyModel:
             in_band = self._centre_gap_km(wide) <= 0  # from there, by the grid's own moves
             self.home_edge_safe = self._safe_moves(wide) | (self.edge_safe & in_band[None])
         self.viable = self._viability_kernel()
-        shape = (grid.nx, grid.ny)
-        self._distances = FieldRows(shape, np.float64, homes)  # per home: ``distance_home_km``
-        self._hops = CountRows(shape, homes)  # per home: the fewest cell moves home
-        self._states = CountRows((8, *shape), homes)  # per home: ``_state_hops``'s search
+        self.use_pool(FieldPool((grid.nx, grid.ny), homes), 0)
         #: home cell -> how far its state search went (``searched``: the searches of an earlier
         #: model of the same threats, dropped by ``SafetyModels``, to be made as far again)
         self.state_limits: dict[int, float] = dict(searched or {})
@@ -86,12 +84,20 @@ class SafetyModel:
         #: per kind of field, per other model: the cells where the moves differ
         self._changed: dict[str, WeakKeyDictionary[SafetyModel, np.ndarray]] = {}
 
+    def use_pool(self, pool: FieldPool, serial: int) -> None:
+        """Keep the fields per home in ``pool``'s stores, as the model numbered ``serial`` of
+        those sharing it (``SafetyModels``); before any field is made."""
+        self.pool = pool
+        offset = serial * self.grid.size
+        self._distances = FieldsView(pool.distances, offset)  # per home: ``distance_home_km``
+        self._hops = FieldsView(pool.hops, offset)  # per home: the fewest cell moves home
+        self._states = FieldsView(pool.states, offset)  # per home: ``_state_hops``'s search
+
     def drop_unread(self, step: int) -> None:
         """Free the fields per home not read at ``step`` nor the step before: read again, they
         are made again, the same (a state search as far as it went: ``state_limits`` keeps it).
         """
-        for fields in (self._distances, self._hops, self._states):
-            fields.drop_unread(step)
+        self.pool.drop_unread(step)
 
     def _cells(self) -> np.ndarray:
         """(nx, ny, 2): every cell's index."""
@@ -405,7 +411,9 @@ class SafetyModels:
     is built again, the same: its fields are the same functions of the threats and the home,
     and its state searches are made as far as the dropped model's had been (a search's reach
     shows in the counts it returns), so decisions do not depend on what was dropped. 100 UAVs
-    on 200 x 200 cells for 40 steps kept ten models of 50 homes each where one was asked."""
+    on 200 x 200 cells for 40 steps kept ten models of 50 homes each where one was asked. The
+    models keep their fields in the stores of the first (``planner.field_pool``), each under
+    a number of its own, so that a field one model frees is written again by another."""
 
     def __init__(self, make: Callable[[np.ndarray, dict[int, float] | None], SafetyModel]) -> None:
         """``make(known, searched)``: the model of the threats ``known`` (bool row)."""
@@ -414,6 +422,8 @@ class SafetyModels:
         self._asked: dict[bytes, int] = {}  # model -> the last step it was asked at
         self._searched: dict[bytes, dict[int, float]] = {}  # dropped models' state searches
         self._swept = -1  # the step ``drop_unused`` last ran at
+        self._pool: FieldPool | None = None  # the first model's stores, the others' too
+        self._made = 0  # models made so far: a model's number in the stores
 
     def __len__(self) -> int:
         return len(self._models)
@@ -425,6 +435,9 @@ class SafetyModels:
         if model is None:
             model = self._models[key] = self._make(known, self._searched.pop(key, None))
             model.lenders = self._models.values  # no reference to the model: dropped, it goes
+            self._pool = self._pool or model.pool
+            model.use_pool(self._pool, self._made)
+            self._made += 1
         self._asked[key] = max(step, self._asked.get(key, step))
         model.step = self._asked[key]
         return model
@@ -442,5 +455,5 @@ class SafetyModels:
             del self._asked[key]
             if model.state_limits:
                 self._searched[key] = model.state_limits
-        for model in self._models.values():
-            model.drop_unread(step)
+        if self._pool is not None:
+            self._pool.drop_unread(step)  # the fields of every model, kept or dropped
