@@ -185,10 +185,12 @@ def rows_reaching(
             fields.put(home, field, reach)
     while True:
         rows = fields.rows(homes, step)
+        short = fields.reach[rows] < np.array([bound(home) for home in homes.tolist()])
+        if not short.any():  # every field searched as far as it can be asked
+            return rows
         shaped = rows.reshape((-1,) + (1,) * (np.ndim(x) - 1))
         unknown = ~np.isfinite(fields.take((shaped, *cells))) & ~dead_end[cells]
-        bounds = np.array([bound(home) for home in homes.tolist()])
-        short = unknown.reshape(len(homes), -1).any(axis=1) & (fields.reach[rows] < bounds)
+        short &= unknown.reshape(len(homes), -1).any(axis=1)
         if not short.any():
             return rows
         short_rows = dict(zip(homes[short].tolist(), rows[short].tolist(), strict=True))
