@@ -14,15 +14,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from functools import cached_property
+from weakref import WeakKeyDictionary
 
 import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from planner.field_rows import CountRows, FieldRows
+from planner.field_pool import FieldPool, FieldsView
+from planner.field_rows import Borrow, rows_reaching
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, Grid, turn_options
+from planner.shared_fields import borrowed_field, changed_cells
 
 
 def segment_clearance(
@@ -55,7 +58,8 @@ class SafetyModel:
 
     def __init__(self, grid: Grid, threat_xy: np.ndarray, threat_r: np.ndarray, margin_km: float,
                  max_turn_deg: float, home_margin_km: float | None = None,
-                 searched: dict[int, float] | None = None) -> None:  # fmt: skip
+                 searched: dict[int, float] | None = None, homes: int = 4) -> None:  # fmt: skip
+        """``homes``: how many homes the model may be asked for (room for their fields)."""
         self.grid = grid
         self.threat_xy = threat_xy.reshape(-1, 2)
         self.threat_r = threat_r + margin_km
@@ -70,21 +74,30 @@ class SafetyModel:
             in_band = self._centre_gap_km(wide) <= 0  # from there, by the grid's own moves
             self.home_edge_safe = self._safe_moves(wide) | (self.edge_safe & in_band[None])
         self.viable = self._viability_kernel()
-        shape = (grid.nx, grid.ny)
-        self._distances = FieldRows(shape, np.float64)  # per home: ``distance_home_km``
-        self._hops = CountRows(shape)  # per home: the fewest cell moves home
-        self._states = CountRows((8, *shape))  # per home: ``_state_hops``'s search
+        self.use_pool(FieldPool((grid.nx, grid.ny), homes), 0)
         #: home cell -> how far its state search went (``searched``: the searches of an earlier
         #: model of the same threats, dropped by ``SafetyModels``, to be made as far again)
         self.state_limits: dict[int, float] = dict(searched or {})
         self.step = 0  # the decision step the model is asked at (``SafetyModels``)
+        #: the models of the swarm, to borrow fields from (set by ``SafetyModels``)
+        self.lenders: Callable[[], Iterable[SafetyModel]] = tuple
+        #: per kind of field, per other model: the cells where the moves differ
+        self._changed: dict[str, WeakKeyDictionary[SafetyModel, np.ndarray]] = {}
+
+    def use_pool(self, pool: FieldPool, serial: int) -> None:
+        """Keep the fields per home in ``pool``'s stores, as the model numbered ``serial`` of
+        those sharing it (``SafetyModels``); before any field is made."""
+        self.pool = pool
+        offset = serial * self.grid.size
+        self._distances = FieldsView(pool.distances, offset)  # per home: ``distance_home_km``
+        self._hops = FieldsView(pool.hops, offset)  # per home: the fewest cell moves home
+        self._states = FieldsView(pool.states, offset)  # per home: ``_state_hops``'s search
 
     def drop_unread(self, step: int) -> None:
         """Free the fields per home not read at ``step`` nor the step before: read again, they
         are made again, the same (a state search as far as it went: ``state_limits`` keeps it).
         """
-        for fields in (self._distances, self._hops, self._states):
-            fields.drop_unread(step)
+        self.pool.drop_unread(step)
 
     def _cells(self) -> np.ndarray:
         """(nx, ny, 2): every cell's index."""
@@ -189,25 +202,73 @@ class SafetyModel:
             shape=(grid.size, grid.size),
         )
 
+    @cached_property
+    def _reversed_hop_graph(self) -> csr_matrix:
+        """``_reversed_graph`` with every move one (cell moves *to* a cell): scipy's
+        ``unweighted`` search, without making the ones again at every search."""
+        graph = self._reversed_graph.copy()
+        graph.data[:] = 1.0
+        return graph
+
+    @cached_property
+    def _dead_ends(self) -> np.ndarray:
+        """(nx, ny): the cells no move of ``home_edge_safe`` leaves (no way home, however far
+        a field is searched)."""
+        return ~self.home_edge_safe.any(axis=0)
+
+    @property
+    def _km_lengths(self) -> tuple[float, float]:
+        """A straight and a diagonal move's lengths (km)."""
+        return (self.grid.cell_km * HEADING_LENGTHS[0], self.grid.cell_km * HEADING_LENGTHS[1])
+
+    def _borrow(self, kind: str) -> Borrow:
+        """``borrow`` of ``rows_reaching`` for the fields ``kind`` (the attribute's name):
+        from the other models of the swarm (``planner.shared_fields``)."""
+        moves = self._state_moves if kind == "_states" else self.home_edge_safe
+        changed = self._changed.setdefault(kind, WeakKeyDictionary())
+
+        def changed_from(other: SafetyModel) -> Callable[[], np.ndarray]:
+            def cells() -> np.ndarray:
+                if other not in changed:
+                    theirs = other._state_moves if kind == "_states" else other.home_edge_safe
+                    changed[other] = changed_cells(moves, theirs)
+                return changed[other]
+
+            return cells
+
+        lengths = self._km_lengths if kind == "_distances" else (1.0, 1.0)
+        return lambda home, reach: borrowed_field(
+            ((getattr(m, kind), changed_from(m)) for m in self.lenders() if m is not self),
+            home, reach, self.grid.ny, lengths,
+        )  # fmt: skip
+
+    def _search(self, graph: str) -> Callable[[int, float], np.ndarray]:
+        """``search(home, reach)``: the shortest ways over the graph named ``graph`` (made at
+        the first search) from every cell to ``home``, as far as ``reach`` (inf beyond)."""
+        return lambda home, reach: dijkstra(
+            getattr(self, graph), indices=home, limit=reach
+        ).reshape(self.grid.shape)
+
     def distance_home_km(self, home_flat: int) -> np.ndarray:
         """Shortest threat-avoiding path length (km) from every cell to ``home_flat``, (nx, ny);
         computed once per home and model (Dijkstra from the home on the reversed graph)."""
-        row = self._distance_rows(np.array([home_flat]))[0]  # may grow the rows: read after
-        return self._distances.data[row]
+        fields = self._distances
+        if home_flat not in fields or np.isfinite(fields.reach[fields.rows([home_flat])[0]]):
+            fields.put(home_flat, self._search("_reversed_graph")(home_flat, np.inf))
+        return fields.data[fields.rows(np.array([home_flat]), self.step)[0]]
 
     def distances_home_at(self, homes_flat: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """``distance_home_km(homes_flat[i])[x[i], y[i]]`` for arrays of UAVs (homes (M,), cells
         (M, ...)), in one gather."""
-        rows = self._distance_rows(np.asarray(homes_flat))
+        rows = self._distance_rows(np.asarray(homes_flat), x, y)
         return self._distances.data[rows.reshape((-1,) + (1,) * (np.ndim(x) - 1)), x, y]
 
-    def _distance_rows(self, homes: np.ndarray) -> np.ndarray:
-        missing = [h for h in dict.fromkeys(homes.tolist()) if h not in self._distances]
-        if missing:
-            fresh = dijkstra(self._reversed_graph, indices=missing).reshape(-1, *self.grid.shape)
-            for h, field in zip(missing, fresh, strict=True):
-                self._distances.put(h, field)
-        return self._distances.rows(homes, self.step)
+    def _distance_rows(self, homes: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The rows of the km fields of ``homes``, exact at the cells (x, y) asked."""
+        return rows_reaching(
+            self._distances, homes, (x, y), self._search("_reversed_graph"), self._km_lengths,
+            self._dead_ends, self.step, borrow=self._borrow("_distances"),
+        )  # fmt: skip
 
     def hops_home_at(
         self,
@@ -255,24 +316,20 @@ class SafetyModel:
         model, and searched again only when asked further than it was."""
         limit = np.inf if within is None else float(within + HOP_SEARCH_SLACK)
         limits = self.state_limits
-        missing = [
-            h
-            for h in dict.fromkeys(homes.tolist())
-            if h not in self._states or limits[h] < limit  # none yet, or searched less far
-        ]
-        size = self.grid.size
-        for home in missing:
+        for home in dict.fromkeys(homes.tolist()):
             # as far as asked, and never less far than this home was searched before
             limits[home] = max(limit, limits.get(home, -np.inf))
-            field = dijkstra(
-                self._reversed_state_graph,
-                indices=home + size * np.arange(8),  # the home cell, any heading
-                unweighted=True,
-                min_only=True,
-                limit=limits[home],
-            )
-            self._states.put(home, field.reshape(8, *self.grid.shape))
-        rows = self._states.rows(homes, self.step).reshape((-1,) + (1,) * (np.ndim(x) - 1))
+        size = self.grid.size
+
+        def search(home: int, reach: float) -> np.ndarray:
+            states = home + size * np.arange(8)  # the home cell, any heading
+            field = dijkstra(self._reversed_state_graph, indices=states, min_only=True, limit=reach)
+            return field.reshape(8, *self.grid.shape)
+
+        rows = rows_reaching(
+            self._states, homes, (headings, x, y), search, (1.0, 1.0), self._dead_end_states,
+            self.step, limits.__getitem__, self._borrow("_states"),
+        ).reshape((-1,) + (1,) * (np.ndim(x) - 1))  # fmt: skip
         return self._states.take((rows, headings, x, y))
 
     def _cell_hops(
@@ -284,12 +341,10 @@ class SafetyModel:
         order) whose safe move lands on the fewest moves home. Fields of the cell moves computed
         once per home and model, the turns where asked."""
         homes = np.asarray(homes_flat)
-        missing = [h for h in dict.fromkeys(homes.tolist()) if h not in self._hops]
-        if missing:
-            fresh = dijkstra(self._reversed_graph, indices=missing, unweighted=True)
-            for h, field in zip(missing, fresh.reshape(-1, *self.grid.shape), strict=True):
-                self._hops.put(h, field)
-        rows = self._hops.rows(homes, self.step).reshape((-1,) + (1,) * (np.ndim(x) - 1))
+        rows = rows_reaching(
+            self._hops, homes, (x, y), self._search("_reversed_hop_graph"), (1.0, 1.0),
+            self._dead_ends, self.step, borrow=self._borrow("_hops"),
+        ).reshape((-1,) + (1,) * (np.ndim(x) - 1))  # fmt: skip
         here = self._hops.take((rows, x, y))
         best = np.full(np.broadcast(rows, x, y).shape, np.inf)
         direction = np.zeros(best.shape, dtype=np.int64)
@@ -307,27 +362,43 @@ class SafetyModel:
         return here + np.where(here > 0, turns, 0).astype(float)
 
     @cached_property
+    def _state_moves(self) -> np.ndarray:
+        """(8, nx, ny): the moves of ``_reversed_state_graph`` by heading and cell: a move the
+        planner may make (``home_edge_safe``), into a state with a way on (``viable``)."""
+        return np.stack(
+            [self.home_edge_safe[h] & self._shifted(self.viable[h], h) for h in range(8)]
+        )
+
+    @cached_property
+    def _dead_end_states(self) -> np.ndarray:
+        """(8, nx, ny): the (heading, cell) states no move of ``_reversed_state_graph`` leaves
+        (none of the headings within phi_max has a move in ``_state_moves``)."""
+        moves = self._state_moves
+        return ~np.stack([np.any(moves[(h + self.turns) % 8], axis=0) for h in range(8)])
+
+    @cached_property
     def _reversed_state_graph(self) -> csr_matrix:
         """The turn-limited safe moves between (heading, cell) states, state ``h * size +
         flat``: from (h, c) to (h', c + step(h')) for every h' within phi_max of h whose move
         from c is in ``home_edge_safe`` and lands in a viable state; edges reversed (hops *to*
-        a state)."""
+        a state), each of weight one (no edge twice: searched as it is, it counts moves as
+        scipy's ``unweighted`` search does, without making the ones again each time)."""
         grid = self.grid
         size = grid.size
         flat = np.arange(size).reshape(grid.shape)
-        rows, cols = [], []
+        ends, cols = [], []
         for h_next in range(8):
-            # a move the planner may make: safe, and into a state with a way on (``viable``)
-            lands_viable = self._shifted(self.viable[h_next], h_next)
-            start = flat[self.home_edge_safe[h_next] & lands_viable]
-            end = start + grid.flat(HEADING_STEPS[h_next]) + size * h_next
-            for t in self.turns:
-                rows.append(end)
-                cols.append(start + size * ((h_next - t) % 8))
-        rows_all, cols_all = np.concatenate(rows), np.concatenate(cols)
-        return csr_matrix(
-            (np.ones(len(rows_all)), (rows_all, cols_all)), shape=(8 * size, 8 * size)
-        )
+            start = flat[self._state_moves[h_next]]
+            ends.append(start + grid.flat(HEADING_STEPS[h_next]) + size * h_next)
+            # the states it is reached from, one per turn, side by side
+            cols.append(start[:, None] + size * ((h_next - self.turns[None, :]) % 8))
+        # built as compressed rows at once: the ends come in increasing order, each with one
+        # edge per turn (no sorting of (row, column) pairs)
+        per_row = np.zeros(8 * size, dtype=np.int64)
+        per_row[np.concatenate(ends)] = len(self.turns)
+        indptr = np.concatenate([[0], np.cumsum(per_row)])
+        indices = np.concatenate([c.ravel() for c in cols])
+        return csr_matrix((np.ones(len(indices)), indices, indptr), shape=(8 * size, 8 * size))
 
 
 class SafetyModels:
@@ -340,7 +411,9 @@ class SafetyModels:
     is built again, the same: its fields are the same functions of the threats and the home,
     and its state searches are made as far as the dropped model's had been (a search's reach
     shows in the counts it returns), so decisions do not depend on what was dropped. 100 UAVs
-    on 200 x 200 cells for 40 steps kept ten models of 50 homes each where one was asked."""
+    on 200 x 200 cells for 40 steps kept ten models of 50 homes each where one was asked. The
+    models keep their fields in the stores of the first (``planner.field_pool``), each under
+    a number of its own, so that a field one model frees is written again by another."""
 
     def __init__(self, make: Callable[[np.ndarray, dict[int, float] | None], SafetyModel]) -> None:
         """``make(known, searched)``: the model of the threats ``known`` (bool row)."""
@@ -349,6 +422,8 @@ class SafetyModels:
         self._asked: dict[bytes, int] = {}  # model -> the last step it was asked at
         self._searched: dict[bytes, dict[int, float]] = {}  # dropped models' state searches
         self._swept = -1  # the step ``drop_unused`` last ran at
+        self._pool: FieldPool | None = None  # the first model's stores, the others' too
+        self._made = 0  # models made so far: a model's number in the stores
 
     def __len__(self) -> int:
         return len(self._models)
@@ -359,6 +434,10 @@ class SafetyModels:
         model = self._models.get(key)
         if model is None:
             model = self._models[key] = self._make(known, self._searched.pop(key, None))
+            model.lenders = self._models.values  # no reference to the model: dropped, it goes
+            self._pool = self._pool or model.pool
+            model.use_pool(self._pool, self._made)
+            self._made += 1
         self._asked[key] = max(step, self._asked.get(key, step))
         model.step = self._asked[key]
         return model
@@ -376,5 +455,5 @@ class SafetyModels:
             del self._asked[key]
             if model.state_limits:
                 self._searched[key] = model.state_limits
-        for model in self._models.values():
-            model.drop_unread(step)
+        if self._pool is not None:
+            self._pool.drop_unread(step)  # the fields of every model, kept or dropped

@@ -132,6 +132,7 @@ class SwarmBeliefs(SwarmHearing):
         return SafetyModel(
             self.grid, self.threat_xy[known], self.threat_r[known], self.cfg.threat_margin_km,
             self.cfg.max_turn_deg, self.cfg.home_path_margin_km, searched,
+            len(set(self.homes_key)),
         )  # fmt: skip
 
     def share_safety_models(self, other: SwarmBeliefs) -> None:

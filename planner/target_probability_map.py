@@ -146,15 +146,19 @@ class TargetProbabilityMaps:
             self.renormalise()
 
     def _wiener_forecast(self, layers: list[int]) -> None:
-        """Eq 20 on ``layers``: separable, along x into a work buffer, then along y in place."""
+        """Eq 20 on ``layers``: separable, along x into a work buffer, then along y in place,
+        over the box of the cells that hold belief in any UAV's map grown by twice the kernel's
+        reach (``wiener_box``; none: nothing to spread)."""
         for l in layers:
             layer = self.maps[l]
-            ndimage.convolve1d(
-                layer, self.wiener_1d, axis=1, mode="reflect", output=self.wiener_work
-            )
-            ndimage.convolve1d(
-                self.wiener_work, self.wiener_1d, axis=2, mode="reflect", output=layer
-            )
+            box = wiener_box(layer, len(self.wiener_1d) // 2)
+            if box is None:
+                continue
+            x0, x1, y0, y1 = box
+            held = layer[:, x0:x1, y0:y1]
+            work = self.wiener_work[:, : x1 - x0, : y1 - y0]
+            ndimage.convolve1d(held, self.wiener_1d, axis=1, mode="reflect", output=work)
+            ndimage.convolve1d(work, self.wiener_1d, axis=2, mode="reflect", output=held)
 
     def _move_layers(self) -> None:
         """Eqs 21-22 on the known-speed and known-velocity layers."""
@@ -304,3 +308,24 @@ class TargetProbabilityMaps:
             self.maps[l, uav] = 0.0
         self.totals[l, uav] = self.maps[l, uav].sum(dtype=np.float64)
         self.renormalise()
+
+
+def wiener_box(layer: np.ndarray, reach: int) -> tuple[int, int, int, int] | None:
+    """The box (x0, x1, y0, y1) of ``layer`` (N, nx, ny) over which a separable convolution of
+    ``reach`` cells either side, edges reflected, gives every cell of the area what it gives
+    over the whole area: the cells holding belief in any map grown by twice ``reach``, kept
+    inside the area. A cell within ``reach`` of them reads only cells of the box (or, at the
+    area's edge, the reflection the whole area makes too); every other cell is zero, over the
+    whole area as inside the box, where what the box's own edge reflects is zero. None when
+    no cell holds belief (the whole area stays zero). On 200 x 200 cells the known-position
+    layer holds belief over about half the area in a 40-step run; paper-20uav's is all zero
+    once its targets are engaged."""
+    held = layer.any(axis=0)
+    xs = np.flatnonzero(held.any(axis=1))
+    if not xs.size:
+        return None
+    ys = np.flatnonzero(held.any(axis=0))
+    nx, ny = held.shape
+    grow = 2 * reach
+    return (max(int(xs[0]) - grow, 0), min(int(xs[-1]) + 1 + grow, nx),
+            max(int(ys[0]) - grow, 0), min(int(ys[-1]) + 1 + grow, ny))  # fmt: skip

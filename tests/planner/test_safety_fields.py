@@ -63,8 +63,58 @@ def test_fields_read_again_after_a_drop_are_the_same_as_never_dropped() -> None:
 
 
 def test_counts_beyond_sixteen_bits_are_kept_exactly() -> None:
-    rows = CountRows((3,))
+    rows = CountRows((3,), rows=4)
     rows.put(7, np.array([0.0, 12.0, np.inf]))
-    rows.put(9, np.array([70000.0, 1.0, np.inf]))  # widens the store
-    got = rows.take((rows.rows(np.array([7, 9])),))
-    assert np.array_equal(got, [[0.0, 12.0, np.inf], [70000.0, 1.0, np.inf]])
+    assert rows.data.dtype == np.uint8
+    rows.put(8, np.array([300.0, 12.0, np.inf]))  # widens the store to 16 bits
+    assert rows.data.dtype == np.uint16
+    rows.put(9, np.array([70000.0, 1.0, np.inf]))  # and to float32
+    got = rows.take((rows.rows(np.array([7, 8, 9])),))
+    assert np.array_equal(got, [[0.0, 12.0, np.inf], [300.0, 12.0, np.inf], [70000.0, 1.0, np.inf]])
+
+
+def test_fields_are_searched_only_as_far_as_the_cells_asked() -> None:
+    """A UAV near its home asks its fields near it: they are searched about as far (a search
+    of the whole area costs ten times as much on 200 x 200 cells) and answer what the whole
+    area's search answers; a cell asked beyond is searched for again, further."""
+    known = np.ones(len(_threats()[1]), dtype=bool)
+    model, whole = _make(known, None), _make(known, None)
+    home = np.array([GRID.flat(np.array([10, 10]))])
+    x, y, h = np.array([[12, 13, 14]]), np.array([[9, 10, 11]]), np.array([[0, 1, 2]])
+    near = [model.distances_home_at(home, x, y), model._cell_hops(home, x, y, h)]
+    assert np.array_equal(near[0], whole.distance_home_km(int(home[0]))[x, y])
+    assert np.array_equal(near[1], whole._cell_hops(home, x, y, h))
+    for fields in (model._distances, model._hops):
+        assert np.isinf(fields.take((0, 90, 90)))  # not searched so far
+    far = [model.distances_home_at(home, x + 70, y + 80), model._cell_hops(home, x + 70, y + 80, h)]
+    assert np.all(np.isfinite(far[0])) and np.all(np.isfinite(far[1]))
+    assert np.array_equal(far[0], whole.distance_home_km(int(home[0]))[x + 70, y + 80])
+    assert np.array_equal(far[1], whole._cell_hops(home, x + 70, y + 80, h))
+
+
+def test_a_threat_far_from_home_leaves_the_fields_near_it_to_be_borrowed() -> None:
+    """A UAV that hears of a threat far from its home moves to the model of its new set of
+    threats: that model takes the fields near the home from the model the UAV left (the ways
+    home there do not come near the new threat) instead of searching them, and answers what a
+    model that searched them answers."""
+    xy, _ = _threats()
+    home_cell = np.array([10, 10])
+    farthest = int(np.argmax(np.hypot(*(xy - GRID.centre_km(home_cell)).T)))
+    before = np.ones(len(xy), dtype=bool)
+    before[farthest] = False
+    after = np.ones(len(xy), dtype=bool)
+    models = SafetyModels(_make)
+    home = np.array([GRID.flat(home_cell)])
+    x, y, h = np.array([[12, 13, 14]]), np.array([[9, 10, 11]]), np.array([[0, 1, 2]])
+
+    def _near(model: SafetyModel) -> list[np.ndarray]:
+        return [model.distances_home_at(home, x, y), model._cell_hops(home, x, y, h),
+                model._state_hops(home, x, y, h, 30)]  # fmt: skip
+
+    _near(models.get(before, 0))
+    borrower = models.get(after, 1)
+    got = _near(borrower)
+    expected = _near(_make(after, None))
+    assert all(np.array_equal(a, b) for a, b in zip(got, expected, strict=True))
+    searched = {"_reversed_graph", "_reversed_hop_graph", "_reversed_state_graph"}
+    assert not searched & set(vars(borrower))  # no graph of its own built: nothing searched

@@ -278,3 +278,29 @@ def test_a_uavs_forecast_depends_on_its_own_map_alone():
             maps.forecast()
         assert np.isfinite(both.maps).all()
         assert np.array_equal(both.maps[:, :1], alone.maps), step
+
+
+def test_the_known_position_forecast_spreads_only_the_box_that_holds_belief():
+    # eq 20 over the box of the cells holding belief (grown by twice the kernel's reach) gives
+    # every cell, bit for bit, what the whole area's convolution gives: at the area's edge, at
+    # the box's edge, and for a map of a batch whose others hold belief elsewhere
+    from planner.target_probability_map import wiener_box
+
+    tpm = TargetProbabilityMaps((TargetSpec(1, "known_position", 50, 50, 1),), CFG, n_uavs=2)
+    kernel = tpm.wiener_1d
+    assert len(kernel) > 1
+    rng = np.random.default_rng(3)
+    for corner in ((0, 0), (GRID.nx - 15, 30), (40, GRID.ny - 10), (45, 45)):
+        layer = np.zeros((2, *GRID.shape), np.float32)
+        x, y = corner
+        layer[0, x : x + 12, y : y + 9] = rng.random((min(12, GRID.nx - x), min(9, GRID.ny - y)))
+        layer[1, 60:62, 10:13] = 0.5
+        whole, work = layer.copy(), np.empty_like(layer)
+        ndimage.convolve1d(whole, kernel, axis=1, mode="reflect", output=work)
+        ndimage.convolve1d(work, kernel, axis=2, mode="reflect", output=whole)
+        tpm.maps[0] = layer
+        tpm._wiener_forecast([0])
+        assert np.array_equal(tpm.maps[0].view(np.uint32), whole.view(np.uint32)), corner
+        x0, x1, y0, y1 = wiener_box(layer, len(kernel) // 2)
+        assert (x1 - x0) * (y1 - y0) < 0.8 * GRID.size  # a real saving
+    assert wiener_box(np.zeros((2, *GRID.shape), np.float32), 4) is None  # nothing to spread
