@@ -49,6 +49,8 @@ RELAY_SYSTEM_ID = 51
 RELAY_COMPONENT_ID = mavlink.MAV_COMP_ID_TELEMETRY_RADIO
 HEARTBEAT_PERIOD_S = 1.0
 RECONNECT_S = 0.5
+#: a plane at least this far above its home (mm) counts in the separation between planes
+AIRBORNE_MM = 10_000
 
 
 @dataclass
@@ -63,6 +65,7 @@ class RelayedPlane:
     lat_deg: float = math.nan
     lon_deg: float = math.nan
     alt_m: float = math.nan
+    airborne: bool = False  # at least AIRBORNE_MM above home
     heartbeat_s: float = -1e9
     next_try_s: float = 0.0
     mav: mavlink.MAVLink = field(init=False, repr=False)
@@ -201,16 +204,19 @@ class RadioRelay:
         ):
             plane.lat_deg, plane.lon_deg = msg.lat / 1e7, msg.lon / 1e7
             plane.alt_m = msg.alt / 1000.0
+            plane.airborne = msg.relative_alt >= AIRBORNE_MM
             self._separation(plane)
         self.not_relayed[kind] += 1
 
     def _separation(self, moved: RelayedPlane) -> None:
-        """The smallest horizontal distance between ``moved`` and the other located planes,
+        """The smallest horizontal distance between ``moved`` and the other airborne planes,
         as their latest reports put them (what really flew, as far as the radio knows)."""
+        if not moved.airborne:
+            return
         positions = self.radio.fleet
         x, y = positions.x_m, positions.y_m
         gaps = np.hypot(x - x[moved.index], y - y[moved.index]) / 1000.0
-        gaps[moved.index] = np.nan
+        gaps[[not p.airborne or p is moved for p in self.planes]] = np.nan
         if np.isfinite(gaps).any():
             self.min_separation_km = min(self.min_separation_km, float(np.nanmin(gaps)))
 
