@@ -344,13 +344,17 @@ class VehicleLink:
         address: Address | None,
         tlog: TlogWriter | None = None,
         on_send: Callable[[bytes], None] | None = None,
+        source: tuple[int, int] | None = None,
     ) -> None:
         self.system_id = system_id
         self.endpoint = endpoint
         self.address = address if address is not None else endpoint.default_address()
         self.tlog = tlog
         self.on_send = on_send
-        self.mav = mavlink.MAVLink(_FrameWriter(self), GCS_SYSTEM_ID, GCS_COMPONENT_ID)
+        # our (system, component) on the wire: a ground station's unless told (a planner node
+        # beside its autopilot may have its own, docs/onboard.md "On a companion computer")
+        system, component = source or (GCS_SYSTEM_ID, GCS_COMPONENT_ID)
+        self.mav = mavlink.MAVLink(_FrameWriter(self), system, component)
         self.frames_sent = 0
 
     def transmit(self, frame: bytes) -> None:

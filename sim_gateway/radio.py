@@ -144,7 +144,7 @@ class SwarmRadio:
         for receiver in range(len(positions_m)):
             if receiver == sender:
                 continue
-            if distance[receiver] > opts.range_km:
+            if not distance[receiver] <= opts.range_km:  # (NaN: a plane not located yet)
                 stats.lost_to_range += 1
                 continue
             if opts.loss > 0 and self.rng.random() < opts.loss:

@@ -71,6 +71,11 @@ def uav_index(text: str) -> int:
     return _whole_number(text, 0, "must be 0 or more (0-based: system id - 1)", 254)
 
 
+def system_id(text: str) -> int:
+    """A MAVLink system id, 1..255."""
+    return _whole_number(text, 1, "must be a MAVLink system id, 1..255", 255)
+
+
 def seed_int(text: str) -> int:
     return _whole_number(text, 0, "must be 0 or more")
 

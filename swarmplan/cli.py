@@ -26,6 +26,7 @@ SUBCOMMANDS = (
     ("demo", "swarmplan.demo"),
     ("sim", "swarmplan.sim_command"),
     ("payload", "swarmplan.payload_command"),
+    ("radio-relay", "swarmplan.radio_relay_command"),
     ("daemon", "swarmplan.daemon_command"),
     ("node", "swarmplan.node_command"),
     ("export", "swarmplan.export_command"),

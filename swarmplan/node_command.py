@@ -19,11 +19,12 @@ import numpy as np
 from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon, MissionInterrupted
 from mavlink_bridge.mission.onboard_planner import OnboardPlanner
 from mavlink_bridge.vehicles.swarm_link import SwarmLink
+from mavlink_wire.protocol import GCS_COMPONENT_ID, GCS_SYSTEM_ID
 from mavlink_wire.signing import load_signing_key, unsigned_warning
 from planner.errors import UserError
 from planner.scenario import load_scenario
 from swarmplan import option_groups
-from swarmplan.arguments import positive_float, uav_index, writable_folder
+from swarmplan.arguments import positive_float, system_id, uav_index, writable_folder
 from swarmplan.daemon_command import write_mission_outputs
 from swarmplan.interrupts import MissionSignals
 
@@ -47,6 +48,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         required=True,
         metavar="I",
         help="the scenario's UAV this node plans (0-based; its autopilot is system id I+1)",
+    )
+    parser.add_argument(
+        "--system-id",
+        type=system_id,
+        default=GCS_SYSTEM_ID,
+        metavar="N",
+        help="its own MAVLink system id (component 190), the one its autopilot's MAV_GCS_SYSID "
+        "(SYSID_MYGCS before ArduPilot 4.7) names, so that only its own heartbeat keeps the "
+        f"plane's GCS failsafe quiet (default {GCS_SYSTEM_ID}, a ground station's; "
+        'docs/onboard.md, "On a companion computer")',
     )
     option_groups.add_seed_argument(parser, "planner seed (the same for every node of a swarm)")
     option_groups.add_steps_option(parser)
@@ -81,6 +92,7 @@ def node_options(args: argparse.Namespace, out: Path, quiet: bool) -> DaemonOpti
         time_scale=args.time_scale,
         leg_timing=args.leg_timing,
         signing_key=load_signing_key(args.signing_key_file),
+        source=(args.system_id, GCS_COMPONENT_ID),
         tlog_path=out / "mission.tlog",
         # the node's step is measured as it flies (link figures), not calibrated for a swarm
         check_time_scale=False,

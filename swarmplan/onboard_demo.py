@@ -231,10 +231,24 @@ def join_parts(out: Path, scenario: Scenario, seed: int, sim_summary: dict | Non
     return result
 
 
+def _truth_line(result: dict) -> str:
+    """What really flew: the simulator's truth, or (real autopilots) the radio relay's
+    separation between the airborne planes, from their own reports."""
+    truth, radio = result.get("simulator_truth") or {}, result["link"].get("radio") or {}
+    if not truth and "min_separation_km" in radio:
+        separation = radio["min_separation_km"]
+        return f"  radio relay   min separation {separation} km (airborne planes' own reports)"
+    return (
+        f"  simulator     threat entries {truth.get('threat_entries')}, separation "
+        f"{truth.get('separation_breaches')}, min separation {truth.get('min_separation_km')} km"
+    )
+
+
 def summary_lines(result: dict, out: Path) -> list[str]:
-    link, truth = result["link"], result.get("simulator_truth") or {}
+    link = result["link"]
     deadlines = link["claim_deadlines"]
     radio = link.get("radio") or {}
+    logs = "radio-relay.log" if "not_relayed" in radio else "sim.log"
     return [
         f"architecture    onboard: {result['uav_count']} nodes, no ground station needed",
         f"steps           {result['steps']}",
@@ -242,8 +256,7 @@ def summary_lines(result: dict, out: Path) -> list[str]:
         f"engaged         {result['engaged_count']}",
         f"at home         {result['returned_count']} of {result['uav_count']}",
         f"violations      {', '.join(f'{k} {v}' for k, v in result['violations'].items())}",
-        f"  simulator     threat entries {truth.get('threat_entries')}, separation "
-        f"{truth.get('separation_breaches')}, min separation {truth.get('min_separation_km')} km",
+        _truth_line(result),
         f"link            {link['bytes_sent_per_uav_per_step']['mean']:g} B per UAV per step "
         f"(max {link['bytes_sent_per_uav_per_step']['max']}); radio lost to range "
         f"{radio.get('lost_to_range', 0)}, to loss {radio.get('lost_to_loss', 0)}; "
@@ -251,7 +264,7 @@ def summary_lines(result: dict, out: Path) -> list[str]:
         f"claim deadlines missed {deadlines.get('missed', 0)}: avoided "
         f"{deadlines.get('avoided', 0)}, held {deadlines.get('held', 0)}",
         f"nodes missing   {result['nodes_missing'] or 'none'}",
-        f"files in        {out}/ (result.json, node-I/result.json, sim.log)",
+        f"files in        {out}/ (result.json, node-I/result.json, {logs})",
     ]
 
 
@@ -274,10 +287,19 @@ def main(args: Any, scenario: Scenario, out: Path, key: bytes | None) -> int:
         "wall_time_s": round(time.monotonic() - started, 1), "speedup": speedup})  # fmt: skip
 
 
+#: where ``swarmplan radio-relay``'s output goes in a result folder of nodes on real autopilots
+#: (docs/onboard.md, "On a companion computer"): ``--join`` takes the radio's count from it
+RELAY_LOG = "radio-relay.log"
+
+
 def write_joined(args: Any, scenario: Scenario, out: Path, extra: dict[str, Any]) -> int:
     """Join the parts in ``out`` (with the simulator's summary, when it wrote one), write
     result.json, say the summary; exit status 1 when a node's part is missing."""
-    result = join_parts(out, scenario, args.seed, simulator_summary(out / "sim.log"))
+    sim = simulator_summary(out / "sim.log")
+    if sim is None:  # real autopilots: the radio relay's count, when its log is there
+        relay = simulator_summary(out / RELAY_LOG)
+        sim = None if relay is None else {"radio": relay}
+    result = join_parts(out, scenario, args.seed, sim)
     result.update(extra)
     (out / "result.json").write_text(json.dumps(result, indent=1, default=float))
     if args.json:

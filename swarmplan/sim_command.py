@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _add_vehicle_start_arguments(parser)
     option_groups.add_duration_option(parser, "simulated")
     _add_lockstep_arguments(parser)
-    _add_radio_arguments(parser)
+    add_radio_arguments(parser)
     option_groups.add_signing_key_option(
         parser,
         "sign everything, refuse unsigned or wrongly signed commands; a file that does not "
@@ -142,7 +142,7 @@ def _add_lockstep_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _add_radio_arguments(parser: argparse.ArgumentParser) -> None:
+def add_radio_arguments(parser: argparse.ArgumentParser) -> None:
     """The telemetry radio that carries the planner nodes' swarm link (docs/onboard.md)."""
     group = parser.add_argument_group(
         "swarm radio", "the link between the vehicles' planner nodes (TUNNEL frames of the swarm "

@@ -197,6 +197,7 @@ class MissionDaemon:
             signing_key=options.signing_key,
             plausibility=PlausibilityFilter(limits),
             may_move=self.gone,
+            source=options.source,
         )
         if options.lockstep:
             ctx.clock = LockstepClock(link, ctx.scenario.config.step_s)

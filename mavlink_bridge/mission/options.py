@@ -78,6 +78,9 @@ class DaemonOptions:
     checkpoint_path: Path | None = None
     resume: bool = False  # carry on from checkpoint_path instead of starting afresh
     signing_key: bytes | None = None  # MAVLink 2 signing (mavlink_wire/signing.py)
+    #: our MAVLink (system, component) (None: a ground station's, 255/190); a planner node gives
+    #: its own, which its autopilot's MAV_GCS_SYSID names (docs/onboard.md)
+    source: tuple[int, int] | None = None
     tlog_path: Path | None = None
     progress: Callable[[str], None] | None = None
     on_step: Callable[[StepStatus], None] | None = None

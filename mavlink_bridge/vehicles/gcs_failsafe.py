@@ -60,6 +60,11 @@ def set_gcs_failsafe(
 
     for (_, name), (v, _, _) in todo.items():
         v.params.pop(name, None)  # only an answer to our PARAM_SET counts
+    # our heartbeat first, on the same links: an autopilot that has not heard its ground
+    # station yet takes the failsafe the moment it is enabled (ArduPlane SITL V4.8.0-dev, a node
+    # that reached the launch within 0.1 s of hearing its long-booted plane: "GCS Failsafe On:
+    # switched to RTL" on the ground, then "PreArm: RTL mode not armable")
+    link.send_heartbeat()
     for _ in range(attempts):
         for (_, name), (v, value, ptype) in todo.items():
             if not v.lost:

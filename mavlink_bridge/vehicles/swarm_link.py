@@ -82,8 +82,11 @@ class SwarmLink:
         plausibility: PlausibilityFilter | None = None,
         may_move: Callable[[VehicleState], bool] | None = None,
         links: list[int] | None = None,
+        source: tuple[int, int] | None = None,
     ) -> None:
         self.endpoints = endpoints
+        #: our MAVLink (system, component) on every link (None: a ground station's, 255/190)
+        self.source = source
         links = links or [0] * len(endpoints)
         self._link_of = {id(e): k for e, k in zip(endpoints, links, strict=True)}
         #: whether a vehicle's binding may move to a new address (the daemon: only a vehicle
@@ -105,7 +108,9 @@ class SwarmLink:
             self._watch(endpoint)
         self._last_heartbeat_s = -1e9
         # udpout peers that wait for our first word get their own GCS link until a vehicle answers
-        self._openers = [VehicleLink(0, e, None, tlog) for e in endpoints if e.needs_first_word]
+        self._openers = [
+            VehicleLink(0, e, None, tlog, source=source) for e in endpoints if e.needs_first_word
+        ]
         for opener in self._openers:
             self._secure(opener)
         self.messages_received = 0
@@ -216,7 +221,9 @@ class SwarmLink:
                 return
             if not trust.admit(key, msg, now):
                 return
-            link = self._secure(VehicleLink(sysid, endpoint, address, self.tlog))
+            link = self._secure(
+                VehicleLink(sysid, endpoint, address, self.tlog, source=self.source)
+            )
             vehicle = VehicleState(sysid, link, key=key)
             self.vehicles[key] = vehicle
             trust.admit_address(key, compid, where, now, announces=True)
@@ -248,7 +255,7 @@ class SwarmLink:
         link = vehicle.component_links.get(component)
         if link is None:
             vehicle.component_links[component] = self._secure(
-                VehicleLink(vehicle.system_id, endpoint, address, self.tlog)
+                VehicleLink(vehicle.system_id, endpoint, address, self.tlog, source=self.source)
             )
         elif link.endpoint is not endpoint or (address is not None and link.address != address):
             link.moved(endpoint, address)

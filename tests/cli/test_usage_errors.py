@@ -37,6 +37,12 @@ CASES = [
     (["payload", "--connect", "bogus"], "--connect: 'bogus' is not an endpoint"),
     (["payload", "--connect", "tcp:127.0.0.1:99999"], "--connect: 'tcp:127.0.0.1:99999'"),
     (["payload"], "required: --connect"),
+    (["radio-relay"], "required: --connect"),
+    (["radio-relay", "--connect", "bogus"], "--connect: 'bogus' is not an endpoint"),
+    (
+        ["radio-relay", "--connect", "tcp:127.0.0.1:5760", "--radio-range-km", "nan"],
+        "--radio-range-km",
+    ),
     (["daemon", "--bogus"], "unrecognized arguments: --bogus"),
     (["daemon", "--seed", "x"], "--seed"),
     (["daemon", "--timeout", "inf"], "--timeout"),
@@ -49,6 +55,19 @@ CASES = [
     (["daemon", "--airspeed-range", "100:inf"], "--airspeed-range"),
     (["demo", "--onboard", "--radio-loss", "nan"], "--radio-loss"),
     (["node", "paper-2uav", "--connect", "udpin:127.0.0.1:0", "--uav", "-1"], "--uav"),
+    (
+        [
+            "node",
+            "paper-2uav",
+            "--connect",
+            "udpin:127.0.0.1:0",
+            "--uav",
+            "0",
+            "--system-id",
+            "256",
+        ],
+        "--system-id",
+    ),
     (["node", "paper-2uav", "--uav", "0"], "required: --connect"),
     (
         ["node", "paper-2uav", "--connect", "udpin:127.0.0.1:0", "--uav", "0", "--bogus"],

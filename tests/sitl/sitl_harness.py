@@ -329,8 +329,10 @@ class SitlSwarm(AutopilotSwarm):
     """N ArduPlane SITL instances, vehicle i with system id i + 1 at ``homes[i]``.
 
     ``params`` (name -> value) go into an extra defaults file after ArduPilot's plane.parm
-    (``--defaults plane.parm,extra.parm``), e.g. ``{"FENCE_ENABLE": 1}``. ``workdir`` (default:
-    a fresh temporary folder, removed at stop) holds one folder per vehicle.
+    (``--defaults plane.parm,extra.parm``), e.g. ``{"FENCE_ENABLE": 1}``, and on top of them
+    ``vehicle_params(index)`` for each vehicle's own (e.g. its node's MAV_GCS_SYSID).
+    ``workdir`` (default: a fresh temporary folder, removed at stop) holds one folder per
+    vehicle.
     """
 
     def __init__(
@@ -342,11 +344,13 @@ class SitlSwarm(AutopilotSwarm):
         params: dict[str, float] | None = None,
         workdir: Path | None = None,
         start_timeout_s: float = 15.0,
+        vehicle_params: Callable[[int], dict[str, float]] | None = None,
     ) -> None:
         self.binary = Path(binary)
         self.homes = list(homes)
         self.speedup = speedup
         self.params = dict(params or {})
+        self.vehicle_params = vehicle_params or (lambda index: {})
         self.start_timeout_s = start_timeout_s
         self._tmp = None if workdir is not None else tempfile.TemporaryDirectory(prefix="sitl-")
         self.workdir = Path(workdir) if workdir is not None else Path(self._tmp.name)
@@ -364,7 +368,7 @@ class SitlSwarm(AutopilotSwarm):
             folder = self.workdir / f"vehicle{index + 1}"
             folder.mkdir(parents=True, exist_ok=True)
             extra = folder / "extra.parm"
-            values = {"SYSID_THISMAV": index + 1, **self.params}
+            values = {"SYSID_THISMAV": index + 1, **self.params, **self.vehicle_params(index)}
             extra.write_text("".join(f"{k} {v}\n" for k, v in values.items()))
             argv = [
                 str(self.binary), "-w", "--model", "plane", "--speedup", f"{self.speedup:g}",
