@@ -30,7 +30,7 @@ from mavlink_wire.signing import SignatureCheck
 #: ("local experiments", common.xml TUNNEL.payload_type); 0xA557 is the project's.
 SWARM_PAYLOAD_TYPE = 0xA557
 TUNNEL_PAYLOAD_BYTES = 128
-WIRE_VERSION = 1
+WIRE_VERSION = 2  # 2: the cells of a claim signed (a cell off the area is a claim too)
 #: version u8, sender u8, message sequence u16, fragment index u8, fragment count u8, CRC u16
 FRAGMENT_HEADER = struct.Struct("<BBHBBH")
 FRAGMENT_DATA_BYTES = TUNNEL_PAYLOAD_BYTES - FRAGMENT_HEADER.size  # 120
@@ -50,9 +50,12 @@ SERVICED = struct.Struct("<H")  # target u16
 CLAIM = struct.Struct("<HHB")  # cell x, y u16, claim round u8
 THREAT = struct.Struct("<iiI")  # x, y m i32, radius m u32
 INTENT = struct.Struct("<HHH")  # track cell x, y u16 (0xFFFF: none); C_c priority u16
-#: cell x, y u16; heading u8; alternatives u8; blocker u8 (255: none); cell asked of it x, y u16
-MOVE_HEAD = struct.Struct("<HHBBBHH")
-CELL = struct.Struct("<HH")  # one alternative cell x, y u16
+#: cell x, y i16; heading u8; alternatives u8; blocker u8 (255: none); cell asked of it x, y
+#: i16. Signed: a UAV with no allowed move claims its ranking's first cell, which may lie off
+#: the area (x or y -1), and that claim is as real as any other to its neighbours
+MOVE_HEAD = struct.Struct("<hhBBBhh")
+CELL = struct.Struct("<hh")  # one alternative cell x, y i16
+NO_ASKED = (0, 0)  # the cell asked of no blocker (never read)
 SERVICED_AT = struct.Struct("<HHH")  # target u16, cell x, y u16
 KIND_STATE, KIND_LOOK, KIND_ENGAGEMENT, KIND_SERVICED, KIND_CLAIM, KIND_THREAT = range(1, 7)
 KIND_INTENT, KIND_MOVE, KIND_SERVICED_AT = range(7, 10)
@@ -223,7 +226,7 @@ def _move_bytes(move: MoveClaim) -> bytes:
     if not 0 <= move.heading <= 7 or len(move.alternatives) > 255:
         raise WireError(f"a claim's heading must be 0-7 and its alternatives at most 255, got "
                         f"{move.heading} and {len(move.alternatives)}")  # fmt: skip
-    blocker, asked = (NO_BLOCKER, NO_CELL_WIRE) if move.displace is None else move.displace
+    blocker, asked = (NO_BLOCKER, NO_ASKED) if move.displace is None else move.displace
     head = MOVE_HEAD.pack(*move.cell, move.heading, len(move.alternatives), blocker, *asked)
     return head + b"".join(CELL.pack(*cell) for cell in move.alternatives)
 

@@ -1,6 +1,7 @@
-"""A node's own report that does not fit the swarm wire (a cell beyond u16: seen once in a
-250-step flown onboard mission, a claim at step 169, where the node died with a traceback and
-its plane was sent home) is said in one line, counted in the node's link figures and not sent:
+"""A node's own report that does not fit the swarm wire (a claim's cell off the area was one,
+while claims' cells were unsigned: seen in a 250-step flown onboard mission, a claim at step
+169, where the node died with a traceback and its plane was sent home; here a cell beyond i16)
+is said in one line, counted in the node's link figures and not sent:
 its neighbours take it as lost, as any frame the radio loses, and the node flies on. The vehicle
 is a real loopback UDP peer; what does fit reaches it as TUNNEL frames."""
 
@@ -53,11 +54,11 @@ def test_a_report_beyond_the_wire_is_said_counted_and_not_sent():
     node, vehicle, said, endpoint = _node_beside_a_vehicle()
     vehicle.settimeout(0.5)
     try:
-        bad = CellClaim(0, 3, (-1, 4), 2, ((0, 4),), None)
-        node._broadcast([bad])  # a cell the wire's u16 cannot hold: no exception
+        bad = CellClaim(0, 3, (40_000, 4), 2, ((0, 4),), None)
+        node._broadcast([bad])  # a cell the wire's i16 cannot hold: no exception
         assert node.stats.unsendable == 1 and node.stats.frames_sent == 0
         assert len(said) == 1 and said[0].startswith("warning: step 3: a report not sent")
-        assert "(-1, 4)" in said[0]
+        assert "(40000, 4)" in said[0]
         assert _tunnels(vehicle) == 0
         node._broadcast([CellClaim(0, 3, (1, 4), 2, ((0, 4),), None)])  # what fits goes out
         assert node.stats.frames_sent >= 1 and _tunnels(vehicle) == node.stats.frames_sent

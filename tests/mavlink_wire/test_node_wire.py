@@ -100,3 +100,25 @@ def test_a_look_cut_by_the_area_edge_comes_back_with_its_cells_in_order():
         wire.report(
             2, 9, [dataclasses.replace(look, cells=look.cells[1:], detected=look.detected[1:])]
         )
+
+
+def test_a_claim_off_the_area_travels_as_it_was_made():
+    """A UAV with no allowed move at the area's edge claims its ranking's first cell, which may
+    lie off the area: seen flown, `CellClaim` (-1, 45) with no alternatives, which unsigned cells
+    could not carry (the node stopped, later said it and sent nothing). Signed cells carry it,
+    and a step-aside request's cell with it, through signed TUNNEL frames and back."""
+    from planner.swarm_messages import CellClaim
+
+    wire = NodeWire.for_scenario(load_scenario("paper-10uav"))
+    key = mission_key()
+    claims = [
+        CellClaim(5, 184, (-1, 45), 3, (), None),
+        CellClaim(2, 7, (0, 99), 1, ((-1, 98), (0, 98)), (4, (-1, 97))),
+    ]
+    for claim in claims:
+        mav = ml.MAVLink(None, srcSystem=claim.uav + 1, srcComponent=191)
+        sign_outgoing(mav, key, link_id=claim.uav)
+        frames = SwarmSender(claim.uav).frames(wire.report(claim.uav, claim.step, [claim]), mav)
+        receiver, parser = SwarmReassembler(signature=SignatureCheck(key)), ml.MAVLink(None)
+        got = [receiver.accept_message(parser.decode(bytearray(f)), 0.0) for f in frames][-1]
+        assert wire.messages(got) == [claim]
