@@ -97,8 +97,9 @@ class LockstepClock:
                 break
             self._check_held(vehicles, target)
             now = time.monotonic()
-            if _progress(vehicles, target) > progress:
-                progress, moved = _progress(vehicles, target), now
+            now_progress = _progress(vehicles, target)
+            if now_progress > progress:
+                progress, moved = now_progress, now
             if now - moved > self.wall_timeout_s:
                 behind = [str(v.key) for v in vehicles if not v.lost and v.time_boot_ms < target]
                 raise LockstepError(
