@@ -27,7 +27,9 @@ from planner.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parents[2]
 SCENARIO = "arduplane-3uav"
-STEPS = 4
+#: six steps: seed 1 flown offline as the daemon plans it (``swarmplan run arduplane-3uav
+#: --as-flown --steps 6``) engages target 1 at step 4; four steps engaged in 1 of 2 SITL runs
+STEPS = 6
 SPEEDUP = 10.0
 RANGE_KM, LOSS = 10.0, 0.1
 NODES_TIMEOUT_S = 150.0
@@ -170,8 +172,9 @@ def test_three_nodes_fly_their_own_arduplanes_through_a_radio_relay(sitl_binary,
     result = json.loads((out / "result.json").read_text())
     assert result["nodes_missing"] == [] and result["steps"] == STEPS
     assert result["coverage"] > 0
-    # an engagement is the nodes' and the world's alike (none in some runs of 4 steps)
-    assert sorted(e["target_id"] for e in result["engagements"]) == payload["targets_engaged"]
+    # at least one engagement, the nodes' and the world's alike
+    engaged = sorted(e["target_id"] for e in result["engagements"])
+    assert engaged and engaged == payload["targets_engaged"], (engaged, payload)
     v = result["violations"]
     assert (v["threat"], v["separation"], v["range"]) == (0, 0, 0), v
     assert result["link"]["radio"]["delivered"] == relay["delivered"]
