@@ -100,6 +100,9 @@ def test_a_node_killed_mid_mission_resumes_rejoins_and_brings_its_plane_home(tmp
     assert part["link"]["reports_heard"] > 0
     other = json.loads((outs[0] / "result.json").read_text())
     assert other["ended"] == "completed" and other["returned_count"] == 1
+    # the swarm is one again: at the last step each node heard the other in time
+    assert part["link"]["neighbours_heard"][-1] == 1, part["link"]
+    assert other["link"]["neighbours_heard"][-1] == 1, other["link"]
     truth = _sim_truth(tmp_path / "sim.log")
     assert truth["threat_entries"] == 0 and truth["separation_breaches"] == 0
 
