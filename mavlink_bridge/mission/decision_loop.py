@@ -239,8 +239,7 @@ class DecisionLoop:
         def clock_step() -> int:  # (the checkpoint's step: first_step - 1)
             return first_step - 1 + max(1, int(outage_s(path, ctx.time_scale) // step_s))
 
-        step = rejoin(first_step, clock_step, ctx.steps, 1.5 * step_s / ctx.time_scale)
-        how = "heard of its neighbours" if planner.swarm_step >= first_step else "by its clock"
+        step, how = rejoin(first_step, clock_step, ctx.steps, 1.5 * step_s / ctx.time_scale)
         ctx.say(f"rejoined the swarm at step {step} ({how}; {step - first_step} steps missed)")
         return step
 

@@ -199,3 +199,27 @@ def test_every_range_check_names_a_part_of_a_nodes_state(tmp_path):
             assert hasattr(value, name), f"RANGES names {path}, which a node's state lacks"
             value = getattr(value, name)
         assert value is not None, path
+
+
+@pytest.mark.parametrize(
+    ("heard", "step", "how"),
+    [
+        (10, 10, "heard of its neighbours"),
+        (-1, 9, "by the mission's clock"),  # nobody heard
+        (500, 9, "by the mission's clock"),  # far ahead of the clock: not plausible
+        (1, 9, "by the mission's clock"),  # an old step
+    ],
+)
+def test_a_resumed_node_rejoins_at_the_swarms_step_or_the_clocks(heard, step, how):
+    """``OnboardPlanner.rejoin`` (no listening here: ``listen_s`` 0): the step heard of a
+    neighbour when it is plausible, else the mission's clock's; its beliefs skip to it."""
+    from mavlink_bridge.mission.onboard_planner import OnboardPlanner
+
+    scenario = load_scenario("paper-10uav")
+    starts = scenario.starts_for_seed(2)
+    planner = OnboardPlanner(scenario, [starts[1]], 2, uav=1, link=None,
+                             period_wall_s=lambda: 1.0)  # fmt: skip
+    planner.beliefs.k = 3  # (as after the checkpoint of step 2)
+    planner.swarm_step = heard
+    assert planner.rejoin(3, lambda: 9, STEPS, listen_s=0.0) == (step, how)
+    assert planner.beliefs.k == step and planner.stats.steps_missed == step - 3
