@@ -19,7 +19,7 @@ import pytest
 
 from planner.scenario import load_scenario
 
-STEPS = 16
+STEPS = 24
 KILL_AFTER_STEP = 2
 SPEEDUP = 20
 
