@@ -44,7 +44,8 @@ from planner.uav_node import UavNode
 #: shares of a decision period (from the step's start) by which each phase gives up waiting
 STATES_SHARE, INTENTS_SHARE, CLAIMS_SHARE, END_SHARE = 0.12, 0.2, 0.32, 0.4
 POLL_S = 0.005
-#: a resumed node believes a neighbour's step at most this far ahead of the mission's clock
+#: a resumed node believes a neighbour's step at most twice the outage and this many steps after
+#: its checkpoint
 REJOIN_AHEAD = 2
 
 
@@ -178,16 +179,19 @@ class OnboardPlanner:
         """A resumed node: the step to carry on from, that of the swarm, and how it was found.
         It listens for up to ``listen_s`` wall seconds until a neighbour's report of
         ``first_step`` or later arrives: its step is the one the swarm is deciding (the node's
-        newest look is of that instant too), unless it is more than :data:`REJOIN_AHEAD` steps
-        ahead of ``clock_step()``, the step of the mission's clock (the outage counted in
-        decision periods), which it takes when none is heard (alone, or the others done) or
-        the one heard is not plausible. The steps in between are not planned: its beliefs skip
-        to that step (what is left of the mission counts from it)."""
+        newest look is of that instant too), unless it is implausibly far ahead of
+        ``clock_step()``, the step of the mission's clock (the outage counted in decision
+        periods): more than twice the outage plus :data:`REJOIN_AHEAD` steps after the
+        checkpoint (a loaded simulator's clock runs in bursts). It takes the clock's step when
+        none is heard (alone, or the others done) or the one heard is not plausible. The steps
+        in between are not planned: its beliefs skip to that step (what is left of the mission
+        counts from it)."""
         until = time.monotonic() + listen_s
         while self.swarm_step < first_step and time.monotonic() < until:
             self.link.pump(POLL_S)
         clock = clock_step()
-        if first_step <= self.swarm_step <= clock + REJOIN_AHEAD:
+        outage = clock - first_step + 1  # decision periods since the checkpoint, by the clock
+        if first_step <= self.swarm_step <= first_step - 1 + 2 * outage + REJOIN_AHEAD:
             step, how = self.swarm_step, "heard of its neighbours"
         else:
             step, how = clock, "by the mission's clock"

@@ -100,9 +100,12 @@ def test_a_node_killed_mid_mission_resumes_rejoins_and_brings_its_plane_home(tmp
     assert part["link"]["reports_heard"] > 0
     other = json.loads((outs[0] / "result.json").read_text())
     assert other["ended"] == "completed" and other["returned_count"] == 1
-    # the swarm is one again: at the last step each node heard the other in time
+    # the swarm is one again: at the last step the resumed node heard the other in time, and
+    # so did the other, if it did before the kill (two nodes launched a look apart number their
+    # steps one apart for the whole mission: the one ahead never hears the other in time)
     assert part["link"]["neighbours_heard"][-1] == 1, part["link"]
-    assert other["link"]["neighbours_heard"][-1] == 1, other["link"]
+    if other["link"]["neighbours_heard"][1] == 1:
+        assert other["link"]["neighbours_heard"][-1] == 1, other["link"]
     truth = _sim_truth(tmp_path / "sim.log")
     assert truth["threat_entries"] == 0 and truth["separation_breaches"] == 0
 
@@ -206,7 +209,8 @@ def test_every_range_check_names_a_part_of_a_nodes_state(tmp_path):
     [
         (10, 10, "heard of its neighbours"),
         (-1, 9, "by the mission's clock"),  # nobody heard
-        (500, 9, "by the mission's clock"),  # far ahead of the clock: not plausible
+        (18, 18, "heard of its neighbours"),  # 7 periods since step 2: at most 2 + 2 x 7 + 2
+        (19, 9, "by the mission's clock"),  # further: not plausible
         (1, 9, "by the mission's clock"),  # an old step
     ],
 )
@@ -221,5 +225,5 @@ def test_a_resumed_node_rejoins_at_the_swarms_step_or_the_clocks(heard, step, ho
                              period_wall_s=lambda: 1.0)  # fmt: skip
     planner.beliefs.k = 3  # (as after the checkpoint of step 2)
     planner.swarm_step = heard
-    assert planner.rejoin(3, lambda: 9, STEPS, listen_s=0.0) == (step, how)
+    assert planner.rejoin(3, lambda: 9, 30, listen_s=0.0) == (step, how)
     assert planner.beliefs.k == step and planner.stats.steps_missed == step - 3
