@@ -159,9 +159,9 @@ def _uav_state(v: Any, path: str, m: Mission) -> None:
     cls = classes()["UavState"]
     if type(v) is not cls or set(vars(v)) != {f.name for f in fields(cls)}:
         raise StateError(path, "is not a UavState")
-    for name in ("uav", "step", "heading"):
-        integer(0)(getattr(v, name), f"{path}.{name}", m)
-    row(tuple, integer(0), integer(0))(v.cell, f"{path}.cell", m)
+    for name, high in (("uav", 255), ("step", math.inf), ("heading", 7)):
+        integer(0, high)(getattr(v, name), f"{path}.{name}", m)
+    row(tuple, integer(0, m.nx - 1), integer(0, m.ny - 1))(v.cell, f"{path}.cell", m)
     row(tuple, number(), number())(v.position_km, f"{path}.position_km", m)
     number(0.0)(v.radius_km, f"{path}.radius_km", m)
     if type(v.flying) is not bool:
