@@ -80,8 +80,6 @@ class UavNode:
         self.uav = uav
         self.size = len(starts)
         self.planner = HapfAcoPlanner(scenario, starts, seed, owners=[uav])
-        self.beliefs = self.planner.beliefs
-        self.cfg = self.beliefs.cfg
         self.stats = ClaimStats()
         self._target_index = {int(t): i for i, t in enumerate(self.beliefs.target_ids)}
         self.inbox = _Inbox()
@@ -90,6 +88,23 @@ class UavNode:
         self._seen: Hearing | None = None
         self._ranking: RankedMoves | None = None
         self._board: ClaimBoard | None = None
+        self._hold = False
+
+    @property
+    def beliefs(self):
+        """Its planner's beliefs (one object: a checkpoint holds it once)."""
+        return self.planner.beliefs
+
+    @property
+    def cfg(self):
+        return self.planner.cfg
+
+    def forget_step(self) -> None:
+        """Drop what only one step's exchanges use (what it heard, ranked, claimed): a node
+        resumed from a checkpoint (which does not hold them) starts its next step with
+        ``begin``."""
+        self.inbox = _Inbox()
+        self._report = self._seen = self._ranking = self._board = None
         self._hold = False
 
     # ------------------------------------------------------------------ exchange 1
@@ -127,6 +142,15 @@ class UavNode:
         for message in sent:
             self.receive(message)
         return sent
+
+    def hear_late(self, state: UavState) -> None:
+        """A neighbour's state of a step already decided (it came late: a neighbour that came
+        back into range, or restarted and caught up): not used for that step, but it is where
+        the neighbour was last, newer than what was heard before, so the node expects it at the
+        next step and predicts its moves from there."""
+        held = self.last_heard.get(state.uav)
+        if state.uav != self.uav and (held is None or held.step < state.step):
+            self.last_heard[state.uav] = state
 
     def receive(self, message: Message) -> None:
         """Take in one message heard (any exchange); one of another step is ignored."""

@@ -25,7 +25,7 @@ from planner.errors import UserError
 from planner.scenario import load_scenario
 from swarmplan import option_groups
 from swarmplan.arguments import positive_float, system_id, uav_index, writable_folder
-from swarmplan.daemon_command import write_mission_outputs
+from swarmplan.daemon_command import validate, write_mission_outputs
 from swarmplan.interrupts import MissionSignals
 
 HELP = "the planner of one UAV beside its autopilot (onboard, no ground station needed)"
@@ -77,6 +77,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="seconds to wait for its vehicle to be heard (default 60)",
     )
     option_groups.add_leg_timing_option(parser)
+    parser.add_argument(
+        "--checkpoint",
+        type=Path,
+        metavar="PATH",
+        help="write this node's state (its UAV's beliefs, what it heard, the loop, the result so "
+        "far) here atomically after every step, to --resume from",
+    )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="carry on from --checkpoint (a restarted companion computer): take the plane back, "
+        "rejoin the swarm at its current step, plan on and bring the plane home by the end",
+    )
     option_groups.add_out_option(parser, "runs/<scenario>-seed<S>-node-<I>")
     option_groups.add_json_option(parser)
 
@@ -94,6 +107,9 @@ def node_options(args: argparse.Namespace, out: Path, quiet: bool) -> DaemonOpti
         signing_key=load_signing_key(args.signing_key_file),
         source=(args.system_id, GCS_COMPONENT_ID),
         tlog_path=out / "mission.tlog",
+        checkpoint_path=args.checkpoint,
+        resume=args.resume,
+        checkpoint_role=f"node {args.uav}",
         # the node's step is measured as it flies (link figures), not calibrated for a swarm
         check_time_scale=False,
         progress=None if quiet else (lambda text: print(prefix + text, file=sys.stderr)),
@@ -111,6 +127,7 @@ def node_options(args: argparse.Namespace, out: Path, quiet: bool) -> DaemonOpti
 
 
 def main(args: argparse.Namespace) -> int:
+    validate(args)
     scenario = load_scenario(args.scenario)
     if args.uav >= scenario.uav_count:
         raise UserError(
@@ -120,16 +137,13 @@ def main(args: argparse.Namespace) -> int:
         args.out or Path("runs") / f"{scenario.name}-seed{args.seed}-node-{args.uav}"
     )
     daemon = MissionDaemon(scenario, node_options(args, out, args.json))
-    planners: list[OnboardPlanner] = []
+    period = scenario.config.step_s / max(args.time_scale, 1e-6)
 
-    def factory(link: SwarmLink):
+    def factory(link: SwarmLink | None):
         def build(planning, starts, seed):
-            period = scenario.config.step_s / max(args.time_scale, 1e-6)
             say = daemon.options.progress or (lambda text: None)
-            planner = OnboardPlanner(planning, starts, seed, uav=args.uav, link=link,
-                                     period_wall_s=lambda: period, say=say)  # fmt: skip
-            planners.append(planner)
-            return planner
+            return OnboardPlanner(planning, starts, seed, uav=args.uav, link=link,
+                                  period_wall_s=lambda: period, say=say)  # fmt: skip
 
         return build
 
@@ -150,10 +164,9 @@ def main(args: argparse.Namespace) -> int:
                 result = report.result
                 result["architecture"] = "onboard"
                 result["uav"] = args.uav
-                if planners:
-                    result["link"] = planners[-1].link_summary()
                 state = daemon.loop.state
                 if state is not None:  # the cells its looks covered (the swarm's union: joined)
+                    result["link"] = state.planner.link_summary()
                     result["observed_cells"] = np.flatnonzero(state.observed).tolist()
                 write_mission_outputs(result, out)
     assert report is not None
@@ -162,9 +175,15 @@ def main(args: argparse.Namespace) -> int:
     else:
         link = report.result.get("link", {})
         sent = link.get("bytes_sent_per_step", {})
+        resumed = report.result.get("resumed_from_step")
+        missed = (
+            ""
+            if resumed is None
+            else f" (resumed after step {resumed}; {link.get('steps_missed', 0)} steps missed)"
+        )
         print(
             f"node {args.uav}: {report.result.get('ended', 'completed')}; "
-            f"{report.result.get('steps', 0)} steps; sent {sent.get('mean', 0)} B/step "
+            f"{report.result.get('steps', 0)} steps{missed}; sent {sent.get('mean', 0)} B/step "
             f"(max {sent.get('max', 0)}); files in {out}/"
         )
     return 0

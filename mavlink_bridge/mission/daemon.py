@@ -107,7 +107,11 @@ class MissionDaemon:
             None
             if options.checkpoint_path is None
             else CheckpointWriter(
-                options.checkpoint_path, self.fingerprint, background=True, key=options.signing_key
+                options.checkpoint_path,
+                self.fingerprint,
+                background=True,
+                key=options.signing_key,
+                role=options.checkpoint_role,
             )
         )
         self.phase = "connect"  # the phase the mission is in (launch phase names, "decisions")
@@ -141,7 +145,9 @@ class MissionDaemon:
         self.loop = DecisionLoop(ctx, self.home, self.audit, self.watch_links, self.operator)
         #: the planner's factory ``(scenario, starts, seed)``, built once the link is up (None:
         #: HAPF-ACO over the whole fleet); a planner node's plans its one UAV over the swarm link
-        self.planner_factory: Callable[[SwarmLink], Any] | None = None
+        #: (given None: a planner attached to no link, the template a checkpoint is checked
+        #: against)
+        self.planner_factory: Callable[[SwarmLink | None], Any] | None = None
 
     @property
     def options(self) -> DaemonOptions:
@@ -233,6 +239,8 @@ class MissionDaemon:
         the loop state this daemon starts from (at the scenario's starts: the layout is the
         same) and, under ``daemon``, its counters."""
         planner_cls, recorder_cls = _import_planner()
+        if self.planner_factory is not None:  # (a planner node's, not attached to a link)
+            planner_cls = self.planner_factory(None)
         fallback = self.scenario.starts_for_seed(self.options.seed)
         starts = tuple(
             fallback[u] if u < len(fallback) else UavStart(0.5, 0.5, 0.0) for u in self.ctx.fleet
@@ -254,6 +262,7 @@ class MissionDaemon:
                 self.fingerprint,
                 self.checkpoint_template(),
                 options.signing_key,
+                options.checkpoint_role,
             )
         writer = self.checkpoints
         if writer is not None and writer.key is None and not writer.announced:

@@ -31,7 +31,13 @@ from mavlink_bridge.mission.pacing import (
     PacingChoice,
     PacingContext,
 )
-from mavlink_bridge.mission.resume_takeback import CONTINUE, LAUNCH, TakeBack, account_outage
+from mavlink_bridge.mission.resume_takeback import (
+    CONTINUE,
+    LAUNCH,
+    TakeBack,
+    account_outage,
+    outage_s,
+)
 from mavlink_bridge.results.checkpoint import Checkpoint, CheckpointWriter, resume_loop_state
 from mavlink_bridge.results.mission_result import LookTimes, StepRecord, StepStatus
 from mavlink_bridge.safety.track_audit import TrackAudit
@@ -219,6 +225,24 @@ class DecisionLoop:
             return False
         return True
 
+    def rejoin(self, planner: Any, first_step: int) -> int:
+        """A resumed planner node (one that has ``rejoin``): the step the swarm is at, heard
+        from its neighbours within a decision period and a half, else the step of the
+        mission's clock, the outage counted in decision periods (``OnboardPlanner.rejoin``).
+        The daemon carries on from ``first_step``."""
+        rejoin = getattr(planner, "rejoin", None)
+        ctx = self.ctx
+        if rejoin is None or ctx.options.checkpoint_path is None:
+            return first_step
+        path, step_s = ctx.options.checkpoint_path, ctx.scenario.config.step_s
+
+        def clock_step() -> int:  # (the checkpoint's step: first_step - 1)
+            return first_step - 1 + max(1, int(outage_s(path, ctx.time_scale) // step_s))
+
+        step, how = rejoin(first_step, clock_step, ctx.steps, 1.5 * step_s / ctx.time_scale)
+        ctx.say(f"rejoined the swarm at step {step} ({how}; {step - first_step} steps missed)")
+        return step
+
     # ------------------------------------------------------------------ the steps
 
     def run(
@@ -244,6 +268,7 @@ class DecisionLoop:
             if not self.resume(resume_from, take_back or [], state.planner):
                 return
             state, first_step = self.state, resume_from.step + 1
+            first_step = self.rejoin(state.planner, first_step)
         for step in range(first_step, ctx.steps + 1):  # the start, then one record per step
             instant = pacing.wait(step, state.consumed) if step > 0 else self.first_instant()
             if self.operator_ends(step, state):

@@ -38,12 +38,15 @@ from mavlink_wire.protocol import mavlink
 from mavlink_wire.swarm_wire import FRAGMENT_HEADER, SwarmReassembler, SwarmSender, WireError
 from planner.planner_interface import StepDecision
 from planner.scenario import Scenario, UavStart
-from planner.swarm_messages import CellClaim, Message
+from planner.swarm_messages import CellClaim, Message, UavState
 from planner.uav_node import UavNode
 
 #: shares of a decision period (from the step's start) by which each phase gives up waiting
 STATES_SHARE, INTENTS_SHARE, CLAIMS_SHARE, END_SHARE = 0.12, 0.2, 0.32, 0.4
 POLL_S = 0.005
+#: a resumed node believes a neighbour's step at most twice the outage and this many steps after
+#: its checkpoint
+REJOIN_AHEAD = 2
 
 
 @dataclass
@@ -63,6 +66,7 @@ class NodeLinkStats:
     phase_timeouts: dict[str, int] = field(default_factory=lambda: {
         "states": 0, "intents": 0, "claims": 0, "answers": 0})  # fmt: skip
     cpu_s: list[float] = field(default_factory=list)  # per step, this process
+    steps_missed: int = 0  # a resumed node: steps the swarm decided while it was down
     wall_s: list[float] = field(default_factory=list)  # per step, begin to decision
 
     def summary(self, claims: Any, wire: Any) -> dict[str, Any]:
@@ -92,6 +96,7 @@ class NodeLinkStats:
                 "max": round(float(cpu.max()), 4),
             },  # fmt: skip
             "wall_s_per_step": [round(w, 3) for w in self.wall_s],
+            "steps_missed": self.steps_missed,
         }
 
 
@@ -103,27 +108,97 @@ class OnboardPlanner:
 
     def __init__(
         self, scenario: Scenario, starts: Sequence[UavStart], seed: int, *, uav: int,
-        link: SwarmLink, period_wall_s: Callable[[], float],
+        link: SwarmLink | None, period_wall_s: Callable[[], float],
         say: Callable[[str], None] = lambda text: None,
     ) -> None:  # fmt: skip
         swarm = list(scenario.starts_for_seed(seed))
         swarm[uav] = starts[0]
         self.uav, self.size = uav, len(swarm)
         self.node = UavNode(scenario, swarm, seed, uav)
-        self.beliefs, self.cfg = self.node.beliefs, self.node.cfg
         self.link = link
         self.period_wall_s = period_wall_s
         self.say = say
         self.wire = NodeWire.for_scenario(scenario)
         self.sender = SwarmSender(uav)
         self.reassembler = SwarmReassembler(signature=None)  # (the link checked signatures)
+        self.wire_stats = self.reassembler.stats  # (kept in a checkpoint; the buffers are not)
         self.stats = NodeLinkStats()
         self._ahead: list[Message] = []  # messages of a step not begun yet
         self._sequence: dict[int, int] = {}  # last message sequence heard of each neighbour
         self._claimed = False
         self._open = False  # between this step's begin and its decision
         self._sent = self._received = 0
-        link.tunnel_listeners.append(self._heard)
+        self.swarm_step = -1  # the newest step heard of a neighbour
+        if link is not None:  # (None: the template a checkpoint is checked against)
+            link.tunnel_listeners.append(self._heard)
+
+    @property
+    def beliefs(self) -> Any:
+        """Its UAV's beliefs (the node's: one object, held once by a checkpoint)."""
+        return self.node.beliefs
+
+    @property
+    def cfg(self) -> Any:
+        return self.node.cfg
+
+    @property
+    def pheromone(self) -> Any:
+        return self.node.planner.pheromone
+
+    @property
+    def grid(self) -> Any:
+        return self.node.beliefs.grid
+
+    @property
+    def n(self) -> int:
+        return self.node.beliefs.n
+
+    # ------------------------------------------------------------------ a restart
+
+    def hand_over(self, restored: OnboardPlanner) -> None:
+        """A resumed node: give the planner restored from its checkpoint what is bound to this
+        process, which a checkpoint leaves out (``checkpoint_codec.CACHES``): the link, with its
+        listener moved over, the clock, where it says things, the wire's tables, fresh
+        reassembly buffers counting on in the restored counters; and it listens afresh for the
+        swarm's step."""
+        restored.link, restored.period_wall_s = self.link, self.period_wall_s
+        restored.say = self.say
+        restored.wire, restored.reassembler = self.wire, self.reassembler
+        self.reassembler.stats = restored.wire_stats
+        restored._ahead = []
+        restored.swarm_step = -1
+        restored.node.forget_step()
+        if self.link is not None:
+            if self._heard in self.link.tunnel_listeners:
+                self.link.tunnel_listeners.remove(self._heard)
+            self.link.tunnel_listeners.append(restored._heard)
+
+    def rejoin(
+        self, first_step: int, clock_step: Callable[[], int], steps: int, listen_s: float
+    ) -> tuple[int, str]:
+        """A resumed node: the step to carry on from, that of the swarm, and how it was found.
+        It listens for up to ``listen_s`` wall seconds until a neighbour's report of
+        ``first_step`` or later arrives: its step is the one the swarm is deciding (the node's
+        newest look is of that instant too), unless it is implausibly far ahead of
+        ``clock_step()``, the step of the mission's clock (the outage counted in decision
+        periods): more than twice the outage plus :data:`REJOIN_AHEAD` steps after the
+        checkpoint (a loaded simulator's clock runs in bursts). It takes the clock's step when
+        none is heard (alone, or the others done) or the one heard is not plausible. The steps
+        in between are not planned: its beliefs skip to that step (what is left of the mission
+        counts from it)."""
+        until = time.monotonic() + listen_s
+        while self.swarm_step < first_step and time.monotonic() < until:
+            self.link.pump(POLL_S)
+        clock = clock_step()
+        outage = clock - first_step + 1  # decision periods since the checkpoint, by the clock
+        if first_step <= self.swarm_step <= first_step - 1 + 2 * outage + REJOIN_AHEAD:
+            step, how = self.swarm_step, "heard of its neighbours"
+        else:
+            step, how = clock, "by the mission's clock"
+        step = min(max(first_step, step), steps)
+        self.beliefs.k += step - first_step
+        self.stats.steps_missed += step - first_step
+        return step, how
 
     # ------------------------------------------------------------------ the link
 
@@ -176,10 +251,13 @@ class OnboardPlanner:
         k = self.beliefs.k
         if m.uav == self.uav:
             return
+        self.swarm_step = max(self.swarm_step, m.step)
         if m.step > k or (m.step == k and not self._open):  # (before its own begin: kept)
             self._ahead.append(m)
         elif m.step < k:
             self.stats.late_messages += 1
+            if isinstance(m, UavState):  # (expected at the next step: heard again in time)
+                self.node.hear_late(m)
         elif isinstance(m, CellClaim) and m.displace is not None and m.displace[0] == self.uav:
             self.node.receive(m)
             if self._claimed:
@@ -287,4 +365,4 @@ class OnboardPlanner:
 
     def link_summary(self) -> dict[str, Any]:
         """The link's figures for the node's result (``link``)."""
-        return self.stats.summary(self.node.stats, self.reassembler.stats)
+        return self.stats.summary(self.node.stats, self.wire_stats)

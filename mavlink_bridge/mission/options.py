@@ -77,6 +77,8 @@ class DaemonOptions:
     #: write the planner and loop state here after every step (mavlink_bridge/results/checkpoint.py)
     checkpoint_path: Path | None = None
     resume: bool = False  # carry on from checkpoint_path instead of starting afresh
+    #: who writes (and resumes from) the checkpoint: the daemon, or ``node I`` (swarmplan node)
+    checkpoint_role: str = "daemon"
     signing_key: bytes | None = None  # MAVLink 2 signing (mavlink_wire/signing.py)
     #: our MAVLink (system, component) (None: a ground station's, 255/190); a planner node gives
     #: its own, which its autopilot's MAV_GCS_SYSID names (docs/onboard.md)

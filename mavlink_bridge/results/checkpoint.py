@@ -9,7 +9,8 @@ A checkpoint is data, never code. File format (version 4): a 64-byte header, the
   header's first 32 bytes and the payload when the daemon signs, else their SHA-256; all
   little-endian.
 * payload: a zip (deflate level 1) of .npy members read with ``allow_pickle=False``: ``state``,
-  one JSON text (``checkpoint_codec``: the planner, its pursuit log, the recorder, the loop
+  one JSON text (``checkpoint_codec``: its writer, the daemon or ``node I``, a planner node of
+  one UAV, ``swarmplan node``; the planner, its pursuit log, the recorder, the loop
   variables of :data:`LOOP_STATE`, the daemon's counters of :data:`DAEMON_STATE`), and the
   arrays it refers to, ``a0``, ``a1``... What the scenario alone determines (:data:`DERIVED`:
   the planner's safety models, the TPM diffusion's stencil and scratch buffers; cached
@@ -31,11 +32,12 @@ Reading (:func:`load_for_mission`) checks, in order: the file, the magic, the ve
 pickle formats 2 and 3 are refused: written by an older version), the length, the key (a file
 written with a key is read only with it, and a daemon that signs reads only keyed files) and the
 tag, the .npz and its JSON (only the forms of ``checkpoint_codec``; objects only of the project's
-own classes, rebuilt without calling their code), that it is this mission's (scenario, seed,
-vehicle count, steps), and then every part against the state this daemon builds for the mission
-(``checkpoint_layout``: classes, attributes, types, dtypes, shapes, finite values, ranges), all
-before any of it reaches the planner. Every failure is one :class:`CheckpointError` line saying
-what is wrong and what to do.
+own classes, rebuilt without calling their code), that its writer is this one (the daemon, or
+the node of this UAV), that it is this mission's (scenario, seed, vehicle count, steps), and
+then every part against the state this daemon builds for the mission (``checkpoint_layout``:
+classes, attributes, types, dtypes, shapes, finite values, ranges), all before any of it
+reaches the planner. Every failure is one :class:`CheckpointError` line saying what is wrong
+and what to do.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ import hmac
 import io
 import json
 import os
+import re
 import struct
 import threading
 import time
@@ -66,13 +69,17 @@ _PICKLE_VERSIONS = (2, 3)
 KEYED = 1  # header flag: the tag is an HMAC-SHA256 with the mission's signing key
 #: planner attributes (``owner.attribute`` paths from the planner) determined by the scenario
 #: alone: not written; a resumed daemon takes them from the planner it builds for the mission
-DERIVED = (
-    "beliefs._safety",
-    "beliefs.tpm.stencil",
-    "beliefs.tpm.work",
-    "beliefs.tpm.wiener_work",
-    "beliefs.tpm.ratio_lookup",
-    "beliefs.tpm.drift_layers",
+DERIVED = tuple(
+    f"{beliefs}.{part}"
+    for beliefs in ("beliefs", "node.planner.beliefs")  # the daemon's planner's, a node's
+    for part in (
+        "_safety",
+        "tpm.stencil",
+        "tpm.work",
+        "tpm.wiener_work",
+        "tpm.ratio_lookup",
+        "tpm.drift_layers",
+    )
 )
 _NOT_WRITTEN = frozenset(f"planner.{path}" for path in DERIVED)
 _HEADER = struct.Struct("<16sIIQ32s")  # 64 bytes; the tag covers the first 32 and the payload
@@ -111,6 +118,15 @@ LOOP_STATE = (
 DAEMON_STATE = ("overrides", "refused_commands", "looks_missed", "late_steps", "events")
 
 
+#: the role of a checkpoint the daemon writes (a planner node's: ``node I``, its UAV)
+DAEMON = "daemon"
+
+
+def role_text(role: str) -> str:
+    """A checkpoint's writer, for a line: "the daemon" or "the node of UAV I"."""
+    return "the daemon" if role == DAEMON else f"the {role.replace('node', 'node of UAV')}"
+
+
 class CheckpointError(UserError):
     """A checkpoint cannot be written, read, or used for this mission."""
 
@@ -132,6 +148,7 @@ class Checkpoint:
     daemon: dict[str, Any]
     wall_time_s: float = 0.0  # mission wall time so far (for the result)
     saved_unix_s: float = 0.0
+    role: str = DAEMON  # who wrote it: the daemon (the whole fleet), or ``node I``
 
 
 @dataclass
@@ -151,6 +168,7 @@ def encode_checkpoint(checkpoint: Checkpoint) -> EncodedCheckpoint:
         "step": int(checkpoint.step),
         "wall_time_s": float(checkpoint.wall_time_s),
         "saved_unix_s": float(checkpoint.saved_unix_s),
+        "role": checkpoint.role,
         "loop": {k: encode(v, arrays, k, _NOT_WRITTEN) for k, v in checkpoint.loop.items()},
         "daemon": {k: encode(v, arrays, f"daemon.{k}", _NOT_WRITTEN)
                    for k, v in checkpoint.daemon.items()},
@@ -242,8 +260,10 @@ class CheckpointWriter:
         fingerprint: str,
         background: bool = False,
         key: bytes | None = None,
+        role: str = DAEMON,
     ) -> None:
         self.path = Path(path)
+        self.role = role
         self.fingerprint = fingerprint
         self.background = background
         self.key = key
@@ -267,7 +287,9 @@ class CheckpointWriter:
             raise ValueError(f"checkpoint of step {step} lacks {', '.join(missing)}")
         state = {name: getattr(counters, name) for name in DAEMON_STATE}
         loop = {name: loop[name] for name in LOOP_STATE}
-        checkpoint = Checkpoint(self.fingerprint, step, loop, state, wall_time_s, time.time())
+        checkpoint = Checkpoint(
+            self.fingerprint, step, loop, state, wall_time_s, time.time(), self.role
+        )
         encoded = encode_checkpoint(checkpoint)  # now: the state changes at the next step
         self.flush()
         if not self.background:
@@ -388,8 +410,11 @@ def _decode_payload(path: Path, npz: Any) -> Checkpoint:
         raise StateError("state", "is not a JSON text")
     doc = json.loads(text.tobytes().decode("utf-8"), parse_constant=_no_constant)
     expected = {"fingerprint", "step", "wall_time_s", "saved_unix_s", "loop", "daemon"}
-    if not isinstance(doc, dict) or set(doc) != expected:
+    if not isinstance(doc, dict) or set(doc) - {"role"} != expected:
         raise StateError("state", "does not hold a checkpoint's fields")
+    role = doc.get("role", DAEMON)  # (a daemon's of an earlier version has none)
+    if not isinstance(role, str) or not re.fullmatch(r"daemon|node \d{1,6}", role):
+        raise StateError("state", "has no daemon or node as its writer")
     if set(doc["loop"]) != set(LOOP_STATE) or set(doc["daemon"]) != set(DAEMON_STATE):
         raise StateError("state", "does not hold the decision loop's variables")
     if not isinstance(doc["fingerprint"], str) or type(doc["step"]) is not int:
@@ -413,7 +438,7 @@ def _decode_payload(path: Path, npz: Any) -> Checkpoint:
     if len(used) != len(names) - 1:
         raise StateError("state", "holds arrays that are not part of it")
     return Checkpoint(doc["fingerprint"], doc["step"], loop, daemon,
-                      float(doc["wall_time_s"]), float(doc["saved_unix_s"]))  # fmt: skip
+                      float(doc["wall_time_s"]), float(doc["saved_unix_s"]), role)  # fmt: skip
 
 
 def _no_constant(name: str) -> Any:
@@ -425,12 +450,23 @@ def _short(exc: BaseException) -> str:
 
 
 def load_for_mission(
-    path: str | Path, fingerprint: str, template: dict[str, Any], key: bytes | None = None
+    path: str | Path,
+    fingerprint: str,
+    template: dict[str, Any],
+    key: bytes | None = None,
+    role: str = DAEMON,
 ) -> Checkpoint:
-    """A checkpoint of this very mission, every part checked against ``template`` (the loop
-    variables and, under ``daemon``, the counters this daemon starts the mission with: see
-    ``checkpoint_layout``); else one :class:`CheckpointError` line."""
+    """A checkpoint of this very mission written by ``role`` (the daemon, or the node of one
+    UAV), every part checked against ``template`` (the loop variables and, under ``daemon``,
+    the counters this daemon starts the mission with: see ``checkpoint_layout``); else one
+    :class:`CheckpointError` line."""
     checkpoint = read_checkpoint(path, key)
+    if checkpoint.role != role:
+        raise CheckpointError(
+            f"checkpoint {path} was written by {role_text(checkpoint.role)}, not by "
+            f"{role_text(role)}; give the --checkpoint this {role.split()[0]} wrote, or start "
+            f"afresh without --resume"
+        )
     if checkpoint.fingerprint != fingerprint:
         raise CheckpointError(
             f"checkpoint {path} belongs to another mission (scenario, seed, vehicle count or "
@@ -479,6 +515,9 @@ def resume_loop_state(account: Any, checkpoint: Checkpoint, fresh_planner: Any) 
     ``fresh_planner``: the planner this code builds for the mission, whose :data:`DERIVED`
     parts the restored one takes."""
     with_derived(checkpoint.loop["planner"], fresh_planner)
+    hand_over = getattr(fresh_planner, "hand_over", None)
+    if hand_over is not None:  # a planner node's: its link and clock (onboard_planner.py)
+        hand_over(checkpoint.loop["planner"])
     break_measured_legs(checkpoint.loop["recorder"])
     for name in DAEMON_STATE:
         setattr(account, name, checkpoint.daemon[name])

@@ -55,12 +55,27 @@ CLASSES = (
     ("planner.engagement", "EngagementOutcome"),
     ("planner.pursuit_log", "PursuitLog"),
     ("mavlink_bridge.results.mission_result", "LinkEvent"),
+    # a planner node's (``swarmplan node``): one UAV's planner over the swarm link
+    ("mavlink_bridge.mission.onboard_planner", "OnboardPlanner"),
+    ("mavlink_bridge.mission.onboard_planner", "NodeLinkStats"),
+    ("planner.uav_node", "UavNode"),
+    ("planner.uav_node", "ClaimStats"),
+    ("planner.swarm_messages", "UavState"),
+    ("mavlink_wire.swarm_wire", "SwarmSender"),
+    ("mavlink_wire.swarm_wire", "SwarmWireStats"),
 )
 #: Bound methods a checkpoint may hold: (class name, method name).
 METHODS = {("PursuitLog", "record")}
-#: Attributes an object computes again when they are missing (caches): never written (nor
-#: are ``functools.cached_property`` values).
-CACHES = {"PursuitLog": ("_square", "_gather")}
+#: Attributes never written (nor are ``functools.cached_property`` values): caches an object
+#: computes again when they are missing; a planner node's parts bound to its process (its link,
+#: clock, progress lines, wire tables, reassembly buffers), which the planner a resumed node
+#: builds hands over (``OnboardPlanner.hand_over``), and what only one step's exchanges use (set
+#: by ``UavNode.begin``).
+CACHES = {
+    "PursuitLog": ("_square", "_gather"),
+    "OnboardPlanner": ("link", "period_wall_s", "say", "wire", "reassembler", "_ahead"),
+    "UavNode": ("inbox", "_report", "_seen", "_ranking", "_board"),
+}
 #: numpy number types a ``$scalar`` may have.
 SCALAR_DTYPES = (
     "bool", "int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64",

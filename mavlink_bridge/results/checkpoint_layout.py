@@ -139,6 +139,57 @@ def optional_positions(v: Any, path: str, m: Mission) -> None:
 
 
 _PAIR = row(list, number(), number())
+
+
+def dict_of(key: Check, value: Check) -> Check:
+    """A dict of any size whose every key and value pass their checks."""
+
+    def check(v: Any, path: str, m: Mission) -> None:
+        if type(v) is not dict:
+            raise StateError(path, f"is a {type(v).__name__}, not a dict")
+        for k, x in v.items():
+            key(k, f"{path}[{k!r}]", m)
+            value(x, f"{path}[{k!r}]", m)
+
+    return check
+
+
+def _uav_state(v: Any, path: str, m: Mission) -> None:
+    """A neighbour's state as a node last heard it (``planner.swarm_messages.UavState``)."""
+    cls = classes()["UavState"]
+    if type(v) is not cls or set(vars(v)) != {f.name for f in fields(cls)}:
+        raise StateError(path, "is not a UavState")
+    for name, high in (("uav", 255), ("step", math.inf), ("heading", 7)):
+        integer(0, high)(getattr(v, name), f"{path}.{name}", m)
+    row(tuple, integer(0, m.nx - 1), integer(0, m.ny - 1))(v.cell, f"{path}.cell", m)
+    row(tuple, number(), number())(v.position_km, f"{path}.position_km", m)
+    number(0.0)(v.radius_km, f"{path}.radius_km", m)
+    if type(v.flying) is not bool:
+        raise StateError(f"{path}.flying", "is not a flag")
+
+
+def _beliefs_growing(beliefs: str) -> dict[str, Check]:
+    """The parts of the beliefs at ``beliefs`` that grow during a mission."""
+    log = f"{beliefs}.observers[].__self__"
+    return {
+        f"{log}.beliefs": list_of(row(list, integer(0), integer(0), integer(0), number(0.0, 1.0))),
+        f"{log}.tracks": list_of(row(list, *[integer(-1)] * 5)),
+        f"{log}.engage_requests": list_of(row(list, integer(0), integer(0))),
+        f"{beliefs}.measured_km": optional_positions,
+    }
+
+
+#: A planner node's (``swarmplan node``, ``mavlink_bridge/mission/onboard_planner.py``) parts
+#: that grow: its link's counters per step, the sequence and the state last heard of each
+#: neighbour.
+_NODE_GROWING: dict[str, Check] = {
+    **{f"planner.stats.{name}": list_of(integer(0))
+       for name in ("bytes_sent", "bytes_received", "neighbours_heard")},
+    **{f"planner.stats.{name}": list_of(number(0.0)) for name in ("cpu_s", "wall_s")},
+    "planner._sequence": dict_of(integer(0, 255), integer(0, 0xFFFF)),
+    "planner.node.last_heard": dict_of(integer(0), _uav_state),
+    **_beliefs_growing("planner.node.planner.beliefs"),
+}  # fmt: skip
 #: Parts that grow during a mission, or are None until first used: their items' checks.
 GROWING: dict[str, Check] = {
     "recorder.tracks[]": list_of(_PAIR),
@@ -148,18 +199,12 @@ GROWING: dict[str, Check] = {
     "recorder.min_separation_curve": list_of(number(0.0, infinite=True)),
     "recorder.mean_min_separation_curve": list_of(number(0.0, infinite=True)),
     "recorder.engagements": list_of(lambda v, path, m: _engagement(v, path, m)),
-    "planner.beliefs.observers[].__self__.beliefs": list_of(
-        row(list, integer(0), integer(0), integer(0), number(0.0, 1.0))
-    ),
-    "planner.beliefs.observers[].__self__.tracks": list_of(row(list, *[integer(-1)] * 5)),
-    "planner.beliefs.observers[].__self__.engage_requests": list_of(
-        row(list, integer(0), integer(0))
-    ),
-    "planner.beliefs.measured_km": optional_positions,
+    **_beliefs_growing("planner.beliefs"),
     "last_target[]": optional(row(tuple, number(), number())),
     "engagements[]": optional(record("EngagementOutcome")),
     "engaged_ids": list_of(integer(), kind=set),
     "daemon.events": list_of(record("LinkEvent")),
+    **_NODE_GROWING,
 }
 #: Arrays whose float values may be NaN (e.g. no leg yet: ``MissionRecorder.break_legs``).
 MAY_BE_NAN = {"recorder._last", "recorder._last_leg"}
@@ -301,7 +346,9 @@ _ZERO, _INF = (lambda m: 0.0), (lambda m: math.inf)
 _HEADINGS = _within(_ZERO, lambda m: 7)
 _NOT_NEGATIVE = _within(_ZERO, _INF)
 _PROBABILITY = _within(_ZERO, lambda m: 1.0)
-#: Range checks, by the path of the part they check (after the layout check).
+#: Range checks, by the path of the part they check (after the layout check); a planner node's
+#: planner (``OnboardPlanner``) has the same paths (``beliefs``, ``pheromone``, ``cfg``: its
+#: node's planner's).
 RANGES: dict[str, Check] = {
     "planner.beliefs.cells": _cells,
     "planner.beliefs.home": _cells,
