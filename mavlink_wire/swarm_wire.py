@@ -50,17 +50,14 @@ SERVICED = struct.Struct("<H")  # target u16
 CLAIM = struct.Struct("<HHB")  # cell x, y u16, claim round u8
 THREAT = struct.Struct("<iiI")  # x, y m i32, radius m u32
 INTENT = struct.Struct("<HHH")  # track cell x, y u16 (0xFFFF: none); C_c priority u16
-#: cell x, y i16; heading u8; alternatives u8; blocker u8 (255: none); cell asked of it x, y
-#: i16. Signed: a UAV with no allowed move claims its ranking's first cell, which may lie off
-#: the area (x or y -1), and that claim is as real as any other to its neighbours
+#: cell x, y i16 (signed: a UAV with no allowed move may claim a cell off the area); heading u8;
+#: alternatives u8; blocker u8 (255: none); cell asked of it x, y i16
 MOVE_HEAD = struct.Struct("<hhBBBhh")
 CELL = struct.Struct("<hh")  # one alternative cell x, y i16
-NO_ASKED = (0, 0)  # the cell asked of no blocker (never read)
 SERVICED_AT = struct.Struct("<HHH")  # target u16, cell x, y u16
 KIND_STATE, KIND_LOOK, KIND_ENGAGEMENT, KIND_SERVICED, KIND_CLAIM, KIND_THREAT = range(1, 7)
 KIND_INTENT, KIND_MOVE, KIND_SERVICED_AT = range(7, 10)
-#: a cell the planner leaves empty ((-1, -1): none) travels as (0xFFFF, 0xFFFF)
-NO_CELL_WIRE = (0xFFFF, 0xFFFF)
+NO_CELL_WIRE = (0xFFFF, 0xFFFF)  # an intent's track cell (-1, -1): none
 NOT_FLYING = 0x80  # the state's heading byte: bit 7 set, the UAV is done (home) or unreachable
 NO_BLOCKER = 0xFF
 MAX_RECORDS = 255  # per section; more records of a kind go into further sections
@@ -226,7 +223,8 @@ def _move_bytes(move: MoveClaim) -> bytes:
     if not 0 <= move.heading <= 7 or len(move.alternatives) > 255:
         raise WireError(f"a claim's heading must be 0-7 and its alternatives at most 255, got "
                         f"{move.heading} and {len(move.alternatives)}")  # fmt: skip
-    blocker, asked = (NO_BLOCKER, NO_ASKED) if move.displace is None else move.displace
+    # (with no blocker the cell asked of it is never read)
+    blocker, asked = (NO_BLOCKER, (0, 0)) if move.displace is None else move.displace
     head = MOVE_HEAD.pack(*move.cell, move.heading, len(move.alternatives), blocker, *asked)
     return head + b"".join(CELL.pack(*cell) for cell in move.alternatives)
 

@@ -38,7 +38,8 @@ from mavlink_bridge.mission.resume_takeback import (
     account_outage,
     outage_s,
 )
-from mavlink_bridge.results.checkpoint import Checkpoint, CheckpointWriter, resume_loop_state
+from mavlink_bridge.results.checkpoint import Checkpoint, CheckpointWriter
+from mavlink_bridge.results.checkpoint_resume import resume_loop_state
 from mavlink_bridge.results.mission_result import LookTimes, StepRecord, StepStatus
 from mavlink_bridge.safety.track_audit import TrackAudit
 from mavlink_bridge.way_home.flight_home import FlightHomePhase

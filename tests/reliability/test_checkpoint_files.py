@@ -32,9 +32,9 @@ from mavlink_bridge.results.checkpoint import (
     load_for_mission,
     mission_fingerprint,
     seal,
-    with_derived,
 )
 from mavlink_bridge.results.checkpoint_layout import RANGES
+from mavlink_bridge.results.checkpoint_resume import with_derived
 from mavlink_bridge.results.mission_result import LinkEvent, MissionAccount
 from planner.engagement import EngagementOutcome
 from planner.grid import Grid

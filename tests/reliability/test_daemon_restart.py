@@ -202,7 +202,8 @@ def test_a_checkpoint_holds_only_the_planners_own_state_and_resumes_the_same_dec
     determines, were half of it). Written without them it pickles to ~5 MB and compresses
     (zlib level 1) to ~1.7 MB, and a planner resumed from it (those parts taken from a freshly
     built one) decides exactly as the one that kept flying."""
-    from mavlink_bridge.results.checkpoint import LOOP_STATE, with_derived
+    from mavlink_bridge.results.checkpoint import LOOP_STATE
+    from mavlink_bridge.results.checkpoint_resume import with_derived
     from planner.grid import Grid
     from planner.hapf_aco import HapfAcoPlanner
     from planner.scenario import load_scenario
