@@ -263,7 +263,10 @@ class FlightHomePhase:
             for v in still:
                 flight.holding.pop(v.key)
             self.slow_home_circles(self.ctx.send([autopilot_for(v).rtl_command(v) for v in still]))
-            self.see_rtl(still)
+        # every plane that got its RTL during the watch (guided around a threat or held first,
+        # the last of them maybe as the watch ended) says its return mode before the log closes
+        later = (flight.detoured | flight.held) - set(flight.homing) | {v.key for v in still}
+        self.see_rtl([v for v in vehicles if not v.lost and v.key in later])
 
     def see_rtl(self, vehicles: list[VehicleState]) -> None:
         """Listen on (the tlog records it) until each of ``vehicles`` reports its autopilot's
