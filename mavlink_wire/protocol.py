@@ -74,3 +74,12 @@ __all__ = [
     "mode_name",
     "enum_name",
 ]
+
+
+def component_heartbeat(mav: mavlink.MAVLink, mav_type: int) -> bytes:
+    """The HEARTBEAT of a component that is no autopilot (a camera, a radio relay), packed as
+    ``mav``'s: active, MAVLink version 3, ``MAV_AUTOPILOT_INVALID``."""
+    msg = mavlink.MAVLink_heartbeat_message(
+        mav_type, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3
+    )
+    return bytes(msg.pack(mav))

@@ -58,7 +58,7 @@ from mavlink_wire.links import (  # noqa: E402
     parse_endpoint,
 )
 from mavlink_wire.looks import look_messages  # noqa: E402
-from mavlink_wire.protocol import CAMERA_COMPONENT_ID, mavlink  # noqa: E402
+from mavlink_wire.protocol import CAMERA_COMPONENT_ID, component_heartbeat, mavlink  # noqa: E402
 from planner.geodesy import geodetic_to_local_km  # noqa: E402
 from planner.scenario import Scenario  # noqa: E402
 from planner.sensor_model import SensorReport  # noqa: E402
@@ -206,7 +206,7 @@ class PayloadSimulator:
             return
         channel.hello_s = now
         hello = mavlink.MAVLink(None, 0, CAMERA_COMPONENT_ID)
-        channel.endpoint.send_to(_heartbeat_frame(hello), None)
+        channel.endpoint.send_to(component_heartbeat(hello, mavlink.MAV_TYPE_CAMERA), None)
 
     def _detach(self, channel: _Channel, reason: str) -> None:
         if channel.fd is not None:
@@ -475,10 +475,3 @@ class PayloadSimulator:
             f"step {self.world_steps}, looks {self.looks_sent}, engagements "
             f"{len(self.world.alive) - int(self.world.alive.sum())}{waiting}"
         )
-
-
-def _heartbeat_frame(mav: mavlink.MAVLink) -> bytes:
-    msg = mavlink.MAVLink_heartbeat_message(
-        mavlink.MAV_TYPE_CAMERA, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3
-    )
-    return msg.pack(mav)

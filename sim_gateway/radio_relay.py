@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mavlink_wire.links import Address, Endpoint, EndpointError, TcpEndpoint, parse_endpoint
-from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, mavlink
+from mavlink_wire.protocol import AUTOPILOT_COMPONENT_ID, component_heartbeat, mavlink
 from planner.geodesy import geodetic_to_local_km
 from planner.scenario import Origin
 from sim_gateway.radio import SwarmRadio, is_swarm_frame
@@ -169,7 +169,7 @@ class RadioRelay:
             self._connect(plane, now)
             if plane.connected and now - plane.heartbeat_s >= HEARTBEAT_PERIOD_S:
                 plane.heartbeat_s = now
-                plane.send(_heartbeat(plane.mav))
+                plane.send(component_heartbeat(plane.mav, mavlink.MAV_TYPE_GENERIC))
         live = {p.endpoint.fileno(): p for p in self.planes if p.connected}
         ready = select.select(list(live), [], [], timeout_s)[0] if live else time.sleep(timeout_s)
         for fd in ready or ():
@@ -242,10 +242,3 @@ class RadioRelay:
             f"range {s.lost_to_range}, to loss {s.lost_to_loss}; not relayed "
             f"{sum(self.not_relayed.values())} (heartbeats {self.not_relayed['HEARTBEAT']})"
         )
-
-
-def _heartbeat(mav: mavlink.MAVLink) -> bytes:
-    msg = mavlink.MAVLink_heartbeat_message(
-        mavlink.MAV_TYPE_GENERIC, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3
-    )
-    return bytes(msg.pack(mav))
