@@ -112,6 +112,17 @@ def port_number(text: str) -> int:
     )
 
 
+def endpoint(text: str) -> str:
+    """A MAVLink endpoint spec that parses (``tcp:HOST:PORT``, ``udpin:...``, ``udpout:...``)."""
+    from mavlink_wire.links import EndpointError, parse_endpoint
+
+    try:
+        parse_endpoint(text)
+    except EndpointError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--connect ")) from None
+    return text
+
+
 def tile_template(text: str) -> str:
     """An XYZ tile server's URL template (``https://host/{z}/{x}/{y}.png``) for the view."""
     if not text.startswith(("http://", "https://")) or not all(

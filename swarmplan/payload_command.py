@@ -23,23 +23,12 @@ os.environ.setdefault("MAVLINK20", "1")
 from planner.errors import UserError  # noqa: E402
 from planner.scenario import load_scenario  # noqa: E402
 from swarmplan import option_groups  # noqa: E402
-from swarmplan.arguments import positive_float  # noqa: E402
+from swarmplan.arguments import endpoint, positive_float  # noqa: E402
 
 HELP = (
     "simulate only the world and each vehicle's camera (component 100) for external autopilots "
     "such as ArduPlane SITL"
 )
-
-
-def _endpoint(text: str) -> str:
-    """An endpoint spec that parses (``tcp:HOST:PORT``, ``udpin:...``, ``udpout:...``)."""
-    from mavlink_wire.links import EndpointError, parse_endpoint
-
-    try:
-        parse_endpoint(text)
-    except EndpointError as exc:
-        raise argparse.ArgumentTypeError(str(exc).removeprefix("--connect ")) from None
-    return text
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--connect",
         action="append",
         required=True,
-        type=_endpoint,
+        type=endpoint,
         metavar="ENDPOINT",
         help="where an autopilot's telemetry is heard and its camera speaks: tcp:HOST:PORT "
         "(ArduPilot SITL instance i: SERIAL1 on 5762+10i), udpin:HOST:PORT or udpout:HOST:PORT; "

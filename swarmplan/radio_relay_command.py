@@ -21,7 +21,7 @@ import threading
 import time
 
 from swarmplan import option_groups
-from swarmplan.payload_command import _endpoint
+from swarmplan.arguments import endpoint
 from swarmplan.sim_command import add_radio_arguments, radio_options
 
 HELP = "the swarm link's radio between real autopilots' telemetry ports (range, loss), counted"
@@ -30,7 +30,7 @@ PROGRESS_S = 5.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--connect", action="append", required=True, type=_endpoint, metavar="ENDPOINT",
+        "--connect", action="append", required=True, type=endpoint, metavar="ENDPOINT",
         help="a plane's telemetry port, where its autopilot forwards its node's frames: "
         "tcp:HOST:PORT (ArduPilot SITL instance N: SERIAL0 on 5760+10N), udpin:HOST:PORT or "
         "udpout:HOST:PORT; one per plane",
