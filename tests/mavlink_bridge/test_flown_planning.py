@@ -69,16 +69,16 @@ def test_two_uavs_planned_as_flown_that_meet_head_on_keep_apart():
 
 
 def test_a_mission_too_short_to_go_out_and_back_says_so():
-    """px4-3uav flown as 12 steps stayed at home: with home_by_end, the way home and the steps
-    kept in reserve (3, and the daemon's 3 more) left no time to search, and nothing said why.
+    """px4-3uav flown as 7 steps stays at home: with home_by_end, the way home and the steps
+    kept in reserve (3, and the daemon's 3 more) leave no time to search, and nothing said why.
     Every UAV turning home at the first step is now said; 16 steps search."""
     scenario = load_scenario("px4-3uav")
     assert scenario.config.home_by_end
     results = {}
-    for steps in (12, 16):
+    for steps in (7, 16):
         planning = simulator_planning_scenario(scenario, steps)
         results[steps] = run_offline(scenario, 1, steps, account=False, planning=planning)
-    short, long = results[12], results[16]
+    short, long = results[7], results[16]
     assert short["turned_home_at_start"] and short["engaged_count"] == 0
     assert "every UAV turned home at the first step" in format_summary(short)
     assert not long["turned_home_at_start"] and long["engaged_count"] >= 1

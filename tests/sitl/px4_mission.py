@@ -79,6 +79,7 @@ def fly_px4_mission(
     arduplane: int = 0,
     arduplane_binary: Path | None = None,
     with_payload: bool = True,
+    payload_args: list[str] | None = None,
     daemon_args: list[str] | None = None,
     during: Callable[[SitlMissionRun, list], None] | None = None,
     timeout_s: float = 240.0,
@@ -130,7 +131,10 @@ def fly_px4_mission(
             px4.launch()
             if with_payload:
                 links = [a for s in swarms for a in s.payload_args()]
-                payload = _start(["payload", "--scenario", scenario, "--seed", str(seed), *links])
+                payload = _start([
+                    "payload", "--scenario", scenario, "--seed", str(seed), *links,
+                    *(payload_args or []),
+                ])  # fmt: skip
                 procs.append(payload)
                 readers.append(_read_lines(payload, run.payload_printed, started))
             if during is not None:
