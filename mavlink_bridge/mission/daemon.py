@@ -59,6 +59,7 @@ from mavlink_bridge.vehicles.telemetry_plausibility import PlausibilityFilter, P
 from mavlink_bridge.vehicles.vehicle_loss import GONE, LossWatch, SwarmPauses
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_bridge.way_home.flight_home import FlightHomePhase
+from mavlink_bridge.way_home.home_watch import watch_flight_home
 from mavlink_wire.protocol import mavlink
 from mavlink_wire.tlog import TlogWriter
 from planner.errors import UserError
@@ -345,7 +346,7 @@ class MissionDaemon:
                 None if stages is None else stages.end_leg_timing, separate=watched
             )
             if completed:  # (an interrupted daemon does not stay to watch)
-                self.home.watch_rtl()
+                watch_flight_home(self.home)
         except Exception as exc:  # noqa: BLE001 - the cleanup goes on whatever happens
             self.ctx.say(f"warning: RTL could not be sent to every vehicle ({exc})")
         self.audit.end()  # the account ends with the watch, before the simulator runs free

@@ -264,7 +264,7 @@ class OperatorActions:
 
     def watched_home(self) -> None:
         """At the mission's exit: the planes the operator sent home that are still reachable are
-        no longer lost, so that the watch of the flight home (``FlightHomePhase.watch_rtl``)
+        no longer lost, so that the watch of the flight home (``home_watch.watch_flight_home``)
         waits for them too, as for every other plane (they were lost to the planner only)."""
         retired = {u for u, why in self.loss.retired.items() if why == SENT_HOME}
         flying, _ = rtl_recipients(

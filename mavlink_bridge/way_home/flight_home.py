@@ -4,8 +4,8 @@ kept d_min from the other planes' ways (a plane circles a safe hold point until 
 clear: kept_apart.py), and the watch of the flight home, so that it is in the
 continuous safety account (return_home.HomeWatch). :class:`FlightHomePhase` does it over a
 narrow mission context (:class:`HomeContext`); the daemon's exit path (``finish``) calls its
-``return_to_launch`` and, after a completed mission, ``watch_rtl``; what happened is kept in
-its :class:`FlightHome`.
+``return_to_launch`` and, after a completed mission, the watch of the flight home
+(home_watch.py); what happened is kept in its :class:`FlightHome`.
 """
 
 from __future__ import annotations
@@ -28,9 +28,14 @@ from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.vehicles.vehicle_loss import link_down
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 from mavlink_bridge.way_home.around_threats import HomeRoutes
-from mavlink_bridge.way_home.home_circles import HomeCircles, home_circle_speeds
+from mavlink_bridge.way_home.home_circles import (
+    HomeCircles,
+    circle_lines,
+    home_circle_speeds,
+    slow_circle_commands,
+)
 from mavlink_bridge.way_home.kept_apart import ReturnPlan, ReturnSeparation
-from mavlink_bridge.way_home.rtl_at_exit import HomeWatch, rtl_line, rtl_recipients
+from mavlink_bridge.way_home.rtl_at_exit import UNREACHABLE, rtl_line, rtl_recipients
 from planner.geodesy import local_km_to_geodetic
 from planner.grid import Grid
 from planner.scenario import Scenario
@@ -63,6 +68,10 @@ class FlightHome:
     circles: HomeCircles = field(default_factory=HomeCircles)
     #: planes a resumed daemon sent home (resume_takeback.py), by system id: why
     sent_home: dict[VehicleKey, str] = field(default_factory=dict)
+    #: planes RTL could not reach at the way out (listened for during the watch) ...
+    unreached: set[VehicleKey] = field(default_factory=set)
+    #: ... and those of them sent home once heard again
+    reached_late: set[VehicleKey] = field(default_factory=set)
 
 
 class HomeOptions(Protocol):
@@ -106,7 +115,8 @@ class HomeContext(Protocol):
 
 class FlightHomePhase:
     """The flight home over one mission's context, with its own state (:class:`FlightHome`):
-    RTL at the way out (``return_to_launch``) and its watch (``watch_rtl``), and during the
+    RTL at the way out (``return_to_launch``) and its watch (``home_watch.watch_flight_home``),
+    and during the
     mission the planes whose autopilot or a resumed daemon sent home (``guide_stray_returns``,
     ``guide_sent_home``)."""
 
@@ -131,6 +141,7 @@ class FlightHomePhase:
         flight = self.state
         # a vehicle guided around threats got its RTL during the watch, once the way was clear
         later = (flight.detoured | flight.held) - set(flight.homing) - set(flight.holding)
+        later |= flight.reached_late
         return {
             "rtl_sent_to": [k.label() for k in sorted(set(sent_to) | later)],
             "guided_home_around_threats": [k.label() for k in sorted(flight.detoured)],
@@ -138,7 +149,9 @@ class FlightHomePhase:
             "home_circle_speeds_mps": {
                 str(k): round(v, 1) for k, v in sorted(flight.circles.speeds_mps.items())
             },
-            "rtl_not_sent": {str(k): why for k, why in sorted(skipped.items())},
+            "rtl_not_sent": {
+                str(k): why for k, why in sorted(skipped.items()) if k not in flight.reached_late
+            },
         }
 
     def home_routes(self) -> HomeRoutes:
@@ -181,38 +194,17 @@ class FlightHomePhase:
             for v in heard
             if v.home is not None and (v.airborne or v.lost)
         }
-        circles = home_circle_speeds(
-            homes, self.ctx.plane, self.ctx.scenario.config.min_separation_km
-        )
+        d_min = self.ctx.scenario.config.min_separation_km
+        circles = home_circle_speeds(homes, self.ctx.plane, d_min)
         self.state.circles = circles
-        by_speed: dict[float, list[VehicleKey]] = {}
-        for sid, speed in sorted(circles.speeds_mps.items()):
-            by_speed.setdefault(round(speed), []).append(sid)
-        for speed, ids in by_speed.items():
-            self.ctx.say(
-                f"vehicle{'s' if len(ids) > 1 else ''} {', '.join(map(str, ids))} circle home at "
-                f"{speed} m/s: their homes are close to another's, and a circle at cruise would "
-                "come within d_min"
-            )
-        for a, b, km in circles.too_close:
-            d_min = self.ctx.scenario.config.min_separation_km
-            self.ctx.say(
-                f"warning: the homes of vehicles {a} and {b} are {km:.2f} km apart: circling them "
-                f"keeps d_min only for homes {d_min:g} km and two "
-                "loiter circles apart at AIRSPEED_MIN; start them farther apart"
-            )
+        for line in circle_lines(circles, d_min):
+            self.ctx.say(line)
         return circles
 
     def slow_home_circles(self, sent: list[Command]) -> None:
-        """After RTL was accepted: the home circle's airspeed (DO_CHANGE_SPEED) to the planes
-        that fly home slower than cruise. Sent after the mode change, which resets a speed
-        commanded before it (ArduPlane)."""
-        speeds = self.state.circles.speeds_mps
-        slow = [
-            change_speed_command(c.vehicle, speeds[c.vehicle.key])
-            for c in sent
-            if c.command in RTL_COMMANDS and c.accepted and c.vehicle.key in speeds
-        ]
+        """The home circle's airspeed to the planes of ``sent`` that fly home slower than
+        cruise (``slow_circle_commands``); says who did not take it."""
+        slow = slow_circle_commands(self.state.circles, sent)
         refused = [c.vehicle.key for c in (self.ctx.send(slow) if slow else []) if not c.accepted]
         if refused:
             ids = ", ".join(map(str, refused))
@@ -221,52 +213,6 @@ class FlightHomePhase:
                 "airspeed (DO_CHANGE_SPEED): they circle home at cruise, within d_min of another's "
                 "home circle"
             )
-
-    def watch_rtl(self) -> None:
-        """Listen on (in lockstep: grant time) until every vehicle still heard circles its home
-        (``return_home.HomeWatch``), for the continuous account of the flight home
-        (``rtl_watch_s``)."""
-        flight = self.state
-        vehicles = [v for v in self.ctx.vehicles() if not v.lost and v.home is not None]
-        if not vehicles:
-            return
-        near_km = float(self.ctx.plane.loiter_radius_km()) + 0.5
-        slowest = min(flight.circles.speeds_mps.values(), default=self.ctx.plane.speed_mps)
-        watch = HomeWatch(vehicles, near_km, slowest)
-        limit_s = watch.limit_s(self.ctx.options.rtl_watch_s)
-        if limit_s <= 0:
-            return
-        # planes flying a safe way home (around_threats.py) or holding for another's
-        # (kept_apart.py) are re-judged once per decision period; the time a plane holds
-        # is added to the watch (at most once more its length)
-        period_s = self.ctx.scenario.config.step_s
-        waited_s = extra_s = 0.0
-        while waited_s < limit_s + extra_s:
-            left_s = limit_s + extra_s - waited_s
-            guiding = bool(flight.homing or flight.holding)
-            chunk_s = min(period_s, left_s) if guiding else left_s
-            done = self._listen(watch.home, chunk_s)
-            waited_s += chunk_s
-            if flight.holding:
-                extra_s = min(limit_s, extra_s + chunk_s)
-            if done and not (flight.homing or flight.holding):
-                return
-            guided = flight.homing.keys() | flight.holding.keys()
-            flying = [v for v in vehicles if not v.lost and v.key in guided]
-            self.slow_home_circles(self.ctx.send(self.homeward_commands(flying, announce=False)))
-        still = [v for v in vehicles if not v.lost and v.key in flight.holding]
-        if still:
-            self.ctx.say(
-                "warning: the watch of the flight home ends with vehicle(s) "
-                f"{', '.join(str(v.key) for v in still)} still holding: RTL sent"
-            )
-            for v in still:
-                flight.holding.pop(v.key)
-            self.slow_home_circles(self.ctx.send([autopilot_for(v).rtl_command(v) for v in still]))
-        # every plane that got its RTL during the watch (guided around a threat or held first,
-        # the last of them maybe as the watch ended) says its return mode before the log closes
-        later = (flight.detoured | flight.held) - set(flight.homing) | {v.key for v in still}
-        self.see_rtl([v for v in vehicles if not v.lost and v.key in later])
 
     def see_rtl(self, vehicles: list[VehicleState]) -> None:
         """Listen on (the tlog records it) until each of ``vehicles`` reports its autopilot's
@@ -281,9 +227,9 @@ class FlightHomePhase:
         def returning() -> bool:
             return all(v.lost or autopilot_for(v).returning(v.custom_mode) for v in vehicles)
 
-        self._listen(returning, RTL_SEEN_S)
+        self.listen(returning, RTL_SEEN_S)
 
-    def _listen(self, done: Callable[[], bool], vehicle_s: float) -> bool:
+    def listen(self, done: Callable[[], bool], vehicle_s: float) -> bool:
         """Listen on until ``done`` or for ``vehicle_s`` of the vehicles' seconds (in lockstep:
         granting them); True when ``done``."""
         if self.ctx.clock is not None:
@@ -343,11 +289,11 @@ class FlightHomePhase:
     ) -> tuple[list[VehicleKey], dict[VehicleKey, str]]:
         """RTL (at cruise speed) to every airborne vehicle still reachable whose way home is clear
         of threats; one whose is not is guided around them (``homeward_commands``, re-judged by
-        ``watch_rtl``). Returns the system ids RTL was sent to and, for every vehicle not
+        ``home_watch.py``). Returns the system ids RTL was sent to and, for every vehicle not
         reachable or not flying, why not; says both, and warns of every vehicle that did not
         accept. ``end_leg_timing``: the decision loop's, once it ran; before it, cruise is asked
         of every plane flying when leg timing is on. ``separate``: keep the ways home d_min
-        apart (only when the daemon stays to watch the flight home, ``watch_rtl``)."""
+        apart (only when the daemon stays to watch the flight home, ``home_watch.py``)."""
         flight = self.state
         flight.separate = separate
         if self.ctx.link is None:
@@ -355,6 +301,7 @@ class FlightHomePhase:
         flying, skipped = rtl_recipients(
             self.ctx.link.vehicles.values(), self.ctx.options.lost_after_s
         )
+        flight.unreached = {k for k, why in skipped.items() if why.startswith(UNREACHABLE)}
         if end_leg_timing is not None:
             end_leg_timing(flying)  # home at cruise speed
         elif self.ctx.options.leg_timing and flying:

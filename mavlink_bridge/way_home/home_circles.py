@@ -11,7 +11,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mavlink_bridge.vehicles.autopilot_adapter import RTL_COMMANDS
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel
+from mavlink_bridge.vehicles.guided_commands import Command, change_speed_command
 from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 
 
@@ -59,3 +61,35 @@ def home_circle_speeds(
     for a, b in zip(*np.nonzero(np.triu(short)), strict=True):
         circles.too_close.append((ids[a], ids[b], float(gap[a, b])))
     return circles
+
+
+def circle_lines(circles: HomeCircles, d_min_km: float) -> list[str]:
+    """What the daemon says of ``circles``: who circles home slower, which homes are too close."""
+    by_speed: dict[float, list[VehicleKey]] = {}
+    for sid, speed in sorted(circles.speeds_mps.items()):
+        by_speed.setdefault(round(speed), []).append(sid)
+    lines = [
+        f"vehicle{'s' if len(ids) > 1 else ''} {', '.join(map(str, ids))} circle home at "
+        f"{speed} m/s: their homes are close to another's, and a circle at cruise would "
+        "come within d_min"
+        for speed, ids in by_speed.items()
+    ]
+    lines += [
+        f"warning: the homes of vehicles {a} and {b} are {km:.2f} km apart: circling them "
+        f"keeps d_min only for homes {d_min_km:g} km and two loiter circles apart at "
+        "AIRSPEED_MIN; start them farther apart"
+        for a, b, km in circles.too_close
+    ]
+    return lines
+
+
+def slow_circle_commands(circles: HomeCircles, sent: list[Command]) -> list[Command]:
+    """After RTL was accepted: the home circle's airspeed (DO_CHANGE_SPEED) to the planes of
+    ``sent`` that fly home slower than cruise. Sent after the mode change, which resets a speed
+    commanded before it (ArduPlane)."""
+    speeds = circles.speeds_mps
+    return [
+        change_speed_command(c.vehicle, speeds[c.vehicle.key])
+        for c in sent
+        if c.command in RTL_COMMANDS and c.accepted and c.vehicle.key in speeds
+    ]

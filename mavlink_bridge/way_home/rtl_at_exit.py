@@ -4,8 +4,10 @@ what is said about it, and when the planes count as home.
 RTL goes to every **airborne** vehicle still **reachable** (its link up and heard within
 ``lost_after_s``), never to a grounded, disarmed one (an autopilot would take RTL on the ground
 as a command to take off and fly home, or refuse it). Every other vehicle is listed with why not.
-After a completed mission the daemon listens on until every plane circles its home
-(:class:`HomeWatch`), so the flight home is in the continuous safety account.
+One unreachable at the way out is listened for while the flight home is watched, and sent home
+the moment it is heard again (``heard_again``). After a completed mission the daemon listens on
+until every plane circles its home (:class:`HomeWatch`), so the flight home is in the continuous
+safety account.
 """
 
 from __future__ import annotations
@@ -19,6 +21,9 @@ from mavlink_bridge.vehicles.vehicle_key import VehicleKey
 from mavlink_bridge.vehicles.vehicle_loss import link_down
 from mavlink_bridge.vehicles.vehicle_state import VehicleState
 
+#: the start of the reason a vehicle RTL could not reach is given (link down, or silent)
+UNREACHABLE = "unreachable"
+
 
 def rtl_recipients(
     vehicles: Iterable[VehicleState], lost_after_s: float, now_s: float | None = None
@@ -31,14 +36,21 @@ def rtl_recipients(
         closed = link_down(v)
         silent = v.silent_for(now_s)
         if closed is not None:
-            skipped[v.key] = f"unreachable: {closed}"
+            skipped[v.key] = f"{UNREACHABLE}: {closed}"
         elif silent > lost_after_s:
-            skipped[v.key] = f"unreachable: silent {silent:.0f} s"
+            skipped[v.key] = f"{UNREACHABLE}: silent {silent:.0f} s"
         elif not v.airborne:
             skipped[v.key] = "on the ground, disarmed" if not v.armed else "on the ground"
         else:
             flying.append(v)
     return flying, skipped
+
+
+def heard_again(waiting: Iterable[VehicleState], lost_after_s: float) -> list[VehicleState]:
+    """Of ``waiting`` (vehicles RTL could not reach at the way out), those now airborne and
+    reachable again: a GCS outage, a radio fade or a starved machine at the mission's end must
+    not leave a plane circling its last target once it can be told to come home."""
+    return rtl_recipients(waiting, lost_after_s)[0]
 
 
 def rtl_line(

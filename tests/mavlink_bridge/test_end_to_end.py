@@ -8,12 +8,14 @@ import re
 import socket
 import subprocess
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import pytest
 from loopback import free_port_block, run_swarmplan, start_swarmplan, stop
+from pymavlink import mavutil
 
 from mavlink_bridge.mission.daemon import DaemonOptions, MissionDaemon
 from mavlink_wire.protocol import PLANE_MODE_GUIDED
@@ -262,3 +264,69 @@ def test_cut_link_vehicle_is_lost_and_others_go_on(paper10, tmp_path):
     assert track[-1] != track[rejoined_at - 1]
     assert result["steps"] == 50  # the others carried on to the end
     assert all(len(u["track_km"]) == 51 for u in result["uavs"])
+
+
+@pytest.mark.timeout(120)
+def test_a_plane_unreachable_when_the_mission_ends_is_sent_home_once_heard_again(paper10, tmp_path):
+    """Vehicle 3's link is cut from step 5 (once the daemon has heard it in GUIDED) and stays
+    cut until the daemon has sent RTL to the others (lost, silent past ``lost_after_s``:
+    unreachable then); it is restored during the watch of the flight home. A GCS outage at the
+    mission's end must not leave the plane circling its last target: the daemon listens for
+    it, sends it home once heard again and says so, result.json counts it among the planes RTL
+    went to, and its heartbeats say RTL."""
+    lines: list[str] = []
+    daemon = MissionDaemon(
+        paper10,
+        DaemonOptions(
+            connect=["udpin:127.0.0.1:0"], seed=2, steps=25, lost_after_s=1.0,
+            discovery_timeout_s=30, time_scale=SPEEDUP, check_time_scale=False,
+            tlog_path=tmp_path / "m.tlog", rtl_watch_s=1500.0, progress=lines.append,
+        ),
+    )  # fmt: skip
+    link = daemon.connect()
+    base = free_port_block(10)
+    relays = [CuttableRelay(link.endpoints[0].port, base + i) for i in range(10)]
+    for r in relays:
+        r.start()
+    relay = relays[2]
+    sim = start_sim(link.endpoints[0].port, 2, tmp_path / "sim.log",
+                    ["--per-vehicle-ports", str(base)])  # fmt: skip
+
+    def restore_after_rtl() -> None:
+        while not any(line.startswith("RTL sent to") for line in list(lines)):
+            if relay.done.wait(0.05):
+                return
+        relay.cut.clear()
+
+    cut_at: list[float] = []
+
+    def on_step(status) -> None:
+        guided = daemon.vehicle(2).custom_mode == PLANE_MODE_GUIDED
+        if status.step >= 5 and guided and not cut_at:
+            cut_at.append(time.time())
+            relay.cut.set()
+            threading.Thread(target=restore_after_rtl, daemon=True).start()
+
+    daemon.options.on_step = on_step
+    try:
+        report = daemon.fly()
+    finally:
+        stop(sim)
+        for r in relays:
+            r.stop()
+    result = report.result
+    text = "\n".join(lines)
+    rtl_line = next(line for line in lines if line.startswith("RTL sent to"))
+    assert "not to 3 (unreachable: silent" in rtl_line, rtl_line
+    assert "vehicle 3 heard again after the mission's end: sent home" in text, text[-3000:]
+    assert 3 in result["rtl_sent_to"] and "3" not in result["rtl_not_sent"], result
+    assert result["ended"] == "completed" and result["steps"] == 25
+    # and its autopilot took it: after the cut, vehicle 3 accepted a DO_SET_MODE (RTL; its
+    # heartbeats come once a wall second: at 100x the log may close before one says RTL)
+    tlog = mavutil.mavlink_connection(str(tmp_path / "m.tlog"))
+    acks = []
+    while (msg := tlog.recv_match(type="COMMAND_ACK")) is not None:
+        if msg.get_srcSystem() == 3 and msg.command == mavutil.mavlink.MAV_CMD_DO_SET_MODE:
+            acks.append((msg._timestamp > cut_at[0], msg.result))
+    tlog.close()
+    assert (True, mavutil.mavlink.MAV_RESULT_ACCEPTED) in acks, acks
