@@ -116,9 +116,8 @@ class HomeContext(Protocol):
 class FlightHomePhase:
     """The flight home over one mission's context, with its own state (:class:`FlightHome`):
     RTL at the way out (``return_to_launch``) and its watch (``home_watch.watch_flight_home``),
-    and during the
-    mission the planes whose autopilot or a resumed daemon sent home (``guide_stray_returns``,
-    ``guide_sent_home``)."""
+    and during the mission the planes whose autopilot or a resumed daemon sent home
+    (``guide_stray_returns``, ``guide_sent_home``)."""
 
     def __init__(self, ctx: HomeContext, state: FlightHome | None = None) -> None:
         self.ctx = ctx
