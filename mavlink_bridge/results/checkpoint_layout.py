@@ -380,12 +380,25 @@ RANGES: dict[str, Check] = {
 }
 
 
+#: what :func:`range_part` gives for a path whose part the state lacks
+MISSING = object()
+
+
+def range_part(state: dict[str, Any], path: str) -> Any:
+    """The part of ``state`` (the layout-checked roots) that the :data:`RANGES` path ``path``
+    names: None where it is None, :data:`MISSING` where the state has no such part."""
+    root, *names = path.split(".")
+    value = state.get(root, MISSING)
+    for name in names:
+        if value is MISSING:
+            break
+        value = getattr(value, name, MISSING)
+    return value
+
+
 def check_ranges(state: dict[str, Any], m: Mission) -> None:
     """Every part of :data:`RANGES` within its range (``state``: the layout-checked roots)."""
     for path, check in RANGES.items():
-        root, *names = path.split(".")
-        value = state.get(root)
-        for name in names:
-            value = getattr(value, name, None)
-        if value is not None:  # (a baseline planner may lack a part: its layout is checked)
-            check(value, path, m)
+        value = range_part(state, path)
+        if value is not None and value is not MISSING:  # (a baseline planner may lack a part:
+            check(value, path, m)  # its layout is checked)

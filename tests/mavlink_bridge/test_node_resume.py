@@ -191,17 +191,13 @@ def test_every_range_check_names_a_part_of_a_nodes_state(tmp_path):
     """The checks of a checkpoint's ranges reach a node's state as they reach the daemon's (a
     path that names nothing would be skipped in silence)."""
     from mavlink_bridge.results.checkpoint import read_checkpoint
-    from mavlink_bridge.results.checkpoint_layout import RANGES
+    from mavlink_bridge.results.checkpoint_layout import MISSING, RANGES, range_part
 
     loop = read_checkpoint(_write_checkpoint(tmp_path / "x.ckpt", "paper-10uav", 2, 1)).loop
     assert type(loop["planner"]).__name__ == "OnboardPlanner"
     for path in RANGES:
-        root, *names = path.split(".")
-        value = loop[root]
-        for name in names:
-            assert hasattr(value, name), f"RANGES names {path}, which a node's state lacks"
-            value = getattr(value, name)
-        assert value is not None, path
+        part = range_part(loop, path)
+        assert part is not None and part is not MISSING, f"RANGES names {path}: nothing there"
 
 
 @pytest.mark.parametrize(

@@ -33,7 +33,7 @@ from mavlink_bridge.results.checkpoint import (
     mission_fingerprint,
     seal,
 )
-from mavlink_bridge.results.checkpoint_layout import RANGES
+from mavlink_bridge.results.checkpoint_layout import MISSING, RANGES, range_part
 from mavlink_bridge.results.checkpoint_resume import with_derived
 from mavlink_bridge.results.mission_result import LinkEvent, MissionAccount
 from planner.engagement import EngagementOutcome
@@ -488,9 +488,5 @@ def test_every_range_check_names_a_part_of_the_daemons_state():
     state, _, _ = _flown_state()
     view = state.checkpoint_view()
     for path in RANGES:
-        root, *names = path.split(".")
-        value = view[root]
-        for name in names:
-            assert hasattr(value, name), f"RANGES names {path}, which the state lacks"
-            value = getattr(value, name)
-        assert value is not None, path
+        part = range_part(view, path)
+        assert part is not None and part is not MISSING, f"RANGES names {path}: nothing there"
