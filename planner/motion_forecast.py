@@ -61,34 +61,56 @@ def has_square_symmetry(kernel: np.ndarray) -> bool:
     )
 
 
+#: bytes of maps a ``SquareStencil`` works through at a time: its passes over a few maps stay
+#: in the core's cache (100 maps of 200 x 200 cells at once took 1.4 times as long)
+STENCIL_CHUNK_BYTES = 1 << 20
+
+
 class SquareStencil:
     """Convolution of N maps (N, nx, ny) with a 3x3 kernel of the square's symmetry
     (``has_square_symmetry``), edges reflected, in place: a 9-point stencil on an edge-padded
-    copy, in the maps' dtype, with work buffers kept between calls (each step's forecast would
-    otherwise allocate, and fault in, several map-sized temporaries)."""
+    copy, in the maps' dtype, a few maps at a time (``STENCIL_CHUNK_BYTES``), with work buffers
+    for that many kept between calls (each step's forecast would otherwise allocate, and fault
+    in, several map-sized temporaries)."""
 
     def __init__(self, shape: tuple[int, int, int], dtype: np.dtype) -> None:
         n, nx, ny = shape
-        self.padded = np.empty((n, nx + 2, ny + 2), dtype=dtype)
-        self.vertical = np.empty((n, nx, ny + 2), dtype=dtype)
-        self.out = np.empty(shape, dtype=dtype)
-        self.work = np.empty(shape, dtype=dtype)
+        self.chunk = min(n, max(1, STENCIL_CHUNK_BYTES // (nx * ny * np.dtype(dtype).itemsize)))
+        m = self.chunk
+        self.padded = np.empty((m, nx + 2, ny + 2), dtype=dtype)
+        self.vertical = np.empty((m, nx, ny + 2), dtype=dtype)
+        self.out = np.empty((m, nx, ny), dtype=dtype)
+        self.work = np.empty((m, nx, ny), dtype=dtype)
 
     def apply(
-        self, maps: np.ndarray, kernel: np.ndarray, box: tuple[int, int, int, int] | None = None
+        self,
+        maps: np.ndarray,
+        kernel: np.ndarray,
+        box: tuple[int, int, int, int] | None = None,
+        boxes: np.ndarray | None = None,
     ) -> None:
         """Replace ``maps`` by its convolution with ``kernel``. With ``box = (x0, x1, y0, y1)``
         the caller promises every cell outside ``[x0, x1) x [y0, y1)`` is zero: only the box
-        grown by one cell (all the kernel can reach) is computed."""
+        grown by one cell (all the kernel can reach) is computed; with ``boxes`` (N, 4), one
+        such box per map (the maps worked through together take their boxes' union). Each
+        cell's value is the same whichever box holds it: the cells beyond are zero."""
+        for start in range(0, len(maps), self.chunk):
+            part = slice(start, start + self.chunk)
+            self._apply(maps[part], kernel, box if boxes is None else union_box(boxes[part]))
+
+    def _apply(
+        self, maps: np.ndarray, kernel: np.ndarray, box: tuple[int, int, int, int] | None
+    ) -> None:
+        """``apply`` to at most ``chunk`` maps."""
         n, nx, ny = maps.shape
         x0, x1, y0, y1 = grow_box((0, nx, 0, ny) if box is None else box, nx, ny)
         a, b = x1 - x0, y1 - y0
         centre, edge, corner = float(kernel[1, 1]), float(kernel[0, 1]), float(kernel[0, 0])
-        p = self.padded[:, : a + 2, : b + 2]
+        p = self.padded[:n, : a + 2, : b + 2]
         vertical, out, work = (
-            self.vertical[:, :a, : b + 2],
-            self.out[:, :a, :b],
-            self.work[:, :a, :b],
+            self.vertical[:n, :a, : b + 2],
+            self.out[:n, :a, :b],
+            self.work[:n, :a, :b],
         )
         region = maps[:, x0:x1, y0:y1]
         p[:, 1:-1, 1:-1] = region
