@@ -51,6 +51,12 @@ class FieldsView:
     def put(self, home: int, field: np.ndarray, reach: float = np.inf) -> None:
         self.store.put(self.offset + home, field, reach)
 
+    def put_stored(self, home: int, field: np.ndarray, reach: float) -> None:
+        self.store.put_stored(self.offset + home, field, reach)
+
+    def cut(self, row: int, exact: float) -> np.ndarray:
+        return self.store.cut(row, exact)
+
     def rows(self, homes: np.ndarray, step: int = 0) -> np.ndarray:
         return self.store.rows(np.asarray(homes, dtype=np.int64) + self.offset, step)
 

@@ -60,6 +60,26 @@ class FieldRows:
         self.data[row] = field
         self.reach[row] = reach
 
+    def put_stored(self, home: int, field: np.ndarray, reach: float) -> None:
+        """``put`` a field already in this store's form (``cut``: its type, its value for
+        inf), as it is."""
+        if field.dtype != self.data.dtype:
+            raise ValueError(f"a field of {field.dtype} put as stored in {self.data.dtype}")
+        FieldRows.put(self, home, field, reach)
+
+    def cut(self, row: int, exact: float) -> np.ndarray:
+        """The field of ``row`` in this store's form, inf (as stored) where it is more than
+        ``exact``: a field lent to another home's model (``planner.shared_fields``) without
+        a round trip through float64."""
+        field = self.data[row]
+        # compared in float64 (a float32 store's values against the float ``exact``)
+        return np.where(field <= np.float64(exact), field, self.data.dtype.type(self.none))
+
+    @property
+    def none(self) -> float:
+        """The stored value that stands for inf."""
+        return np.inf
+
     def take(self, index: tuple | slice) -> np.ndarray:
         """``data[index]``, inf where no way is (or none was searched)."""
         return self.data[index]
@@ -101,7 +121,6 @@ class CountRows(FieldRows):
 
     @property
     def none(self) -> float:
-        """The stored value that stands for inf."""
         dtype = self.data.dtype
         return float(np.iinfo(dtype).max) if dtype.kind == "u" else np.inf
 
@@ -143,7 +162,8 @@ def free_distance(
 
 
 #: ``borrow(home, (wanted, most))``: a field of ``home`` exact as far as ``wanted`` or more
-#: (inf beyond ``most``), from elsewhere, and how far it is exact; or None
+#: (inf beyond ``most``), from elsewhere, in the store's form (``FieldRows.cut``), and how far
+#: it is exact; or None
 Borrow = Callable[[int, tuple[float, float]], "tuple[np.ndarray, float] | None"]
 
 
@@ -181,8 +201,10 @@ def rows_reaching(
             reach = FIRST_REACH_FACTOR * free + FIRST_REACH_CELLS * move_lengths[0]
             reach = min(reach, bound(home))
             lent = None if borrow is None else borrow(home, (reach, bound(home)))
-            field, reach = (search(home, reach), reach) if lent is None else lent
-            fields.put(home, field, reach)
+            if lent is None:
+                fields.put(home, search(home, reach), reach)
+            else:
+                fields.put_stored(home, *lent)
     while True:
         rows = fields.rows(homes, step)
         short = fields.reach[rows] < np.array([bound(home) for home in homes.tolist()])
