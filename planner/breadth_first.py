@@ -20,17 +20,44 @@ def neighbour_table(nodes: int, width: int) -> np.ndarray:
     return np.full((nodes, width), nodes, dtype=np.int32)
 
 
-def move_counts(neighbours: np.ndarray, sources: np.ndarray, limit: float) -> np.ndarray:
+class Scratch:
+    """Work arrays of ``move_counts``, kept between searches over tables of one size (the
+    safety models of a swarm share one): a fresh array of counts for every search faulted in
+    its pages each time; between searches only the nodes reached are set back."""
+
+    def __init__(self) -> None:
+        self.counts = np.empty(0)  # per node and the padding: its count, inf unreached
+        self.order = np.empty(0, dtype=np.int64)
+        self.reached: list[np.ndarray] = []  # the nodes the last search reached
+
+    def ready(self, nodes: int) -> np.ndarray:
+        """The counts for a search over ``nodes`` nodes, every one unreached."""
+        if len(self.counts) != nodes + 1:
+            self.counts = np.full(nodes + 1, np.inf)
+            self.counts[nodes] = -1.0  # the padding: never reached
+            self.order = np.empty(nodes + 1, dtype=np.int64)
+        else:
+            for reached in self.reached:
+                self.counts[reached] = np.inf
+        self.reached = []
+        return self.counts
+
+
+def move_counts(
+    neighbours: np.ndarray, sources: np.ndarray, limit: float, scratch: Scratch | None = None
+) -> np.ndarray:
     """(nodes,) float64: the fewest moves from any of ``sources`` to each node over
     ``neighbours`` (a ``neighbour_table``), counted as far as ``limit`` moves (inf beyond, and
     where no way is): what ``scipy.sparse.csgraph.dijkstra(graph, indices=sources,
-    min_only=True, limit=limit)`` gives for the graph of the table with every move one."""
+    min_only=True, limit=limit)`` gives for the graph of the table with every move one. With
+    ``scratch``, the counts are its array, good until its next search."""
     nodes = len(neighbours)
-    counts = np.full(nodes + 1, np.inf)
-    counts[nodes] = -1.0  # the padding: never reached
-    order = np.empty(nodes + 1, dtype=np.int64)  # scratch: to keep one of each node reached
+    scratch = scratch or Scratch()
+    counts = scratch.ready(nodes)
+    order = scratch.order  # to keep one of each node reached
     frontier = np.unique(np.asarray(sources, dtype=np.int64))
     counts[frontier] = 0.0
+    scratch.reached.append(frontier)
     level = 0
     while len(frontier) and level + 1 <= limit:
         level += 1
@@ -43,4 +70,5 @@ def move_counts(neighbours: np.ndarray, sources: np.ndarray, limit: float) -> np
         places = np.arange(len(reached))
         order[reached] = places
         frontier = reached[order[reached] == places]
+        scratch.reached.append(frontier)
     return counts[:nodes]

@@ -324,7 +324,8 @@ class SafetyModel:
 
         def search(home: int, reach: float) -> np.ndarray:
             states = 8 * home + np.arange(8)  # the home cell, any heading
-            field = move_counts(self._state_neighbours, states, reach)
+            # the pool's work array, good until the next search: the caller stores it first
+            field = move_counts(self._state_neighbours, states, reach, self.pool.scratch)
             return field.reshape(size, 8).T.reshape(8, *self.grid.shape)
 
         rows = rows_reaching(

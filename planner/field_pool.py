@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from planner.breadth_first import Scratch
 from planner.field_rows import CountRows, FieldRows
 
 
@@ -22,6 +23,7 @@ class FieldPool:
         self.distances = FieldRows(shape, np.float64, 2 * homes)
         self.hops = CountRows(shape, 2 * homes)
         self.states = CountRows((8, *shape), 2 * homes)
+        self.scratch = Scratch()  # the (heading, cell) searches' work arrays
 
     def drop_unread(self, step: int) -> None:
         """Free the fields not read at ``step`` nor the step before (``FieldRows``)."""

@@ -47,6 +47,13 @@ class FieldRows:
 
     def put(self, home: int, field: np.ndarray, reach: float = np.inf) -> None:
         """Store (or replace) the field of ``home``, searched as far as ``reach``."""
+        row = self._row_for(home)
+        self.data[row] = field
+        self.reach[row] = reach
+
+    def _row_for(self, home: int) -> int:
+        """The row of ``home``'s field: its own, else a free one (the store grown if none
+        is)."""
         row = self._rows.get(home)
         if row is None:
             row = self._free.pop() if self._free else len(self._rows)
@@ -57,8 +64,7 @@ class FieldRows:
                 self._read = np.concatenate([self._read, np.zeros(len(grown) - row, np.int64)])
                 self.reach = np.concatenate([self.reach, np.zeros(len(grown) - row)])
             self._rows[home] = row
-        self.data[row] = field
-        self.reach[row] = reach
+        return row
 
     def put_stored(self, home: int, field: np.ndarray, reach: float) -> None:
         """``put`` a field already in this store's form (``cut``: its type, its value for
@@ -128,8 +134,11 @@ class CountRows(FieldRows):
         while self.data.dtype.kind == "u":
             # a field searched less far than ``none`` holds no count as large
             if reach < self.none or np.max(field, where=np.isfinite(field), initial=0) < self.none:
-                field = np.minimum(field, self.none)  # inf -> none
-                break
+                row = self._row_for(home)
+                # inf -> none, written into the row in one pass (whole numbers: cast exactly)
+                np.minimum(field, self.none, out=self.data[row], casting="unsafe")
+                self.reach[row] = reach
+                return
             self._widen()
         super().put(home, field, reach)
 

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from planner.breadth_first import move_counts
+from planner.breadth_first import Scratch, move_counts
 from planner.constraints import SafetyModel, SafetyModels
 from planner.field_rows import CountRows
 from planner.grid import Grid
@@ -127,7 +127,7 @@ def test_breadth_first_counts_are_the_dijkstra_counts_over_the_same_moves() -> N
     """The turn-limited way home is counted level by level (planner/breadth_first.py): the
     counts are scipy's Dijkstra's over the same (heading, cell) moves as a sparse graph of
     ones, to the bit, however far the search is limited, from any home (the area's corner, a
-    threat's edge, the open)."""
+    threat's edge, the open), one search after another in the same work arrays."""
     model = _make(np.ones(len(_threats()[1]), dtype=bool), None)
     table = model._state_neighbours
     rows = np.repeat(np.arange(len(table)), table.shape[1])
@@ -136,10 +136,11 @@ def test_breadth_first_counts_are_the_dijkstra_counts_over_the_same_moves() -> N
     graph = csr_matrix((np.ones(real.sum()), (rows[real], cols[real])), shape=(len(table),) * 2)
     xy, radii = _threats()
     edge = GRID.cell_of(xy[0] + np.array([radii[0] + 0.5, 0.0]))
+    scratch = Scratch()  # one for every search, as the models of a swarm share one
     for cell in (np.array([0, 0]), np.array([50, 50]), edge, np.array([99, 3])):
         states = 8 * GRID.flat(cell) + np.arange(8)
         for limit in (0, 1, 7, 23.0, 60, np.inf):
             expected = dijkstra(graph, indices=states, min_only=True, limit=limit)
-            got = move_counts(table, states, limit)
+            got = move_counts(table, states, limit, scratch)
             assert got.dtype == expected.dtype and np.array_equal(got, expected)
             assert np.isfinite(got).sum() > (limit > 0)  # the search went somewhere
