@@ -130,6 +130,20 @@ class CountRows(FieldRows):
         dtype = self.data.dtype
         return float(np.iinfo(dtype).max) if dtype.kind == "u" else np.inf
 
+    def cut(self, row: int, exact: float) -> np.ndarray:
+        field = self.data[row]
+        dtype = field.dtype
+        if dtype.kind != "u":
+            return super().cut(row, exact)
+        if exact >= self.none:
+            return field.copy()
+        if exact < 0:
+            return np.full_like(field, self.none)
+        # whole numbers: at most ``exact`` is at most its floor, compared in the store's type;
+        # the others OR'd with all ones, the largest value: none (a tenth of ``np.where``'s time)
+        over = (field > dtype.type(np.floor(exact))).astype(dtype)
+        return field | np.negative(over, out=over)
+
     def put(self, home: int, field: np.ndarray, reach: float = np.inf) -> None:
         while self.data.dtype.kind == "u":
             # a field searched less far than ``none`` holds no count as large

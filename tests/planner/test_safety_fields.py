@@ -144,3 +144,26 @@ def test_breadth_first_counts_are_the_dijkstra_counts_over_the_same_moves() -> N
             got = move_counts(table, states, limit, scratch)
             assert got.dtype == expected.dtype and np.array_equal(got, expected)
             assert np.isfinite(got).sum() > (limit > 0)  # the search went somewhere
+
+
+def test_a_count_field_cut_in_its_store_is_the_float_field_cut() -> None:
+    """A field lent to another model is cut where it stops being exact in the store's own type
+    (planner/field_rows.py ``CountRows.cut``): the same counts, and inf as the store writes
+    it, as cutting the float64 counts and storing them, for every width of the store."""
+    rng = np.random.default_rng(0)
+    for width in (np.uint8, np.uint16, np.float32):
+        store = CountRows((8, 20, 30), 2)
+        counts = rng.integers(0, 300, (8, 20, 30)).astype(float)
+        counts[counts > 250] = np.inf
+        if width is np.uint8:
+            counts = np.minimum(counts, 250)
+        while store.data.dtype != width:
+            store._widen()
+        store.put(7, counts, 100.0 if width is np.uint8 else np.inf)
+        row = store.row_of(7)
+        for exact in (-0.5, 0.0, 0.999999, 37.999999, 38.0, 254.5, 255.0, 65535.0, 7e4, np.inf):
+            cut = np.where(store.take(row) <= exact, store.take(row), np.inf)
+            store.put(8, cut)  # the float64 way: cut, then stored
+            got = store.cut(row, exact)
+            assert got.dtype == store.data.dtype
+            assert np.array_equal(got, store.data[store.row_of(8)]), (width, exact)
