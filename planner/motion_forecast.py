@@ -66,6 +66,11 @@ def has_square_symmetry(kernel: np.ndarray) -> bool:
 STENCIL_CHUNK_BYTES = 1 << 20
 
 
+#: cells of maps (maps x their boxes' union) from which a ``SquareStencil`` looks for equal
+#: maps to stencil once: below, finding them (about 0.1 ms) costs more than it can save
+DISTINCT_MIN_CELLS = 1 << 15
+
+
 class SquareStencil:
     """Convolution of N maps (N, nx, ny) with a 3x3 kernel of the square's symmetry
     (``has_square_symmetry``), edges reflected, in place: a 9-point stencil on an edge-padded
@@ -88,15 +93,19 @@ class SquareStencil:
         kernel: np.ndarray,
         box: tuple[int, int, int, int] | None = None,
         boxes: np.ndarray | None = None,
+        alike: np.ndarray | None = None,
     ) -> None:
         """Replace ``maps`` by its convolution with ``kernel``. With ``box = (x0, x1, y0, y1)``
         the caller promises every cell outside ``[x0, x1) x [y0, y1)`` is zero: only the box
         grown by one cell (all the kernel can reach) is computed; with ``boxes`` (N, 4), one
         such box per map (the maps worked through together take their boxes' union). Each
-        cell's value is the same whichever box holds it: the cells beyond are zero."""
-        if boxes is not None and len(maps) > 1:
-            whole = union_box(boxes)
-            firsts, inverse = distinct_maps(maps[:, whole[0] : whole[1], whole[2] : whole[3]])
+        cell's value is the same whichever box holds it: the cells beyond are zero. With
+        ``alike`` (N,) as well (each map's sum, say: maps that differ in it are different
+        maps), the maps alike and equal are stencilled once (``distinct_maps``)."""
+        whole = None if boxes is None else union_box(boxes)
+        if alike is not None and len(maps) * box_cells(whole) >= DISTINCT_MIN_CELLS:
+            regions = maps[:, whole[0] : whole[1], whole[2] : whole[3]]
+            firsts, inverse = distinct_maps(regions, alike)
             if len(firsts) < len(maps):
                 self._apply_distinct(maps, kernel, boxes, firsts, inverse)
                 return
@@ -163,13 +172,27 @@ class SquareStencil:
             maps[rows, x0:x1, y0:y1] = out
 
 
-def distinct_maps(regions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The maps of ``regions`` (N, a, b) that differ, by their bytes: ``firsts`` (D,), the
-    first map of each distinct content in order, and ``inverse`` (N,), each map's place in
-    ``firsts`` (``regions[i]`` equals ``regions[firsts[inverse[i]]]``, bit for bit)."""
-    places: dict[bytes, int] = {}
-    inverse = np.array([places.setdefault(r.tobytes(), len(places)) for r in regions], np.int64)
-    return np.unique(inverse, return_index=True)[1], inverse
+def box_cells(box: tuple[int, int, int, int]) -> int:
+    """The cells of ``box`` (x0, x1, y0, y1)."""
+    return (box[1] - box[0]) * (box[3] - box[2])
+
+
+def distinct_maps(regions: np.ndarray, alike: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The maps of ``regions`` (N, a, b) that differ: ``firsts`` (D,), the first map of each
+    distinct content in order, and ``inverse`` (N,), each map's place in ``firsts``
+    (``regions[i]`` equals ``regions[firsts[inverse[i]]]``, bit for bit). ``alike`` (N,): maps
+    with different values of it are taken to differ; a map is compared (its bits) with the
+    first of those alike only, and counted distinct when it is not that one's equal."""
+    n = len(regions)
+    _, first_alike, which = np.unique(alike, return_index=True, return_inverse=True)
+    same_as = first_alike[which.ravel()]  # (N,) the first map alike, itself for the firsts
+    others = np.flatnonzero(same_as != np.arange(n))
+    if len(others):
+        bits = regions.view(np.dtype(f"u{regions.itemsize}"))
+        equal = (bits[others] == bits[same_as[others]]).all(axis=(1, 2))
+        same_as[others[~equal]] = others[~equal]
+    firsts, inverse = np.unique(same_as, return_inverse=True)
+    return firsts, inverse.ravel()
 
 
 def grow_box(box: tuple[int, int, int, int], nx: int, ny: int) -> tuple[int, int, int, int]:

@@ -169,7 +169,10 @@ class TargetProbabilityMaps:
                     # a few maps at a time over their boxes' union: a map is zero outside its
                     # own box, so each UAV's cells come out as they would from its own box
                     boxes = self.ring_box[l]
-                    self.stencil.apply(layer, self.ring_kernels[l], boxes=boxes)
+                    # the maps alike in their sums are compared: equal maps stencilled once
+                    self.stencil.apply(
+                        layer, self.ring_kernels[l], boxes=boxes, alike=self.totals[l]
+                    )
                     grown = grow_boxes(boxes, self.grid.nx, self.grid.ny)
                     if negligible is None:  # the scales do not change during the forecast
                         negligible = self._negligible_stored()
