@@ -22,6 +22,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from planner.breadth_first import move_counts, neighbour_table
 from planner.field_pool import FieldPool, FieldsView
 from planner.field_rows import Borrow, rows_reaching
 from planner.grid import HEADING_LENGTHS, HEADING_STEPS, Grid, turn_options
@@ -322,9 +323,10 @@ class SafetyModel:
         size = self.grid.size
 
         def search(home: int, reach: float) -> np.ndarray:
-            states = home + size * np.arange(8)  # the home cell, any heading
-            field = dijkstra(self._reversed_state_graph, indices=states, min_only=True, limit=reach)
-            return field.reshape(8, *self.grid.shape)
+            states = 8 * home + np.arange(8)  # the home cell, any heading
+            # the pool's work array, good until the next search: the caller stores it first
+            field = move_counts(self._state_neighbours, states, reach, self.pool.scratch)
+            return field.reshape(size, 8).T.reshape(8, *self.grid.shape)
 
         rows = rows_reaching(
             self._states, homes, (headings, x, y), search, (1.0, 1.0), self._dead_end_states,
@@ -363,7 +365,7 @@ class SafetyModel:
 
     @cached_property
     def _state_moves(self) -> np.ndarray:
-        """(8, nx, ny): the moves of ``_reversed_state_graph`` by heading and cell: a move the
+        """(8, nx, ny): the moves of ``_state_neighbours`` by heading and cell: a move the
         planner may make (``home_edge_safe``), into a state with a way on (``viable``)."""
         return np.stack(
             [self.home_edge_safe[h] & self._shifted(self.viable[h], h) for h in range(8)]
@@ -371,34 +373,28 @@ class SafetyModel:
 
     @cached_property
     def _dead_end_states(self) -> np.ndarray:
-        """(8, nx, ny): the (heading, cell) states no move of ``_reversed_state_graph`` leaves
+        """(8, nx, ny): the (heading, cell) states no move of ``_state_neighbours`` leaves
         (none of the headings within phi_max has a move in ``_state_moves``)."""
         moves = self._state_moves
         return ~np.stack([np.any(moves[(h + self.turns) % 8], axis=0) for h in range(8)])
 
     @cached_property
-    def _reversed_state_graph(self) -> csr_matrix:
-        """The turn-limited safe moves between (heading, cell) states, state ``h * size +
-        flat``: from (h, c) to (h', c + step(h')) for every h' within phi_max of h whose move
-        from c is in ``home_edge_safe`` and lands in a viable state; edges reversed (hops *to*
-        a state), each of weight one (no edge twice: searched as it is, it counts moves as
-        scipy's ``unweighted`` search does, without making the ones again each time)."""
+    def _state_neighbours(self) -> np.ndarray:
+        """The turn-limited safe moves between (heading, cell) states, state ``8 * flat + h``
+        (a cell's states side by side: the search reads nearby memory): from (h, c) to (h',
+        c + step(h')) for every h' within phi_max of h whose move from c is in
+        ``home_edge_safe`` and lands in a viable state; reversed (the states a move *to* each
+        state is made from, ``planner.breadth_first``: hops *to* a state)."""
         grid = self.grid
         size = grid.size
         flat = np.arange(size).reshape(grid.shape)
-        ends, cols = [], []
+        table = neighbour_table(8 * size, len(self.turns))
         for h_next in range(8):
             start = flat[self._state_moves[h_next]]
-            ends.append(start + grid.flat(HEADING_STEPS[h_next]) + size * h_next)
+            end = 8 * (start + grid.flat(HEADING_STEPS[h_next])) + h_next
             # the states it is reached from, one per turn, side by side
-            cols.append(start[:, None] + size * ((h_next - self.turns[None, :]) % 8))
-        # built as compressed rows at once: the ends come in increasing order, each with one
-        # edge per turn (no sorting of (row, column) pairs)
-        per_row = np.zeros(8 * size, dtype=np.int64)
-        per_row[np.concatenate(ends)] = len(self.turns)
-        indptr = np.concatenate([[0], np.cumsum(per_row)])
-        indices = np.concatenate([c.ravel() for c in cols])
-        return csr_matrix((np.ones(len(indices)), indices, indptr), shape=(8 * size, 8 * size))
+            table[end] = 8 * start[:, None] + (h_next - self.turns[None, :]) % 8
+        return table
 
 
 class SafetyModels:

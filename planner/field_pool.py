@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from planner.breadth_first import Scratch
 from planner.field_rows import CountRows, FieldRows
 
 
@@ -22,6 +23,7 @@ class FieldPool:
         self.distances = FieldRows(shape, np.float64, 2 * homes)
         self.hops = CountRows(shape, 2 * homes)
         self.states = CountRows((8, *shape), 2 * homes)
+        self.scratch = Scratch()  # the (heading, cell) searches' work arrays
 
     def drop_unread(self, step: int) -> None:
         """Free the fields not read at ``step`` nor the step before (``FieldRows``)."""
@@ -50,6 +52,12 @@ class FieldsView:
 
     def put(self, home: int, field: np.ndarray, reach: float = np.inf) -> None:
         self.store.put(self.offset + home, field, reach)
+
+    def put_stored(self, home: int, field: np.ndarray, reach: float) -> None:
+        self.store.put_stored(self.offset + home, field, reach)
+
+    def cut(self, row: int, exact: float) -> np.ndarray:
+        return self.store.cut(row, exact)
 
     def rows(self, homes: np.ndarray, step: int = 0) -> np.ndarray:
         return self.store.rows(np.asarray(homes, dtype=np.int64) + self.offset, step)

@@ -41,7 +41,8 @@ def borrowed_field(
     """The field of ``home`` from the first of ``lenders`` (each a model's fields of one kind
     and a function giving the cells where its moves differ from the borrower's) that holds it
     exactly as far as ``reach[0]``, cut to where it is exact for the borrower and to
-    ``reach[1]`` (inf beyond), with how far that is; None when none does."""
+    ``reach[1]`` (inf beyond; in the store's form, ``FieldRows.cut``), with how far that is;
+    None when none does."""
     wanted, most = reach
     for fields, changed in lenders:
         if home not in fields:
@@ -56,6 +57,5 @@ def borrowed_field(
             exact = min(exact, float(nearest) - ROUNDING)
         if exact < wanted:
             continue
-        field = fields.take(row)
-        return np.where(field <= exact, field, np.inf), exact
+        return fields.cut(row, exact), exact
     return None

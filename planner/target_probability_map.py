@@ -33,7 +33,6 @@ from planner.motion_forecast import (
     ring_kernel,
     shift_with_reflection,
     tighten_boxes,
-    union_box,
     wiener_kernel_1d,
 )
 from planner.scenario import TargetSpec
@@ -167,10 +166,13 @@ class TargetProbabilityMaps:
             layer = self.maps[l]
             if spec.kind == "known_speed":
                 if self.ring_symmetric[l]:
-                    # one stencil over the boxes' union: a map is zero outside its own box,
-                    # so each UAV's cells come out as they would from its own box
+                    # a few maps at a time over their boxes' union: a map is zero outside its
+                    # own box, so each UAV's cells come out as they would from its own box
                     boxes = self.ring_box[l]
-                    self.stencil.apply(layer, self.ring_kernels[l], union_box(boxes))
+                    # the maps alike in their sums are compared: equal maps stencilled once
+                    self.stencil.apply(
+                        layer, self.ring_kernels[l], boxes=boxes, alike=self.totals[l]
+                    )
                     grown = grow_boxes(boxes, self.grid.nx, self.grid.ny)
                     if negligible is None:  # the scales do not change during the forecast
                         negligible = self._negligible_stored()

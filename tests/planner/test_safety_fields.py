@@ -6,7 +6,10 @@ is what a model that never dropped anything answers, so the decisions do not dep
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
 
+from planner.breadth_first import Scratch, move_counts
 from planner.constraints import SafetyModel, SafetyModels
 from planner.field_rows import CountRows
 from planner.grid import Grid
@@ -116,5 +119,51 @@ def test_a_threat_far_from_home_leaves_the_fields_near_it_to_be_borrowed() -> No
     got = _near(borrower)
     expected = _near(_make(after, None))
     assert all(np.array_equal(a, b) for a, b in zip(got, expected, strict=True))
-    searched = {"_reversed_graph", "_reversed_hop_graph", "_reversed_state_graph"}
+    searched = {"_reversed_graph", "_reversed_hop_graph", "_state_neighbours"}
     assert not searched & set(vars(borrower))  # no graph of its own built: nothing searched
+
+
+def test_breadth_first_counts_are_the_dijkstra_counts_over_the_same_moves() -> None:
+    """The turn-limited way home is counted level by level (planner/breadth_first.py): the
+    counts are scipy's Dijkstra's over the same (heading, cell) moves as a sparse graph of
+    ones, to the bit, however far the search is limited, from any home (the area's corner, a
+    threat's edge, the open), one search after another in the same work arrays."""
+    model = _make(np.ones(len(_threats()[1]), dtype=bool), None)
+    table = model._state_neighbours
+    rows = np.repeat(np.arange(len(table)), table.shape[1])
+    cols = table.ravel()
+    real = cols < len(table)  # the padding is no move
+    graph = csr_matrix((np.ones(real.sum()), (rows[real], cols[real])), shape=(len(table),) * 2)
+    xy, radii = _threats()
+    edge = GRID.cell_of(xy[0] + np.array([radii[0] + 0.5, 0.0]))
+    scratch = Scratch()  # one for every search, as the models of a swarm share one
+    for cell in (np.array([0, 0]), np.array([50, 50]), edge, np.array([99, 3])):
+        states = 8 * GRID.flat(cell) + np.arange(8)
+        for limit in (0, 1, 7, 23.0, 60, np.inf):
+            expected = dijkstra(graph, indices=states, min_only=True, limit=limit)
+            got = move_counts(table, states, limit, scratch)
+            assert got.dtype == expected.dtype and np.array_equal(got, expected)
+            assert np.isfinite(got).sum() > (limit > 0)  # the search went somewhere
+
+
+def test_a_count_field_cut_in_its_store_is_the_float_field_cut() -> None:
+    """A field lent to another model is cut where it stops being exact in the store's own type
+    (planner/field_rows.py ``CountRows.cut``): the same counts, and inf as the store writes
+    it, as cutting the float64 counts and storing them, for every width of the store."""
+    rng = np.random.default_rng(0)
+    for width in (np.uint8, np.uint16, np.float32):
+        store = CountRows((8, 20, 30), 2)
+        counts = rng.integers(0, 300, (8, 20, 30)).astype(float)
+        counts[counts > 250] = np.inf
+        if width is np.uint8:
+            counts = np.minimum(counts, 250)
+        while store.data.dtype != width:
+            store._widen()
+        store.put(7, counts, 100.0 if width is np.uint8 else np.inf)
+        row = store.row_of(7)
+        for exact in (-0.5, 0.0, 0.999999, 37.999999, 38.0, 254.5, 255.0, 65535.0, 7e4, np.inf):
+            cut = np.where(store.take(row) <= exact, store.take(row), np.inf)
+            store.put(8, cut)  # the float64 way: cut, then stored
+            got = store.cut(row, exact)
+            assert got.dtype == store.data.dtype
+            assert np.array_equal(got, store.data[store.row_of(8)]), (width, exact)

@@ -5,9 +5,14 @@ from scipy import ndimage
 from planner.config import PlannerConfig
 from planner.grid import Grid
 from planner.motion_forecast import (
+    DISTINCT_MIN_CELLS,
+    SquareStencil,
+    box_cells,
     convolve_reflect,
+    distinct_maps,
     ring_kernel,
     shift_with_reflection,
+    union_box,
     wiener_kernel_1d,
 )
 from planner.scenario import TargetSpec
@@ -304,3 +309,33 @@ def test_the_known_position_forecast_spreads_only_the_box_that_holds_belief():
         x0, x1, y0, y1 = wiener_box(layer, len(kernel) // 2)
         assert (x1 - x0) * (y1 - y0) < 0.8 * GRID.size  # a real saving
     assert wiener_box(np.zeros((2, *GRID.shape), np.float32), 4) is None  # nothing to spread
+
+
+def test_the_stencil_over_maps_some_of_them_equal_is_each_maps_own_stencil():
+    # UAVs that heard the same looks hold the same map: the stencil runs once per distinct
+    # map and copies the result; each map comes out bit for bit as stencilled alone over its
+    # own box (equal maps with boxes of different sizes, one at the area's edge)
+    rng = np.random.default_rng(3)
+    kernel = ring_kernel(0.4)
+    maps = np.zeros((7, 60, 90), dtype=np.float32)
+    boxes = np.array([[0, 30, 5, 60], [3, 40, 0, 45], [0, 30, 5, 60], [0, 34, 2, 64],
+                      [3, 40, 0, 45], [40, 60, 60, 90], [0, 30, 5, 60]])  # fmt: skip
+    # enough cells that the stencil looks for the equal maps
+    assert len(maps) * box_cells(union_box(boxes)) >= DISTINCT_MIN_CELLS
+    for i, (x0, x1, y0, y1) in enumerate(boxes[[0, 1, 5]]):
+        maps[[0, 1, 5][i], x0:x1, y0:y1] = rng.random((x1 - x0, y1 - y0))
+    maps[[2, 3, 6]] = maps[0]  # map 3 the same as map 0 within a larger box
+    maps[4] = maps[1]
+    sums = maps.sum(axis=(1, 2), dtype=np.float64)
+    assert len(distinct_maps(maps, sums)[0]) == 3
+    alone = [m[None].copy() for m in maps]
+    for m, box in zip(alone, boxes, strict=True):
+        SquareStencil(m.shape, m.dtype).apply(m, kernel, tuple(box))
+    # alike by their sums, and all alike (every map compared with the first)
+    for alike in (sums, np.zeros(len(maps))):
+        batched = maps.copy()
+        stencil = SquareStencil(maps.shape, maps.dtype)
+        stencil.chunk = 2  # the distinct maps in more than one batch
+        stencil.apply(batched, kernel, boxes=boxes, alike=alike)
+        assert np.array_equal(batched, np.concatenate(alone))
+        assert np.array_equal(batched[3], batched[0]) and not np.array_equal(batched[0], batched[1])
