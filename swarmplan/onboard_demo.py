@@ -246,6 +246,18 @@ def _truth_line(result: dict) -> str:
     )
 
 
+def _heard_lines(result: dict) -> list[str]:
+    """What the coordinator heard over the swarm link (none after ``--join``)."""
+    heard = result.get("coordinator")
+    if not heard:
+        return []
+    return [
+        f"heard           {heard['reports']} reports over the swarm link, coverage "
+        f"{heard['coverage_heard'] * 100:.1f}%, engaged {heard['engaged_heard']}, last step "
+        f"heard per UAV {heard['last_step_heard']} (the coordinator's ground radio)"
+    ]
+
+
 def summary_lines(result: dict, out: Path) -> list[str]:
     link = result["link"]
     deadlines = link["claim_deadlines"]
@@ -266,6 +278,7 @@ def summary_lines(result: dict, out: Path) -> list[str]:
         f"claim deadlines missed {deadlines.get('missed', 0)}: avoided "
         f"{deadlines.get('avoided', 0)}, held {deadlines.get('held', 0)}",
         f"nodes missing   {result['nodes_missing'] or 'none'}",
+        *_heard_lines(result),
         f"files in        {out}/ (result.json, node-I/result.json, {logs})",
     ]
 
