@@ -269,7 +269,8 @@ def progress_line(swarm: HeardSwarm, steps: int, running: int, now: float) -> st
     return (
         f"coordinator: step {k}/{steps} heard ({at_k} of {swarm.n} UAVs at it), coverage "
         f"{swarm.coverage.any(axis=0).mean() * 100:.1f}% heard, engaged {len(swarm.engaged)}"
-        f"{f'; not heard: {silent}' if silent else ''}; {running} nodes running"
+        f"{f'; not heard: {silent}' if silent else ''}; {running} node"
+        f"{'' if running == 1 else 's'} running"
     )
 
 
