@@ -317,7 +317,6 @@ def main(args: Any, scenario: Scenario, out: Path, key: bytes | None) -> int:
         return write_joined(args, scenario, out, {})
     steps = args.steps or scenario.steps
     started = time.monotonic()
-    speedup = args.speedup or ONBOARD_SPEEDUP
     view, truth = open_view(args, scenario, steps, out)
     ear = GroundEar(key)
     try:
@@ -338,6 +337,9 @@ def main(args: Any, scenario: Scenario, out: Path, key: bytes | None) -> int:
         view.phase("search: the nodes fly the swarm (heard over the swarm link)", -1)
         watch(nodes, heard, steps, args.json)
         stop(sim)  # (its summary, with the radio's count and the truth of what flew, is in sim.log)
+    except BaseException:  # (Ctrl-C: the nodes and the simulator fly on; the view stops)
+        view.stop()
+        raise
     finally:
         view.close()
         ear.close()
