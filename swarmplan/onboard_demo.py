@@ -279,7 +279,8 @@ def summary_lines(result: dict, out: Path) -> list[str]:
         f"{deadlines.get('avoided', 0)}, held {deadlines.get('held', 0)}",
         f"nodes missing   {result['nodes_missing'] or 'none'}",
         *_heard_lines(result),
-        f"files in        {out}/ (result.json, node-I/result.json, {logs})",
+        f"files in        {out}/ (result.json, node-I/result.json, {logs}"
+        f"{', replay.jsonl.gz' if (out / 'replay.jsonl.gz').exists() else ''})",
     ]
 
 
