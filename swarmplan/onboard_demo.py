@@ -162,7 +162,8 @@ def watch(nodes: Sequence[subprocess.Popen], ear: SwarmWatch, steps: int, quiet:
         ear.pump(0.2)
         now = time.monotonic()
         running = sum(p.poll() is None for p in nodes)
-        key = (swarm.shown, running, tuple(i for i, _ in swarm.silent(now)))
+        silent = () if swarm.shown < 0 else tuple(i for i, _ in swarm.silent(now))
+        key = (swarm.shown, running, silent)
         if key != said and not quiet:
             print(progress_line(swarm, steps, running, now), file=sys.stderr, flush=True)
             said = key

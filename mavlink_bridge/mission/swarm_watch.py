@@ -260,8 +260,13 @@ class HeardSwarm:
 
 def progress_line(swarm: HeardSwarm, steps: int, running: int, now: float) -> str:
     """``coordinator: step K/N heard ...``: the newest step shown, the UAVs heard at it, the
-    heard coverage and engagements, the silent UAVs and the node processes still running."""
-    k = max(swarm.shown, 0)
+    heard coverage and engagements, the silent UAVs and the node processes still running
+    (before the first step: that it listens, while the nodes launch their planes)."""
+    nodes = f"{running} node{'' if running == 1 else 's'} running"
+    if swarm.shown < 0:
+        heard = sum(u.heard_s is not None for u in swarm.uavs)
+        return f"coordinator: listening to the swarm link ({heard} of {swarm.n} heard); {nodes}"
+    k = swarm.shown
     at_k = sum(u.step >= k for u in swarm.uavs)
     silent = ", ".join(
         f"UAV {i} {'never heard' if s is None else f'{s:.0f} s'}" for i, s in swarm.silent(now)
@@ -269,8 +274,7 @@ def progress_line(swarm: HeardSwarm, steps: int, running: int, now: float) -> st
     return (
         f"coordinator: step {k}/{steps} heard ({at_k} of {swarm.n} UAVs at it), coverage "
         f"{swarm.coverage.any(axis=0).mean() * 100:.1f}% heard, engaged {len(swarm.engaged)}"
-        f"{f'; not heard: {silent}' if silent else ''}; {running} node"
-        f"{'' if running == 1 else 's'} running"
+        f"{f'; not heard: {silent}' if silent else ''}; {nodes}"
     )
 
 
