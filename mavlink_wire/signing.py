@@ -141,11 +141,34 @@ def signing_clock() -> int:
     return int((max(time.time(), EPOCH_2015) - EPOCH_2015) * 100_000)
 
 
+class WallClockSigning(mavlink.MAVLinkSigning):
+    """pymavlink's signing state with a timestamp that never falls behind the wall clock.
+    pymavlink adds one (10 us) per frame it signs and nothing else, so an encoder set up long
+    before it first speaks to a new receiver (a neighbour only now in range, a ground station
+    that starts listening mid-mission, a swarm whose start took minutes on a busy machine)
+    would stamp its frames minutes in the past, and that receiver refuses a new stream more
+    than ``NEW_STREAM_WINDOW`` behind its clock as a replay (ArduPilot too). As ArduPilot moves
+    its own timestamp up to its clock, each frame here is stamped ``max(last + 1, now)``."""
+
+    @property  # type: ignore[override]
+    def timestamp(self) -> int:
+        return max(self._timestamp, signing_clock())
+
+    @timestamp.setter
+    def timestamp(self, value: int) -> None:
+        self._timestamp = int(value)
+
+
 def sign_outgoing(mav: mavlink.MAVLink, key: bytes, link_id: int) -> None:
-    """Make encoder ``mav`` sign every frame it packs (timestamp from the wall clock)."""
+    """Make encoder ``mav`` sign every frame it packs (timestamps kept up with the wall clock:
+    :class:`WallClockSigning`)."""
+    if not isinstance(mav.signing, WallClockSigning):
+        state = WallClockSigning()
+        for name, value in vars(mav.signing).items():
+            setattr(state, name, value)
+        mav.signing = state
     mav.signing.secret_key = key
     mav.signing.link_id = link_id & 0xFF
-    mav.signing.timestamp = max(mav.signing.timestamp, signing_clock())
     mav.signing.sign_outgoing = True
 
 

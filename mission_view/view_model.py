@@ -17,7 +17,7 @@ from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
 from planner.scenario import Scenario
 
 #: Event kinds of the timeline.
-EVENT_KINDS = ("engagement", "miss", "override", "refusal", "warning", "link", "phase")
+EVENT_KINDS = ("engagement", "miss", "threat", "override", "refusal", "warning", "link", "phase")
 
 #: Spacings (degrees) tried for the lines of constant latitude / longitude: the largest giving
 #: at least three lines across the area is used.

@@ -54,12 +54,25 @@ class BeliefSnapshot:
         return existence_of_layers(self.tpm_maps[:, uav], self.tpm_scale[:, uav])
 
 
+@dataclass(frozen=True)
+class CoverageBeliefs:
+    """Beliefs known only as coverage: ``coverage`` (N, nx, ny) bool, the cells each UAV is
+    known to have searched (what a ground station hears of the swarm's looks,
+    ``mavlink_bridge.mission.swarm_watch``); no TPM, no pheromone."""
+
+    coverage: np.ndarray
+
+
 def belief_snapshot(
     planner: object, step: int, reuse: BeliefSnapshot | None = None
 ) -> BeliefSnapshot | None:
     """Copy the beliefs of a planner that keeps them in a ``SwarmBeliefs`` (HAPF-ACO, PSO,
-    ACOAPF); None for one that does not. ``reuse``: a snapshot no longer read by anyone, whose
-    arrays are overwritten instead of allocating new ones (the caller hands it over)."""
+    ACOAPF), or of a ``CoverageBeliefs``; None for one that keeps none. ``reuse``: a snapshot no
+    longer read by anyone, whose arrays are overwritten instead of allocating new ones (the
+    caller hands it over)."""
+    if isinstance(planner, CoverageBeliefs):
+        old = reuse.coverage if reuse is not None else None
+        return BeliefSnapshot(step, _frozen(planner.coverage, old), None, None, None)
     beliefs = beliefs_of(planner)
     if beliefs is None:
         return None

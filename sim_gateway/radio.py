@@ -23,6 +23,13 @@ and no bandwidth limit a frame is passed on at once, in the same loop pass it ar
 Frames are passed on byte for byte (a signed frame keeps its signature: the receiving node
 checks it, as a radio cannot sign). Defaults: unlimited range, no loss, no latency, no
 bandwidth limit.
+
+A ground station may listen on the same channel (:class:`GroundRadio`, ``swarmplan sim
+--radio-ground-port``): a radio on the ground at a position of the mission frame that hears each
+frame under the same rules as a vehicle (range from its antenna, on the ground, to the sender;
+its own loss draw, from a stream of its own so that the vehicles' draws are those without it;
+the same latency) and passes it to its port. It only listens: it takes no share of the channel
+and sends nothing, so the nodes' link is the same with it or without it.
 """
 
 from __future__ import annotations
@@ -41,6 +48,10 @@ from sim_gateway.sim_options import RadioOptions
 
 #: the radio's own random stream: SeedSequence([seed, RADIO_STREAM]) (not the world's)
 RADIO_STREAM = 0x52414449
+#: the ground station's loss draws: SeedSequence([seed, RADIO_STREAM, GROUND_STREAM])
+GROUND_STREAM = 0x47
+#: the receiver index of the ground station in the radio's queue
+GROUND = -1
 
 
 @dataclass
@@ -71,6 +82,32 @@ class RadioStats:
         }
 
 
+@dataclass
+class GroundRadio:
+    """A ground station's radio on the swarm's channel: at ``x_m``, ``y_m`` of the mission frame
+    on the ground (altitude 0, the planes' altitudes being above home), it passes each frame it
+    hears to ``sock``'s destination (the coordinator's port). Counts what it heard and why it
+    missed the rest."""
+
+    sock: VehicleSocket
+    x_m: float
+    y_m: float
+    rng: np.random.Generator
+    delivered: int = 0
+    lost_to_range: int = 0
+    lost_to_loss: int = 0
+    bytes_received: int = 0
+
+    def summary(self) -> dict[str, object]:
+        return {
+            "position_km": [round(self.x_m / 1000.0, 3), round(self.y_m / 1000.0, 3)],
+            "delivered": self.delivered,
+            "lost_to_range": self.lost_to_range,
+            "lost_to_loss": self.lost_to_loss,
+            "bytes_received": self.bytes_received,
+        }
+
+
 def is_swarm_frame(message: mavlink.MAVLink_message) -> bool:
     """A TUNNEL message of the swarm link's payload type."""
     return message.get_type() == "TUNNEL" and message.payload_type == SWARM_PAYLOAD_TYPE
@@ -96,6 +133,22 @@ class SwarmRadio:
         self.channel_free_s = 0.0
         self.queue: list[tuple[float, int, int, bytes]] = []  # (due s, order, receiver, frame)
         self.order = 0
+        self.seed = seed
+        #: a ground station listening on the channel (:meth:`listen_on_ground`), or None
+        self.ground: GroundRadio | None = None
+
+    def listen_on_ground(self, sock: VehicleSocket, x_km: float, y_km: float) -> None:
+        """A ground station at (``x_km``, ``y_km``) hears the channel, passed on to ``sock``."""
+        stream = np.random.SeedSequence([self.seed, RADIO_STREAM, GROUND_STREAM])
+        rng = np.random.default_rng(stream)
+        self.ground = GroundRadio(sock, x_km * 1000.0, y_km * 1000.0, rng)
+
+    def summary(self) -> dict[str, object]:
+        """What the radio carried, with the ground station's reception when one listens."""
+        out = self.stats.summary()
+        if self.ground is not None:
+            out["ground"] = self.ground.summary()
+        return out
 
     def on_frame(
         self, message: mavlink.MAVLink_message, sock: VehicleSocket | None, now_s: float
@@ -121,7 +174,11 @@ class SwarmRadio:
 
     def _send(self, deliveries: list[tuple[int, bytes]]) -> None:
         for receiver, frame in deliveries:
-            self.sockets[receiver].send(frame)
+            if receiver == GROUND:
+                if self.ground is not None:
+                    self.ground.sock.send(frame)
+            else:
+                self.sockets[receiver].send(frame)
 
     def transmit(
         self, sender: int, frame: bytes, positions_m: np.ndarray, now_s: float
@@ -150,13 +207,35 @@ class SwarmRadio:
             if opts.loss > 0 and self.rng.random() < opts.loss:
                 stats.lost_to_loss += 1
                 continue
-            if due_s <= now_s:
-                now.append((receiver, frame))
-            else:
-                heapq.heappush(self.queue, (due_s, self.order, receiver, frame))
-                self.order += 1
+            now += self._queue(receiver, frame, due_s, now_s)
+        if self.ground is not None:
+            now += self._to_ground(sender, frame, positions_m, due_s, now_s)
         self._count(now)
         return now
+
+    def _queue(self, receiver: int, frame: bytes, due_s: float, now_s: float) -> list:
+        """``[(receiver, frame)]`` when it is due now, else ``[]`` with the frame queued."""
+        if due_s <= now_s:
+            return [(receiver, frame)]
+        heapq.heappush(self.queue, (due_s, self.order, receiver, frame))
+        self.order += 1
+        return []
+
+    def _to_ground(
+        self, sender: int, frame: bytes, positions_m: np.ndarray, due_s: float, now_s: float
+    ) -> list[tuple[int, bytes]]:
+        """The ground station's reception of ``frame``: range from its antenna, its own loss."""
+        ground = self.ground
+        assert ground is not None
+        antenna = np.array([ground.x_m, ground.y_m, 0.0])
+        distance_km = float(np.linalg.norm(positions_m[sender] - antenna)) / 1000.0
+        if not distance_km <= self.options.range_km:
+            ground.lost_to_range += 1
+            return []
+        if self.options.loss > 0 and ground.rng.random() < self.options.loss:
+            ground.lost_to_loss += 1
+            return []
+        return self._queue(GROUND, frame, due_s, now_s)
 
     def due(self, now_s: float) -> list[tuple[int, bytes]]:
         """Queued deliveries due by simulated ``now_s``, in order."""
@@ -169,5 +248,10 @@ class SwarmRadio:
 
     def _count(self, deliveries: list[tuple[int, bytes]]) -> None:
         for receiver, frame in deliveries:
+            if receiver == GROUND:
+                if self.ground is not None:
+                    self.ground.delivered += 1
+                    self.ground.bytes_received += len(frame)
+                continue
             self.stats.delivered += 1
             self.stats.bytes_received[receiver] += len(frame)

@@ -81,6 +81,11 @@ class SimOptions:
     lockstep_timeout_s: float = 10.0  # wall s of ground-station silence that end the lock
     truth_port: int | None = None  # send the true targets to 127.0.0.1:PORT (truth_feed.py)
     radio: RadioOptions = RadioOptions()  # the swarm link between the nodes (radio.py)
+    #: a ground station hears the swarm link (radio.GroundRadio): what it hears goes to
+    #: gcs_host:PORT; None: no ground station on the channel
+    radio_ground_port: int | None = None
+    #: where that ground station's antenna is, mission frame km; None: the area's centre
+    radio_ground_km: tuple[float, float] | None = None
 
     def validate(self) -> None:
         self.radio.validate()
@@ -115,6 +120,7 @@ class SimOptions:
             ("--per-vehicle-ports", self.per_vehicle_port_base, 1),
             ("--bind-base-port", self.bind_port_base, 0),
             ("--truth-port", self.truth_port, 1),
+            ("--radio-ground-port", self.radio_ground_port, 1),
         ):
             if port is not None and not low <= port <= 65535:
                 raise SimulatorError(f"{name} must be a UDP port in {low}..65535, got {port}")

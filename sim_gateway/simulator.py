@@ -102,6 +102,9 @@ class Simulator:
         self.inbox.on_swarm_frame = lambda message, sock: self.radio.on_frame(
             message, sock, self.sim_time_s
         )
+        self.ground_socket: VehicleSocket | None = None
+        if options.radio_ground_port is not None:
+            self._open_ground_radio(resolve_gcs_host(options.gcs_host))
         self.signature_check = None
         if options.signing_key is not None:
             senders = (c for v in self.vehicles for c in (v.autopilot, v.camera))
@@ -147,6 +150,26 @@ class Simulator:
                 f"cannot open UDP socket on {options.bind_host} ({exc.strerror}); choose another "
                 "--bind-host / --bind-base-port or stop what holds the port"
             ) from None
+
+    def _open_ground_radio(self, gcs_ip: str) -> None:
+        """The ground station's radio on the swarm's channel (``radio.GroundRadio``): at
+        ``--radio-ground-km`` (default the area's centre), passing what it hears to
+        ``--radio-ground-port`` (a socket of its own: never read, its sends not counted as
+        the vehicles')."""
+        options = self.options
+        width, height = self.config.area_km
+        x_km, y_km = options.radio_ground_km or (width / 2.0, height / 2.0)
+        try:
+            sock = VehicleSocket(options.bind_host, 0, (gcs_ip, options.radio_ground_port),
+                                 LinkStats())  # fmt: skip
+        except OSError as exc:
+            self.close()
+            raise SimulatorError(
+                f"cannot open the ground radio's UDP socket on {options.bind_host} "
+                f"({exc.strerror}); choose another --bind-host"
+            ) from None
+        self.ground_socket = sock
+        self.radio.listen_on_ground(sock, x_km, y_km)
 
     # ------------------------------------------------------------------ host services
 
@@ -446,6 +469,8 @@ class Simulator:
             self.inbox.close()
         for sock in self.sockets:
             sock.close()
+        if getattr(self, "ground_socket", None) is not None:
+            self.ground_socket.close()
         if getattr(self, "truth_feed", None) is not None:
             self.truth_feed.close()
 
@@ -486,7 +511,7 @@ class Simulator:
                 }
             ),
             "fence_breaches": self.fence_breaches,
-            "radio": self.radio.stats.summary(),
+            "radio": self.radio.summary(),
             "lockstep_grants": self.lockstep.grants,
             "safety": self.truth.summary(),
         }

@@ -91,6 +91,15 @@ def finite_float(text: str) -> float:
     return value
 
 
+def km_point(text: str) -> tuple[float, float]:
+    """A point of the mission frame, ``X,Y`` in km (east, north of the area's south-west
+    corner)."""
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a point X,Y in km; e.g. 50,50")
+    return finite_float(parts[0].strip()), finite_float(parts[1].strip())
+
+
 def positive_float(text: str) -> float:
     value = finite_float(text)
     if value <= 0:

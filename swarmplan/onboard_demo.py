@@ -1,8 +1,11 @@
 """``swarmplan demo SCENARIO --onboard``: the swarm without a centre on one machine. Starts the
 simulator (paced, each vehicle with its own port, the radio between them), one ``swarmplan
-node`` process per UAV beside its vehicle, and this coordinator, which watches the nodes, then
-joins their parts (``node-I/result.json``) into the usual result folder and summary
-(``result.json``: ``architecture`` onboard and the link's figures).
+node`` process per UAV beside its vehicle, and this coordinator, which listens to the swarm link
+as a ground station (the simulator's radio passes what a ground antenna at the area's centre
+hears to the coordinator's port: ``mavlink_bridge.mission.swarm_watch``), says the progress and
+feeds the live view from what it hears, then joins the nodes' parts (``node-I/result.json``)
+into the usual result folder and summary (``result.json``: ``architecture`` onboard, the link's
+figures, and what the coordinator heard).
 
 The simulator and the nodes run in sessions of their own: killing the coordinator (Ctrl-C in
 its terminal, SIGTERM, SIGKILL) stops neither; the nodes fly on and bring the planes home, each
@@ -26,9 +29,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from mavlink_bridge.mission.swarm_watch import GroundEar, HeardSwarm, SwarmWatch, progress_line
 from mavlink_wire.signing import key_environment
+from mission_view.truth_receiver import TruthReceiver
+from mission_view.view_session import ViewSession
 from planner.scenario import Scenario
 from sim_gateway.sim_options import RadioOptions
+from swarmplan import option_groups
 from swarmplan.arguments import finite_float
 from swarmplan.sim_log import simulator_summary
 
@@ -109,9 +116,12 @@ def _start(command: list[str], log: Path, key: bytes | None) -> subprocess.Popen
 
 
 def start_swarm(
-    args: Any, scenario: Scenario, steps: int, out: Path, key: bytes | None
-) -> tuple[subprocess.Popen, list[subprocess.Popen], float]:
-    """The simulator and one node per UAV; returns them and the speedup."""
+    args: Any, scenario: Scenario, steps: int, out: Path, key: bytes | None,
+    ground_port: int | None = None, truth_port: int | None = None,
+) -> tuple[subprocess.Popen, list[subprocess.Popen], float]:  # fmt: skip
+    """The simulator and one node per UAV; returns them and the speedup. ``ground_port``:
+    where the simulator's ground radio passes what it hears of the swarm link (the
+    coordinator's ear); ``truth_port``: where it sends the true targets (the live view's)."""
     radio = RadioOptions(
         math.inf if args.radio_range_km is None else args.radio_range_km, args.radio_loss
     )
@@ -125,6 +135,8 @@ def start_swarm(
         "--per-vehicle-ports", str(base), "--radio-loss", f"{radio.loss:g}", "--quiet",
         "--duration-s", f"{duration:g}", "--target-account", str(out / "target_truth.json"),
         *([] if math.isinf(radio.range_km) else ["--radio-range-km", f"{radio.range_km:g}"]),
+        *([] if ground_port is None else ["--radio-ground-port", str(ground_port)]),
+        *([] if truth_port is None else ["--truth-port", str(truth_port)]),
     )  # fmt: skip
     sim = _start(sim_cmd, out / "sim.log", key)
     nodes = []
@@ -141,30 +153,21 @@ def start_swarm(
     return sim, nodes, speedup
 
 
-def node_step(log: Path) -> int:
-    """The last decision step a node's log says it flew (-1: none yet)."""
-    try:
-        text = log.read_bytes()[-4000:].decode(errors="replace")
-    except OSError:
-        return -1
-    for line in reversed(text.splitlines()):
-        parts = line.split()
-        if len(parts) > 3 and parts[2] == "step" and "/" in parts[3]:
-            return int(parts[3].split("/")[0])
-    return -1
-
-
-def watch(nodes: Sequence[subprocess.Popen], out: Path, steps: int, quiet: bool) -> None:
-    """Until every node has exited: the slowest node's step, said when it changes."""
+def watch(nodes: Sequence[subprocess.Popen], ear: SwarmWatch, steps: int, quiet: bool) -> None:
+    """Until every node has exited: hear the swarm, show its steps, and say the newest step
+    heard when it (or the nodes running, or who is silent) changes."""
     said = None
+    swarm = ear.swarm
     while any(p.poll() is None for p in nodes):
-        slowest = min(node_step(out / f"node-{i}" / "node.log") for i in range(len(nodes)))
+        ear.pump(0.2)
+        now = time.monotonic()
         running = sum(p.poll() is None for p in nodes)
-        line = f"coordinator: step {max(slowest, 0)}/{steps} (slowest node), {running} nodes flying"
-        if line != said and not quiet:
-            print(line, file=sys.stderr, flush=True)
-            said = line
-        time.sleep(0.5)
+        silent = () if swarm.shown < 0 else tuple(i for i, _ in swarm.silent(now))
+        key = (swarm.shown, running, silent)
+        if key != said and not quiet:
+            print(progress_line(swarm, steps, running, now), file=sys.stderr, flush=True)
+            said = key
+    ear.pump(0.0, flush=True)  # the steps heard but not shown yet
 
 
 def stop(proc: subprocess.Popen) -> None:
@@ -244,6 +247,18 @@ def _truth_line(result: dict) -> str:
     )
 
 
+def _heard_lines(result: dict) -> list[str]:
+    """What the coordinator heard over the swarm link (none after ``--join``)."""
+    heard = result.get("coordinator")
+    if not heard:
+        return []
+    return [
+        f"heard           {heard['reports']} reports over the swarm link, coverage "
+        f"{heard['coverage_heard'] * 100:.1f}%, engaged {heard['engaged_heard']}, last step "
+        f"heard per UAV {heard['last_step_heard']} (the coordinator's ground radio)"
+    ]
+
+
 def summary_lines(result: dict, out: Path) -> list[str]:
     link = result["link"]
     deadlines = link["claim_deadlines"]
@@ -264,27 +279,79 @@ def summary_lines(result: dict, out: Path) -> list[str]:
         f"claim deadlines missed {deadlines.get('missed', 0)}: avoided "
         f"{deadlines.get('avoided', 0)}, held {deadlines.get('held', 0)}",
         f"nodes missing   {result['nodes_missing'] or 'none'}",
-        f"files in        {out}/ (result.json, node-I/result.json, {logs})",
+        *_heard_lines(result),
+        f"files in        {out}/ (result.json, node-I/result.json, {logs}"
+        f"{', replay.jsonl.gz' if (out / 'replay.jsonl.gz').exists() else ''})",
     ]
 
 
+def open_view(
+    args: Any, scenario: Scenario, steps: int, out: Path
+) -> tuple[ViewSession, TruthReceiver]:
+    """The mission view of what the coordinator hears (replay in ``out``, served unless
+    ``--no-view``) and the receiver of the simulator's true targets, for the view only."""
+    view = ViewSession(
+        scenario, seed=args.seed, steps=steps, uav_count=scenario.uav_count, source="mavlink",
+        truth=True, out_dir=out, options=option_groups.view_options(args),
+    )  # fmt: skip
+    return view, TruthReceiver()
+
+
+def heard_summary(watch: SwarmWatch) -> dict[str, Any]:
+    """What the coordinator heard of the swarm link (result.json's ``coordinator``)."""
+    swarm, ear = watch.swarm, watch.ear
+    return {
+        "heard_by": "ground radio at the area's centre (the simulator's radio model)",
+        "frames": ear.frames,
+        "reports": swarm.reports,
+        "undecodable": swarm.undecodable,
+        "steps_shown": swarm.shown + 1,
+        "coverage_heard": round(float(swarm.coverage.any(axis=0).mean()), 4),
+        "engaged_heard": len(swarm.engaged),
+        "last_step_heard": [u.step for u in swarm.uavs],
+        "wire": dict(vars(ear.reassembler.stats)),
+    }
+
+
 def main(args: Any, scenario: Scenario, out: Path, key: bytes | None) -> int:
-    """Start the swarm, watch it, join the parts (``swarmplan demo --onboard``)."""
+    """Start the swarm, hear it, join the parts (``swarmplan demo --onboard``)."""
     if args.join:
         return write_joined(args, scenario, out, {})
     steps = args.steps or scenario.steps
     started = time.monotonic()
-    sim, nodes, speedup = start_swarm(args, scenario, steps, out, key)
-    # (said also with --json: the pids are how to reach the processes it leaves running)
-    print(f"coordinator: simulator pid {sim.pid} ({scenario.uav_count} vehicles, {speedup:g}x, "
-          f"radio range {args.radio_range_km or 'unlimited'} km, loss {args.radio_loss:g}, "
-          f"{'unsigned' if key is None else 'signed'})", file=sys.stderr)  # fmt: skip
-    print(f"coordinator: node pids {' '.join(str(p.pid) for p in nodes)} (node i flies system "
-          f"id i+1; its log: {out}/node-i/node.log)", file=sys.stderr, flush=True)  # fmt: skip
-    watch(nodes, out, steps, args.json)
-    stop(sim)  # (its summary, with the radio's count and the truth of what flew, is in sim.log)
-    return write_joined(args, scenario, out, {
-        "wall_time_s": round(time.monotonic() - started, 1), "speedup": speedup})  # fmt: skip
+    view, truth = open_view(args, scenario, steps, out)
+    ear = GroundEar(key)
+    try:
+        sim, nodes, speedup = start_swarm(args, scenario, steps, out, key, ear.port, truth.port)
+        # (said also with --json: the pids are how to reach the processes it leaves running)
+        print(f"coordinator: simulator pid {sim.pid} ({scenario.uav_count} vehicles, "
+              f"{speedup:g}x, radio range {args.radio_range_km or 'unlimited'} km, loss "
+              f"{args.radio_loss:g}, {'unsigned' if key is None else 'signed'})",
+              file=sys.stderr)  # fmt: skip
+        print(f"coordinator: node pids {' '.join(str(p.pid) for p in nodes)} (node i flies "
+              f"system id i+1; its log: {out}/node-i/node.log)", file=sys.stderr)  # fmt: skip
+        if view.url is not None:
+            print(f"coordinator: live view at {view.url} (what the ground radio hears)",
+                  file=sys.stderr)  # fmt: skip
+        sys.stderr.flush()
+        swarm = HeardSwarm(scenario, args.seed, scenario.config.step_s / speedup, ear.signed)
+        heard = SwarmWatch(ear, swarm, view.post, truth.latest)
+        view.phase("search: the nodes fly the swarm (heard over the swarm link)", -1)
+        watch(nodes, heard, steps, args.json)
+        stop(sim)  # (its summary, with the radio's count and the truth of what flew, is in sim.log)
+    except BaseException:  # (Ctrl-C: the nodes and the simulator fly on; the view stops)
+        view.stop()
+        raise
+    finally:
+        view.close()
+        ear.close()
+        truth.close()
+    try:
+        return write_joined(args, scenario, out, {
+            "wall_time_s": round(time.monotonic() - started, 1), "speedup": speedup,
+            "coordinator": heard_summary(heard)})  # fmt: skip
+    finally:
+        view.stop()
 
 
 #: where ``swarmplan radio-relay``'s output goes in a result folder of nodes on real autopilots

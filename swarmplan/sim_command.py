@@ -26,6 +26,7 @@ from sim_gateway.sim_options import RadioOptions  # noqa: E402
 from swarmplan import option_groups  # noqa: E402
 from swarmplan.arguments import (  # noqa: E402
     finite_float,
+    km_point,
     non_negative_float,
     non_negative_int,
     port_number,
@@ -165,6 +166,17 @@ def add_radio_arguments(parser: argparse.ArgumentParser) -> None:
         help="the channel's rate shared by all vehicles, kbit/s (e.g. 57.6); a frame that "
         "would wait more than a decision period is dropped (default: unlimited)",
     )  # fmt: skip
+    group.add_argument(
+        "--radio-ground-port", type=port_number, default=None, metavar="PORT",
+        help="a ground station listens on the channel: the frames it hears (same range, "
+        "loss and latency, from its antenna) go to --gcs-host:PORT (swarmplan demo --onboard's "
+        "coordinator); default: none",
+    )  # fmt: skip
+    group.add_argument(
+        "--radio-ground-km", type=km_point, default=None, metavar="X,Y",
+        help="where that ground station's antenna is, mission frame km (default: the area's "
+        "centre)",
+    )  # fmt: skip
 
 
 def radio_options(args: argparse.Namespace) -> RadioOptions:
@@ -202,6 +214,8 @@ def main(args: argparse.Namespace) -> int:
         lockstep=args.lockstep,
         lockstep_timeout_s=args.lockstep_timeout,
         radio=radio_options(args),
+        radio_ground_port=args.radio_ground_port,
+        radio_ground_km=args.radio_ground_km,
     )
     with Simulator(scenario, options) as sim:
         n = len(sim.vehicles)

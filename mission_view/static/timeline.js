@@ -2,7 +2,7 @@
 // filter by kind and jumps to an event's step (click, Enter, previous / next event).
 "use strict";
 
-const KIND_NAMES = { engagement: "engagements", miss: "misses", override: "envelope",
+const KIND_NAMES = { engagement: "engagements", miss: "misses", threat: "threats found", override: "envelope",
   refusal: "refused", warning: "warnings", link: "link", phase: "phase", operator: "operator" };
 
 function shownEvents() { return view.events.filter((e) => !view.hiddenKinds.has(e.kind)); }

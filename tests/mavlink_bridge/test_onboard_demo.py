@@ -15,6 +15,7 @@ from pathlib import Path
 
 import loopback
 import pytest
+from onboard_processes import end_processes, is_running, onboard_pids
 
 from planner.scenario import load_scenario
 
@@ -29,39 +30,6 @@ def _scenario(tmp_path: Path, uavs: int) -> Path:
     path.write_text(text.replace("count = 10", f"count = {uavs}"))
     assert load_scenario(path).uav_count == uavs
     return path
-
-
-def _pids(log: Path, coordinator, timeout_s: float = 120.0) -> list[int]:
-    """The simulator's and the nodes' pids, as the coordinator says them."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and coordinator.poll() is None:
-        text = log.read_text(errors="replace") if log.exists() else ""
-        sim = re.search(r"simulator pid (\d+)", text)
-        nodes = re.search(r"node pids ([\d ]+)", text)
-        if sim and nodes:
-            return [int(sim.group(1)), *map(int, nodes.group(1).split())]
-        time.sleep(0.2)
-    raise AssertionError(f"the coordinator never said its pids: {log.read_text()[-2000:]}")
-
-
-def _running(pid: int) -> bool:
-    try:
-        return b"swarmplan" in Path(f"/proc/{pid}/cmdline").read_bytes()
-    except OSError:
-        return False
-
-
-def _end(pids: list[int]) -> None:
-    """Stop what the coordinator started and left running (by pid, only ours)."""
-    for pid in pids:
-        if _running(pid):
-            os.kill(pid, signal.SIGTERM)
-    deadline = time.monotonic() + 10
-    while any(_running(p) for p in pids) and time.monotonic() < deadline:
-        time.sleep(0.2)
-    for pid in pids:
-        if _running(pid):
-            os.kill(pid, signal.SIGKILL)
 
 
 def _sim_truth(sim_log: Path) -> dict:
@@ -81,11 +49,11 @@ def test_an_onboard_demo_brings_the_planes_home_with_the_link_figures(tmp_path):
     coordinator = _demo(_scenario(tmp_path, 3), out, log)
     pids: list[int] = []
     try:
-        pids = _pids(log, coordinator)
+        pids = onboard_pids(log, coordinator)
         stdout, _ = coordinator.communicate(timeout=200)
     finally:
         loopback.stop(coordinator)
-        _end(pids)
+        end_processes(pids)
     assert coordinator.returncode == 0, log.read_text()[-3000:]
     result = json.loads(stdout)
     assert result == json.loads((out / "result.json").read_text())
@@ -110,7 +78,7 @@ def test_the_nodes_fly_on_and_home_when_the_coordinator_is_killed(tmp_path):
     coordinator = _demo(scenario, out, log)
     pids: list[int] = []
     try:
-        pids = _pids(log, coordinator)
+        pids = onboard_pids(log, coordinator)
         deadline = time.monotonic() + 150
         while not re.search(r"step\s+1/", (out / "node-0" / "node.log").read_text(
                 errors="replace")):  # fmt: skip
@@ -119,16 +87,16 @@ def test_the_nodes_fly_on_and_home_when_the_coordinator_is_killed(tmp_path):
         coordinator.kill()  # mid-mission, without a word to anyone
         coordinator.wait(10)
         sim, nodes = pids[0], pids[1:]
-        while any(_running(p) for p in nodes):  # the nodes fly on to their end
+        while any(is_running(p) for p in nodes):  # the nodes fly on to their end
             assert time.monotonic() < deadline + 60, "the nodes did not finish"
             time.sleep(0.5)
-        assert _running(sim)  # the world did not stop with the coordinator
+        assert is_running(sim)  # the world did not stop with the coordinator
         os.kill(sim, signal.SIGTERM)
-        while _running(sim) and time.monotonic() < deadline + 80:
+        while is_running(sim) and time.monotonic() < deadline + 80:
             time.sleep(0.2)
     finally:
         loopback.stop(coordinator)
-        _end(pids)
+        end_processes(pids)
     assert not (out / "result.json").exists()  # the coordinator never joined
     for i in range(2):
         part = json.loads((out / f"node-{i}" / "result.json").read_text())

@@ -172,10 +172,24 @@ def test_a_forged_frame_cannot_lock_out_the_real_sender():
     assert check.accept(_pack(good, beat), 0)  # still accepted
     first = _pack(good, beat)
     assert check.accept(first, 0) and not check.accept(first, 0)  # an exact replay
-    stale = _encoder(255, KEY)
-    stale.signing.timestamp -= 2 * 60 * 100_000  # a new stream two minutes in the past
-    stale.signing.link_id = 9
+    stale = ml.MAVLink(None, 255, 190)  # a frame recorded two minutes ago, on a new stream
+    stale.signing.secret_key, stale.signing.link_id, stale.signing.sign_outgoing = KEY, 9, True
+    stale.signing.timestamp = bridge_signing.signing_clock() - 2 * 60 * 100_000
     assert not check.accept(_pack(stale, beat), 0)
+
+
+def test_an_encoder_set_up_minutes_before_it_speaks_is_heard_by_a_new_receiver():
+    """pymavlink only counts frames on from the time signing was set up: a node set up three
+    minutes before its first swarm frame reaches a ground station (or a neighbour) that never
+    heard it would be refused as a replay; ours stamps each frame with the wall clock."""
+    node = _encoder(3, KEY, link_id=3)
+    node.signing.timestamp = bridge_signing.signing_clock() - 3 * 60 * 100_000  # set up then
+    beat = ml.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3)
+    ground = bridge_signing.SignatureCheck(KEY)
+    first = _pack(node, beat)
+    assert ground.accept(first, 0) and ground.replays == 0
+    assert ground.accept(_pack(node, beat), 0)  # later frames too, in order
+    assert not ground.accept(first, 0)  # and a replay is still one
 
 
 def test_keys_come_from_a_file_or_the_environment(tmp_path: Path):

@@ -216,6 +216,58 @@ def test_signed_frames_pass_whole_and_unsigned_ones_stay_on_the_ground(nodes3):
         nodes.close()
 
 
+def test_a_ground_station_hears_the_vehicles_in_its_range_and_changes_nothing_for_them(nodes3):
+    """``--radio-ground-port``: a ground antenna at (22, 20) km with the radio's 10 km range
+    hears vehicle 0 (2 km away) and not vehicle 2 (25 km away); the vehicles' own deliveries
+    are those of a radio without it, and its count is in the summary."""
+    nodes = nodes3
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as ground:
+        ground.bind(("127.0.0.1", 0))
+        ground.setblocking(False)
+        running = _start(nodes, RadioOptions(range_km=10.0), [(20, 20), (27, 20), (45, 20)],
+                         radio_ground_port=ground.getsockname()[1],
+                         radio_ground_km=(22.0, 20.0))  # fmt: skip
+        try:
+            sim = running.sim
+            near, far = SwarmSender(0), SwarmSender(2)
+            mav = [ml.MAVLink(None, srcSystem=s, srcComponent=191) for s in (1, 3)]
+            sent = [_report(0, step, looks=20) for step in range(1, 4)]
+            frames = [f for r in sent for f in near.frames(r, mav[0])]
+            nodes.send(0, sim.sockets[0].local_port, frames)
+            far_frames = far.frames(_report(2, 1), mav[1])
+            nodes.send(2, sim.sockets[2].local_port, far_frames)
+            heard, parser, ear = [], ml.MAVLink(None), SwarmReassembler()
+
+            def ground_heard() -> bool:
+                nodes.pump()
+                while True:
+                    try:
+                        data = ground.recv(65535)
+                    except BlockingIOError:
+                        break
+                    for m in parser.parse_buffer(data) or []:
+                        report = ear.accept_message(m, time.monotonic())
+                        if report is not None:
+                            heard.append(report)
+                return len(heard) >= len(sent) and sim.radio.stats.frames_sent == (
+                    len(frames) + len(far_frames))  # fmt: skip
+
+            assert _until(nodes, ground_heard), sim.radio.summary()
+            time.sleep(0.3)
+            ground_heard()
+            assert heard == sent  # vehicle 0's reports, whole and in order; none of vehicle 2's
+            radio = sim.radio.stats
+            assert nodes.reports[1] == sent and nodes.reports[2] == []
+            # vehicle 1 heard vehicle 0 (and not 2); vehicle 2 heard nothing: as without a ground
+            assert radio.delivered == len(frames)
+            summary = sim.summary()["radio"]["ground"]
+        finally:
+            running.close()
+    assert summary["delivered"] == len(frames) and summary["lost_to_range"] == len(far_frames)
+    assert summary["bytes_received"] == sum(len(f) for f in frames)
+    assert summary["position_km"] == [22.0, 20.0]
+
+
 @pytest.mark.parametrize(
     "option, value, says",
     [
