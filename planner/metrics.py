@@ -233,6 +233,7 @@ class MissionRecorder:
             "wall_time_s": float(wall_time_s),
             "uav_count": self.n,
             "min_separation_limit_km": sc.config.min_separation_km,
+            "max_turn_deg": sc.config.max_turn_deg,  # phi_max, the turn rule judged
             "max_range_km": sc.config.max_range_km
             if math.isfinite(sc.config.max_range_km)
             else None,

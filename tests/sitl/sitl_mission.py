@@ -290,7 +290,7 @@ def turn_breaks_by_step_length(result: dict, step_s: float, tolerance_deg: float
     machine, or the short one catching up after it, where a plane circled its target
     meanwhile)."""
     times = dict(result.get("look_times_ms") or [])
-    limit = result.get("max_turn_deg", 45.0) + tolerance_deg
+    limit = result["max_turn_deg"] + tolerance_deg
     regular = irregular = planned = 0
     for uav in result.get("uavs", []):
         track = np.asarray(uav.get("track_km") or [], float).reshape(-1, 2)
