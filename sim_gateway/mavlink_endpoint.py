@@ -21,7 +21,7 @@ import os
 os.environ.setdefault("MAVLINK20", "1")  # pymavlink reads it once per process, at import
 
 import socket  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
+from dataclasses import dataclass, field, fields  # noqa: E402
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
@@ -52,6 +52,10 @@ class LinkStats:
     stale_commands: int = 0  # commands overtaken by a newer one from the same sender (reordered)
     sent: int = 0
     by_type: dict[str, int] = field(default_factory=dict)  # good frames by message type
+
+    def counts(self) -> dict[str, int]:
+        """Every counter but ``by_type``, by name (the simulator's summary)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "by_type"}
 
 
 class DatagramParser:

@@ -43,8 +43,8 @@ import numpy as np
 from mavlink_wire.protocol import mavlink
 from mavlink_wire.swarm_wire import SWARM_PAYLOAD_TYPE
 from sim_gateway.fixed_wing import FleetKinematics
-from sim_gateway.mavlink_endpoint import VehicleSocket
-from sim_gateway.sim_options import RadioOptions
+from sim_gateway.mavlink_endpoint import LinkStats, VehicleSocket
+from sim_gateway.sim_options import RadioOptions, SimulatorError
 
 #: the radio's own random stream: SeedSequence([seed, RADIO_STREAM]) (not the world's)
 RADIO_STREAM = 0x52414449
@@ -137,11 +137,27 @@ class SwarmRadio:
         #: a ground station listening on the channel (:meth:`listen_on_ground`), or None
         self.ground: GroundRadio | None = None
 
-    def listen_on_ground(self, sock: VehicleSocket, x_km: float, y_km: float) -> None:
-        """A ground station at (``x_km``, ``y_km``) hears the channel, passed on to ``sock``."""
+    def listen_on_ground(
+        self, bind_host: str, destination: tuple[str, int], at_km: tuple[float, float]
+    ) -> None:
+        """A ground station at ``at_km`` hears the channel and passes it on to ``destination``
+        (``--radio-ground-port``) from a UDP socket of its own: never read, its sends not
+        counted as the vehicles'."""
+        try:
+            sock = VehicleSocket(bind_host, 0, destination, LinkStats())
+        except OSError as exc:
+            raise SimulatorError(
+                f"cannot open the ground radio's UDP socket on {bind_host} ({exc.strerror}); "
+                "choose another --bind-host"
+            ) from None
         stream = np.random.SeedSequence([self.seed, RADIO_STREAM, GROUND_STREAM])
         rng = np.random.default_rng(stream)
-        self.ground = GroundRadio(sock, x_km * 1000.0, y_km * 1000.0, rng)
+        self.ground = GroundRadio(sock, at_km[0] * 1000.0, at_km[1] * 1000.0, rng)
+
+    def close(self) -> None:
+        """Close the ground station's socket, if one listens."""
+        if self.ground is not None:
+            self.ground.sock.close()
 
     def summary(self) -> dict[str, object]:
         """What the radio carried, with the ground station's reception when one listens."""

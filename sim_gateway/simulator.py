@@ -102,9 +102,15 @@ class Simulator:
         self.inbox.on_swarm_frame = lambda message, sock: self.radio.on_frame(
             message, sock, self.sim_time_s
         )
-        self.ground_socket: VehicleSocket | None = None
-        if options.radio_ground_port is not None:
-            self._open_ground_radio(resolve_gcs_host(options.gcs_host))
+        if options.radio_ground_port is not None:  # a ground station on the swarm's channel
+            width, height = self.config.area_km
+            to = (resolve_gcs_host(options.gcs_host), options.radio_ground_port)
+            at_km = options.radio_ground_km or (width / 2.0, height / 2.0)
+            try:
+                self.radio.listen_on_ground(options.bind_host, to, at_km)
+            except SimulatorError:
+                self.close()
+                raise
         self.signature_check = None
         if options.signing_key is not None:
             senders = (c for v in self.vehicles for c in (v.autopilot, v.camera))
@@ -150,26 +156,6 @@ class Simulator:
                 f"cannot open UDP socket on {options.bind_host} ({exc.strerror}); choose another "
                 "--bind-host / --bind-base-port or stop what holds the port"
             ) from None
-
-    def _open_ground_radio(self, gcs_ip: str) -> None:
-        """The ground station's radio on the swarm's channel (``radio.GroundRadio``): at
-        ``--radio-ground-km`` (default the area's centre), passing what it hears to
-        ``--radio-ground-port`` (a socket of its own: never read, its sends not counted as
-        the vehicles')."""
-        options = self.options
-        width, height = self.config.area_km
-        x_km, y_km = options.radio_ground_km or (width / 2.0, height / 2.0)
-        try:
-            sock = VehicleSocket(options.bind_host, 0, (gcs_ip, options.radio_ground_port),
-                                 LinkStats())  # fmt: skip
-        except OSError as exc:
-            self.close()
-            raise SimulatorError(
-                f"cannot open the ground radio's UDP socket on {options.bind_host} "
-                f"({exc.strerror}); choose another --bind-host"
-            ) from None
-        self.ground_socket = sock
-        self.radio.listen_on_ground(sock, x_km, y_km)
 
     # ------------------------------------------------------------------ host services
 
@@ -469,8 +455,8 @@ class Simulator:
             self.inbox.close()
         for sock in self.sockets:
             sock.close()
-        if getattr(self, "ground_socket", None) is not None:
-            self.ground_socket.close()
+        if getattr(self, "radio", None) is not None:
+            self.radio.close()
         if getattr(self, "truth_feed", None) is not None:
             self.truth_feed.close()
 
@@ -490,16 +476,7 @@ class Simulator:
             "engagements": self.engagements,
             "targets_left": int(self.world.alive.sum()),
             "airborne": int(self.fleet.airborne.sum()),
-            "datagrams": s.datagrams,
-            "frames": s.frames,
-            "bad_datagrams": s.bad_datagrams,
-            "bad_frames": s.bad_frames,
-            "unknown_messages": s.unknown_messages,
-            "duplicates": s.duplicates,
-            "rejected_commands": s.rejected_commands,
-            "ignored_messages": s.ignored_messages,
-            "sent": s.sent,
-            "stale_commands": s.stale_commands,
+            **s.counts(),
             "foreign_grants": self.clock_master.refused,
             **(
                 {}
