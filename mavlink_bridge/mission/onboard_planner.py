@@ -175,7 +175,7 @@ class OnboardPlanner:
         restored.wire, restored.reassembler = self.wire, self.reassembler
         self.reassembler.stats = restored.wire_stats
         restored._ahead, restored._heard_flights = [], []
-        restored._legs = getattr(restored, "_legs", {})
+        restored._legs = {}  # (not in a checkpoint: heard afresh from the next step)
         restored.swarm_step = -1
         restored.node.forget_step()
         if self.link is not None:

@@ -75,6 +75,7 @@ CACHES = {
     "PursuitLog": ("_square", "_gather"),
     "OnboardPlanner": (
         "link", "period_wall_s", "say", "wire", "reassembler", "_ahead", "_heard_flights",
+        "_legs",
     ),  # fmt: skip
     "UavNode": ("inbox", "_report", "_seen", "_ranking", "_board"),
 }
