@@ -13,7 +13,9 @@ report heard becomes the planner's messages again.
 
 A report with a state decodes to the four messages of exchange 1 (the engagements and threats
 even when empty, as ``begin`` sends them). Positions travel in whole metres (receivers plan with
-cells, never with the measured position); everything else comes back exactly.
+cells, never with the measured position), the course in 1/100 degree and the ground speed in
+cm/s (the neighbours' flight envelopes predict its flight from them); everything else comes back
+exactly.
 """
 
 from __future__ import annotations
@@ -82,7 +84,8 @@ class NodeWire:
         for m in messages:
             if isinstance(m, UavState):
                 parts["state"] = NodeState(m.cell, m.heading, m.position_km[0],
-                                           m.position_km[1], m.radius_km, m.flying)  # fmt: skip
+                                           m.position_km[1], m.radius_km, m.flying,
+                                           m.course_rad, m.speed_mps)  # fmt: skip
             elif isinstance(m, Look):
                 parts["looks"].append(self._look_out(m))
             elif isinstance(m, Engagements):
@@ -125,7 +128,7 @@ class NodeWire:
         s = report.state
         if s is not None:
             out.append(UavState(uav, k, s.cell, s.heading, (s.x_km, s.y_km), s.coop_radius_km,
-                                s.flying))  # fmt: skip
+                                s.flying, s.course_rad, s.speed_mps))  # fmt: skip
             e = report.engagements[0] if report.engagements else None
             outcome = None if e is None else (e.target_id, int(e.success), e.cell)
             out.append(Engagements(uav, k, outcome, tuple(report.serviced_at)))

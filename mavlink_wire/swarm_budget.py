@@ -3,6 +3,8 @@ radio, and the largest report a node of a scenario can send."""
 
 from __future__ import annotations
 
+import math
+
 from mavlink_wire.protocol import mavlink
 from mavlink_wire.swarm_wire import (
     Claim,
@@ -35,7 +37,7 @@ def worst_case_report(
     return SwarmReport(
         uav=uavs - 1,
         step=0xFFFF,
-        state=NodeState(cell, 7, 999.999, 999.999, 50.0),
+        state=NodeState(cell, 7, 999.999, 999.999, 50.0, True, math.radians(359.99), 655.35),
         looks=tuple(Look(k % 256, 0xFFFF, cell, (True,) * footprint_cells) for k in range(looks)),
         engagements=(Engagement(0xFFFF, cell, 0xFFFF, True),),
         serviced=tuple(range(1, targets + 1)),

@@ -19,9 +19,10 @@ Signing is the MAVLink link's: a sender's encoder signs every TUNNEL frame once
 from __future__ import annotations
 
 import binascii
+import math
 import struct
 from collections import OrderedDict, deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from mavlink_wire.protocol import mavlink
 from mavlink_wire.signing import SignatureCheck
@@ -30,7 +31,9 @@ from mavlink_wire.signing import SignatureCheck
 #: ("local experiments", common.xml TUNNEL.payload_type); 0xA557 is the project's.
 SWARM_PAYLOAD_TYPE = 0xA557
 TUNNEL_PAYLOAD_BYTES = 128
-WIRE_VERSION = 2  # 2: the cells of a claim signed (a cell off the area is a claim too)
+#: 2: the cells of a claim signed (a cell off the area is a claim too); 3: the state's measured
+#: course and ground speed (a flight section), for the neighbours' flight envelopes
+WIRE_VERSION = 3
 #: version u8, sender u8, message sequence u16, fragment index u8, fragment count u8, CRC u16
 FRAGMENT_HEADER = struct.Struct("<BBHBBH")
 FRAGMENT_DATA_BYTES = TUNNEL_PAYLOAD_BYTES - FRAGMENT_HEADER.size  # 120
@@ -55,8 +58,11 @@ INTENT = struct.Struct("<HHH")  # track cell x, y u16 (0xFFFF: none); C_c priori
 MOVE_HEAD = struct.Struct("<hhBBBhh")
 CELL = struct.Struct("<hh")  # one alternative cell x, y i16
 SERVICED_AT = struct.Struct("<HHH")  # target u16, cell x, y u16
+#: the state's flight: course over ground u16 in 1/100 degree counter-clockwise from east
+#: (0-35999), ground speed u16 in cm/s
+FLIGHT = struct.Struct("<HH")
 KIND_STATE, KIND_LOOK, KIND_ENGAGEMENT, KIND_SERVICED, KIND_CLAIM, KIND_THREAT = range(1, 7)
-KIND_INTENT, KIND_MOVE, KIND_SERVICED_AT = range(7, 10)
+KIND_INTENT, KIND_MOVE, KIND_SERVICED_AT, KIND_FLIGHT = range(7, 11)
 NO_CELL_WIRE = (0xFFFF, 0xFFFF)  # an intent's track cell (-1, -1): none
 NOT_FLYING = 0x80  # the state's heading byte: bit 7 set, the UAV is done (home) or unreachable
 NO_BLOCKER = 0xFF
@@ -79,6 +85,10 @@ class NodeState:
     y_km: float
     coop_radius_km: float
     flying: bool = True  # False: done (home) or unreachable; it holds its cell
+    #: measured course over ground (rad counter-clockwise from east, sent in 1/100 degree) and
+    #: ground speed (m/s, sent in cm/s) at the decision instant; None: not measured (not sent)
+    course_rad: float | None = None
+    speed_mps: float | None = None
 
 
 @dataclass(frozen=True)
@@ -196,6 +206,7 @@ def _records(report: SwarmReport) -> list[tuple[int, list[bytes]]]:
     )
     return [
         (KIND_STATE, states),
+        (KIND_FLIGHT, _flight_bytes(state)),
         (KIND_LOOK, [_look_bytes(look) for look in report.looks]),
         (
             KIND_ENGAGEMENT,
@@ -217,6 +228,14 @@ def _records(report: SwarmReport) -> list[tuple[int, list[bytes]]]:
         (KIND_MOVE, [_move_bytes(m) for m in report.moves]),
         (KIND_SERVICED_AT, [SERVICED_AT.pack(t, *cell) for t, cell in report.serviced_at]),
     ]
+
+
+def _flight_bytes(state: NodeState | None) -> list[bytes]:
+    """The state's flight record (none without a state, or without a measured course)."""
+    if state is None or state.course_rad is None or state.speed_mps is None:
+        return []
+    centideg = int(round(math.degrees(state.course_rad) * 100.0)) % 36000
+    return [FLIGHT.pack(centideg, min(0xFFFF, max(0, int(round(state.speed_mps * 100.0)))))]
 
 
 def _move_bytes(move: MoveClaim) -> bytes:
@@ -282,6 +301,13 @@ def _decode_record(kind: int, body: bytes, pos: int, parts: dict) -> int:
         flying = not flags & NOT_FLYING
         parts["state"] = NodeState((x, y), heading, xm / 1000.0, ym / 1000.0, radius, flying)
         return pos + STATE.size
+    if kind == KIND_FLIGHT:
+        centideg, cms = FLIGHT.unpack_from(body, pos)
+        if parts["state"] is None or parts["state"].course_rad is not None or centideg >= 36000:
+            raise WireError("a flight without its state, a second one, or a course of 360 deg")
+        course = math.radians(centideg / 100.0)
+        parts["state"] = replace(parts["state"], course_rad=course, speed_mps=cms / 100.0)
+        return pos + FLIGHT.size
     if kind == KIND_INTENT:
         x, y, priority = INTENT.unpack_from(body, pos)
         if parts["intent"] is not None:

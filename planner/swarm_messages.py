@@ -35,6 +35,11 @@ class UavState:
     position_km: tuple[float, float]  # measured (the cell's centre without a measure)
     radius_km: float  # its cooperative radius (eqs 1-3), coop_radius_min_km..sensing_radius_km
     flying: bool  # False: done (home) or unreachable; it holds its cell
+    #: measured course over ground (rad counter-clockwise from east) and ground speed (m/s) at
+    #: the decision instant, where a flown UAV says them (its neighbours' flight envelopes
+    #: predict its flight from them); None: not measured (the planner never uses them)
+    course_rad: float | None = None
+    speed_mps: float | None = None
 
 
 @dataclass(frozen=True)

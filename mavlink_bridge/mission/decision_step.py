@@ -32,6 +32,7 @@ import numpy as np
 from mavlink_bridge.mission.loop_state import LoopState, course_heading
 from mavlink_bridge.results.mission_result import MissionAccount
 from mavlink_bridge.safety.flight_envelope import FlightChoice, FlightEnvelope
+from mavlink_bridge.safety.neighbour_flights import NeighbourFlights, neighbour_flights
 from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
 from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel, leg_speed_mps, predict_paths
@@ -272,7 +273,25 @@ class DecisionStep:
         return self.flight_envelope.choose(
             positions, courses, speeds, cells, state.headings, next_cells,
             next_headings, previous, state.flown_km, state.home_km, active, lead,
-            decision_positions, elapsed_s,
+            decision_positions, elapsed_s, self.neighbours(state, positions, elapsed_s),
+        )  # fmt: skip
+
+    def neighbours(
+        self, state: LoopState, positions_km: np.ndarray, elapsed_s: np.ndarray
+    ) -> NeighbourFlights | None:
+        """A planner node's neighbours' flights as it heard them (a planner with
+        ``heard_flights``: ``onboard_planner.py``), advanced to now, those that may come near
+        its plane (at ``positions_km`` now) before its next targets: its plane settles with
+        them (``neighbour_flights.py``). None for the central daemon, which settles every pair
+        of its planes itself."""
+        heard = getattr(state.planner, "heard_flights", None)
+        if heard is None or self.flight_envelope is None or self.n != 1:
+            return None
+        fe = self.flight_envelope
+        return neighbour_flights(
+            heard(), int(state.planner.uav), self.cell_envelope, fe.model,
+            self.scenario.config.step_s, self.lead_steps, float(elapsed_s[0]), positions_km[0],
+            fe.separation_reach_km,
         )  # fmt: skip
 
     def home_cells(self, state: LoopState) -> np.ndarray:

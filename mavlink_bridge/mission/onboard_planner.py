@@ -16,7 +16,10 @@ of the decision period on the vehicles' clock, from the step's start):
    to step aside waits for its answer until ``END_SHARE`` (unanswered: it holds and says so;
    answered: it says its claim is final). Until ``END_SHARE`` it answers the requests of
    lower-priority neighbours;
-4. ``finish``: the decision for its UAV.
+4. ``finish``: the decision for its UAV, and its neighbours' flights as heard
+   (``heard_flights``): the decision step's flight envelope keeps its plane's predicted flight
+   apart from theirs (``mavlink_bridge/safety/neighbour_flights.py``). Its state carries its
+   plane's measured course and ground speed for theirs.
 
 Messages of a later step (a neighbour whose look came first) wait for that step; those of an
 earlier one are dropped. What the link carried, per step, is counted (:class:`NodeLinkStats`).
@@ -32,10 +35,12 @@ from typing import Any
 
 import numpy as np
 
+from mavlink_bridge.safety.neighbour_flights import HeardFlight
 from mavlink_bridge.vehicles.swarm_link import SwarmLink
 from mavlink_wire.node_wire import NodeWire
 from mavlink_wire.protocol import mavlink
 from mavlink_wire.swarm_wire import FRAGMENT_HEADER, SwarmReassembler, SwarmSender, WireError
+from planner.claim_deadline import PREDICT_STEPS
 from planner.planner_interface import StepDecision
 from planner.scenario import Scenario, UavStart
 from planner.swarm_messages import CellClaim, Message, UavState
@@ -114,6 +119,7 @@ class OnboardPlanner:
         swarm = list(scenario.starts_for_seed(seed))
         swarm[uav] = starts[0]
         self.uav, self.size = uav, len(swarm)
+        self._homes = [(float(s.x_km), float(s.y_km)) for s in swarm]  # (neighbour_flights)
         self.node = UavNode(scenario, swarm, seed, uav)
         self.link = link
         self.period_wall_s = period_wall_s
@@ -125,6 +131,9 @@ class OnboardPlanner:
         self.stats = NodeLinkStats()
         self._ahead: list[Message] = []  # messages of a step not begun yet
         self._sequence: dict[int, int] = {}  # last message sequence heard of each neighbour
+        #: each neighbour's latest step with its cell and claim heard: (step, cell, claim, heading)
+        self._legs: dict[int, tuple[int, tuple[int, int], tuple[int, int], int]] = {}
+        self._heard_flights: list[HeardFlight] = []  # of the step decided last
         self._claimed = False
         self._open = False  # between this step's begin and its decision
         self._sent = self._received = 0
@@ -165,7 +174,8 @@ class OnboardPlanner:
         restored.say = self.say
         restored.wire, restored.reassembler = self.wire, self.reassembler
         self.reassembler.stats = restored.wire_stats
-        restored._ahead = []
+        restored._ahead, restored._heard_flights = [], []
+        restored._legs = {}  # (not in a checkpoint: heard afresh from the next step)
         restored.swarm_step = -1
         restored.node.forget_step()
         if self.link is not None:
@@ -291,8 +301,9 @@ class OnboardPlanner:
         outcome = None if engagements is None else engagements[0]
         flying = True if active is None else bool(np.asarray(active)[0])
         where = None if positions_km is None else np.asarray(positions_km)[0]
-        self._broadcast(node.begin(np.asarray(cells)[0], int(np.asarray(headings)[0]),
-                                   reports[0], outcome, flying, where))  # fmt: skip
+        said = node.begin(np.asarray(cells)[0], int(np.asarray(headings)[0]), reports[0],
+                          outcome, flying, where)  # fmt: skip
+        self._broadcast([self._with_flight(m) for m in said])
         self._open = True
         ahead, self._ahead = self._ahead, []
         for m in ahead:
@@ -306,8 +317,57 @@ class OnboardPlanner:
         self._claim(t0, period)
         decision = node.finish()
         self._open = False
+        self._heard_flights = self._flights(k)
+        self._note_legs(k)
         self._account(t0, cpu0)
         return decision
+
+    # ------------------------------------------------------------------ the neighbours' flights
+
+    def _with_flight(self, message: Message) -> Message:
+        """Its state with its plane's measured course and ground speed (what its neighbours'
+        flight envelopes predict its flight from); other messages as they are."""
+        vehicle = None if self.link is None else self.link.vehicle(self.uav + 1)
+        if not isinstance(message, UavState) or vehicle is None or vehicle.speed_mps <= 1.0:
+            return message
+        return dataclasses.replace(message, course_rad=float(vehicle.course_rad),
+                                   speed_mps=float(vehicle.speed_mps))  # fmt: skip
+
+    def _note_legs(self, k: int) -> None:
+        """Each neighbour's cell and claim of step ``k`` (heard): the target it flies to until
+        its next one, and its claim, should nothing newer be heard."""
+        box = self.node.inbox
+        for j, state in box.states.items():
+            claim = box.claims.get(j)
+            if j != self.uav and claim is not None:
+                self._legs[j] = (k, state.cell, claim.cell, claim.heading)
+
+    def _flights(self, k: int) -> list[HeardFlight]:
+        """What it heard of each neighbour's flight for step ``k``
+        (``neighbour_flights.HeardFlight``), from its latest state heard, at most
+        ``PREDICT_STEPS`` old: this step's claim, or that step's when older, and the leg it
+        flew from the step before."""
+        out = []
+        for j, state in self.node.last_heard.items():
+            age = k - state.step
+            if j == self.uav or not 0 <= age <= PREDICT_STEPS:
+                continue
+            leg = self._legs.get(j)
+            claim = self.node.inbox.claims.get(j) if age == 0 else None
+            if age > 0 and leg is not None and leg[0] == state.step:
+                claim = CellClaim(j, state.step, leg[2], leg[3], ())
+            flown = (leg[1], leg[2]) if age == 0 and leg is not None and leg[0] == k - 1 else None
+            out.append(HeardFlight(
+                j, age, state.position_km, state.course_rad, state.speed_mps, state.cell,
+                state.heading, state.flying, None if claim is None else claim.cell,
+                0 if claim is None else claim.heading, flown, self._homes[j],
+            ))  # fmt: skip
+        return out
+
+    def heard_flights(self) -> list[HeardFlight]:
+        """Its neighbours' flights as heard for the step it decided last (the decision step's
+        flight envelope keeps its plane's flight apart from them: ``neighbour_flights.py``)."""
+        return list(getattr(self, "_heard_flights", []))
 
     def _flying_neighbours(self, before: bool) -> set[int]:
         """Neighbours heard flying this step that claim before (``before``) or after this one."""

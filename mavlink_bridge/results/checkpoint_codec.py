@@ -73,7 +73,10 @@ METHODS = {("PursuitLog", "record")}
 #: by ``UavNode.begin``).
 CACHES = {
     "PursuitLog": ("_square", "_gather"),
-    "OnboardPlanner": ("link", "period_wall_s", "say", "wire", "reassembler", "_ahead"),
+    "OnboardPlanner": (
+        "link", "period_wall_s", "say", "wire", "reassembler", "_ahead", "_heard_flights",
+        "_legs",
+    ),  # fmt: skip
     "UavNode": ("inbox", "_report", "_seen", "_ranking", "_board"),
 }
 #: numpy number types a ``$scalar`` may have.

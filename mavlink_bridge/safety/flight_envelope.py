@@ -47,13 +47,19 @@ closest to (``flight_settling.py``). Replacements of the planner's cell are coun
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from mavlink_bridge.safety.flight_candidates import CandidateRows, candidate_rows, plane_candidates
+from mavlink_bridge.safety.flight_candidates import (
+    Candidate,
+    CandidateRows,
+    candidate_rows,
+    plane_candidates,
+)
 from mavlink_bridge.safety.flight_settling import Settling
 from mavlink_bridge.safety.lossy_link_paths import LossyLinkPaths, lossy_link_paths
+from mavlink_bridge.safety.neighbour_flights import NeighbourFlights
 from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel, predict_paths
 from planner.constraints import segment_clearance
@@ -116,6 +122,16 @@ class FlightEnvelope:
         return float(np.pi / 2 / self.model.turn_rate_radps(self.model.fastest_leg_mps))
 
     @property
+    def separation_reach_km(self) -> float:
+        """How far apart (km) two planes may be now and still come within the separation kept
+        (``min_separation_km + separation_margin_km``) over the instants it is kept at: both
+        flying at each other at the fastest leg airspeed for ``separation_horizon_steps`` and
+        ``escape_s``."""
+        kept_s = max(1.0, self.separation_horizon_steps) * self.step_s + self.escape_s
+        need = self.cells.min_separation_km + self.separation_margin_km
+        return 2.0 * self.model.fastest_leg_mps * kept_s / 1000.0 + need
+
+    @property
     def horizon_s(self) -> float:
         """Prediction horizon (s): ``horizon_steps`` decision steps, at least one."""
         return max(1.0, self.horizon_steps) * self.step_s
@@ -136,18 +152,59 @@ class FlightEnvelope:
         lead: float,
         decision_positions_km: np.ndarray | None = None,
         elapsed_s: np.ndarray | None = None,
+        neighbours: NeighbourFlights | None = None,
     ) -> FlightChoice:
         """Guided targets for every UAV at ``positions_km`` flying at ``speeds_mps`` now
         (inactive ones keep the proposal; nothing is sent). In paced time a plane is
         ``elapsed_s`` past the decision instant, when it was at ``decision_positions_km`` (where
-        the measured chord to the next decision instant starts); by default it is there now."""
+        the measured chord to the next decision instant starts); by default it is there now.
+        ``neighbours``: planes this envelope does not command (a planner node's neighbours,
+        ``neighbour_flights.py``), predicted as these are: those whose claim was heard settle
+        with these UAVs in the scenario's UAV order, on the candidates their own envelopes
+        have, so that each node takes the choice the central settling would give its plane;
+        the others' flights are given, settled first: every UAV is kept apart from them."""
         n = len(cells)
         if decision_positions_km is None:
             decision_positions_km = positions_km
         elapsed = np.zeros(n) if elapsed_s is None else np.asarray(elapsed_s, dtype=float)
+        if neighbours is not None and len(neighbours):
+            joined = replace(self, model=_model_with_neighbours(self.model, n, len(neighbours)))
+            own = (positions_km, courses_rad, speeds_mps, cells, headings, proposed_cells,
+                   proposed_headings, previous_aims_km, flown_km, home_km, active)  # fmt: skip
+            return joined._choose(
+                *_joined_inputs(own, neighbours, home_km), lead,
+                np.concatenate([decision_positions_km, neighbours.positions_km]),
+                np.concatenate([elapsed, np.zeros(len(neighbours))]), n, neighbours,
+            )  # fmt: skip
+        return self._choose(
+            positions_km, courses_rad, speeds_mps, cells, headings, proposed_cells,
+            proposed_headings, previous_aims_km, flown_km, home_km, active, lead,
+            decision_positions_km, elapsed, n, None,
+        )  # fmt: skip
+
+    def _choose(
+        self,
+        positions_km: np.ndarray,
+        courses_rad: np.ndarray,
+        speeds_mps: np.ndarray,
+        cells: np.ndarray,
+        headings: np.ndarray,
+        proposed_cells: np.ndarray,
+        proposed_headings: np.ndarray,
+        previous_aims_km: np.ndarray,
+        flown_km: np.ndarray,
+        home_km: np.ndarray,
+        active: np.ndarray,
+        lead: float,
+        decision_positions_km: np.ndarray,
+        elapsed: np.ndarray,
+        own: int,
+        neighbours: NeighbourFlights | None,
+    ) -> FlightChoice:
+        """``choose`` over the first ``own`` UAVs, the rest being ``neighbours`` (given)."""
         table = self._candidate_rows(
             positions_km, speeds_mps, cells, headings, proposed_cells, proposed_headings,
-            previous_aims_km, flown_km, home_km, active, lead,
+            previous_aims_km, flown_km, home_km, active, lead, own, neighbours,
         )  # fmt: skip
         paths = predict_paths(
             self.model.rows(np.array([i for i, _ in table.rows], dtype=int)),
@@ -167,15 +224,19 @@ class FlightEnvelope:
             clearance,
             self.threat_margin_km,
             self.cells.min_separation_km + self.separation_margin_km,
+            fixed=frozenset(own + np.flatnonzero(~neighbours.free)) if neighbours else frozenset(),
+            order=None if neighbours is None else neighbours.settling_order(own),
         )
         # kept apart as a lossy link may fly them where some candidate can be; where none can
         # (two planes whose last legs already close within the delay), as predicted
         nominal = kept_apart[:, :1]
         tiers = [kept_apart, nominal] if kept_apart.shape[1] > 1 else [nominal]
         chosen = settling.settle(tiers)
+        mine = {i: k for i, k in chosen.items() if i < own}
         choice = self._choice(
-            table, paths, chosen, settling, headings, proposed_cells, proposed_headings
-        )
+            table, paths, mine, settling, headings[:own], proposed_cells[:own],
+            proposed_headings[:own],
+        )  # fmt: skip
         choice.min_separation_km = settling.closest_km(nominal, chosen)
         choice.min_separation_lossy_km = (
             settling.closest_km(kept_apart, chosen) if len(tiers) > 1 else choice.min_separation_km
@@ -197,9 +258,11 @@ class FlightEnvelope:
         home_km: np.ndarray,
         active: np.ndarray,
         lead: float,
+        own: int,
+        neighbours: NeighbourFlights | None,
     ) -> CandidateRows:
         """Every active UAV's candidates (``flight_candidates.py``; none for an inactive one),
-        as the rows of one batch."""
+        as the rows of one batch; each neighbour's one given flight after them."""
         candidates = [
             plane_candidates(
                 self.cells,
@@ -215,8 +278,18 @@ class FlightEnvelope:
             )
             if active[i]
             else []
-            for i in range(len(cells))
+            for i in range(own)
         ]
+        for m in range(0 if neighbours is None else len(neighbours)):
+            j = own + m
+            if neighbours.free[m]:  # its own envelope's candidates, as this one would judge them
+                candidates.append(plane_candidates(
+                    self.cells, self.leg_timing, cells[j], int(headings[j]), proposed_cells[j],
+                    int(proposed_headings[j]), previous_aims_km[j], 0.0, home_km[j], lead,
+                ))  # fmt: skip
+            else:  # its one flight, as given
+                candidates.append([Candidate(proposed_cells[j], int(proposed_headings[j]),
+                                             neighbours.aims_km[m], derived=True)])  # fmt: skip
         return candidate_rows(
             candidates, self.cells.grid, self.model, self.step_s, self.leg_timing, cells,
             positions_km, speeds_mps,
@@ -413,3 +486,29 @@ class FlightEnvelope:
         ahead = np.arange(1, int(np.ceil(self.escape_s)) + 1, dtype=float)
         straight = paths[:, at, None] + ahead[None, :, None] * velocity[:, None]
         return np.concatenate([apart, straight], axis=1)
+
+
+def _model_with_neighbours(model: PlaneModel, own: int, count: int) -> PlaneModel:
+    """``model`` for ``own`` UAVs and ``count`` neighbours after them, each flying the airframe
+    of UAV 0 (a planner node's own) where the UAVs have airframes of their own."""
+    speeds, turns = model.uav_speed_ranges_mps, model.uav_turn_limits
+    return replace(
+        model,
+        uav_speed_ranges_mps=speeds[:own] + speeds[:1] * count if speeds else (),
+        uav_turn_limits=turns[:own] + turns[:1] * count if turns else (),
+    )
+
+
+def _joined_inputs(own: tuple, neighbours: NeighbourFlights, home_km: np.ndarray) -> tuple:
+    """The per-UAV inputs of ``choose`` (positions .. active) with the neighbours' after the
+    own UAVs' (the range rule counts nothing flown by a neighbour: not said on the link)."""
+    k = len(neighbours)
+    theirs = (
+        neighbours.positions_km, neighbours.courses_rad, neighbours.speeds_mps, neighbours.cells,
+        neighbours.headings, neighbours.claimed_cells, neighbours.claimed_headings,
+        neighbours.previous_aims_km, np.zeros(k), neighbours.homes_km, np.ones(k, dtype=bool),
+    )  # fmt: skip
+    return tuple(
+        np.concatenate([np.asarray(a), np.asarray(b, dtype=np.asarray(a).dtype)])
+        for a, b in zip(own, theirs, strict=True)
+    )

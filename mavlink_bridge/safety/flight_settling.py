@@ -7,7 +7,8 @@ index order: each takes its first candidate that keeps the threat margin and sta
 the one that breaks the rules least, and it re-opens the choice of the settled UAV it comes
 closest to (:meth:`Settling.repair`). Separation is judged on tiers of paths: first every
 lossy-link variant of each plane against every variant of the others (paced time), and where no
-candidate can keep that, the prediction alone.
+candidate can keep that, the prediction alone. A planner node's neighbours (``fixed``) are
+settled first as they are given, and never re-opened: the node can only move its own plane.
 """
 
 from __future__ import annotations
@@ -36,6 +37,11 @@ class Settling:
     clearance_km: np.ndarray  # (M,) each row's predicted distance to a threat edge
     threat_margin_km: float
     need_sep_km: float  # min_separation_km + separation_margin_km
+    #: UAVs whose one candidate is given (a planner node's neighbours): settled first, as
+    #: they are, never re-opened; the others are kept apart from them
+    fixed: frozenset[int] = frozenset()
+    #: the order the other UAVs settle in (default: index order)
+    order: tuple[int, ...] | None = None
 
     @property
     def threat_ok(self) -> np.ndarray:
@@ -47,9 +53,11 @@ class Settling:
         against each tier of kept-apart paths (M, V, T, 2) in turn until it finds a safe
         candidate or a repair makes it one."""
         threat_ok = self.threat_ok
-        chosen: dict[int, int] = {}
-        for i, count in enumerate(self.counts):
-            if not count:
+        chosen: dict[int, int] = {j: 0 for j in sorted(self.fixed) if self.counts[j]}
+        order = range(len(self.counts)) if self.order is None else self.order
+        for i in order:
+            count = self.counts[i]
+            if not count or i in self.fixed:
                 continue
             for apart in tiers:
                 score, chosen[i] = self._best(i, apart, chosen, threat_ok)
@@ -84,7 +92,7 @@ class Settling:
         of each other replaces both choices (True). Without such a pair nothing changes."""
         row_of, need_sep = self.row_of, self.need_sep_km
         mine = paths[row_of[(i, chosen[i])]]
-        rivals = [j for j in chosen if j != i]
+        rivals = [j for j in chosen if j != i and j not in self.fixed]
         if not rivals:
             return False
         j = min(rivals, key=lambda o: separation_km(mine, [paths[row_of[(o, chosen[o])]]]))
@@ -105,9 +113,11 @@ class Settling:
         return False
 
     def closest_km(self, apart: np.ndarray, chosen: dict[int, int]) -> float:
-        """Smallest distance (km) between any two chosen candidates' kept-apart paths."""
-        accepted = [apart[self.row_of[(i, k)]] for i, k in chosen.items()]
+        """Smallest distance (km) between any two chosen candidates' kept-apart paths (not
+        between two ``fixed`` ones: no choice of this settling keeps those apart)."""
+        free = [apart[self.row_of[(i, k)]] for i, k in chosen.items() if i not in self.fixed]
+        given = [apart[self.row_of[(i, k)]] for i, k in chosen.items() if i in self.fixed]
         return min(
-            (separation_km(path, accepted[a + 1 :]) for a, path in enumerate(accepted)),
+            (separation_km(path, free[a + 1 :] + given) for a, path in enumerate(free)),
             default=np.inf,
         )

@@ -5,6 +5,7 @@ paper scenario fits the radio budget of the swarm link (3.6 kB per UAV per step)
 
 from __future__ import annotations
 
+import math
 import os
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -45,7 +46,8 @@ def _report(uav: int = 3, looks: int = 12) -> SwarmReport:
     return SwarmReport(
         uav=uav,
         step=217,
-        state=NodeState((41, 77), 5, 41.512, 77.03, 17.318403629),
+        state=NodeState((41, 77), 5, 41.512, 77.03, 17.318403629, True, math.radians(123.45),
+                        123.45),  # fmt: skip
         looks=tuple(
             Look(
                 k,
