@@ -35,7 +35,7 @@ from mavlink_bridge.safety.flight_envelope import FlightChoice, FlightEnvelope
 from mavlink_bridge.safety.neighbour_flights import NeighbourFlights, neighbour_flights
 from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
 from mavlink_bridge.vehicles.autopilot_adapter import autopilot_for
-from mavlink_bridge.vehicles.flight_prediction import PlaneModel, leg_speed_mps, predict_paths
+from mavlink_bridge.vehicles.flight_prediction import PlaneModel, fly_on, leg_speed_mps
 from mavlink_bridge.vehicles.guided_commands import (
     Command,
     CommandRefusedError,
@@ -55,16 +55,6 @@ from planner.geodesy import geodetic_to_local_km, local_km_to_geodetic
 from planner.grid import Grid
 from planner.scenario import Scenario
 from planner.sensor_model import SensorReport
-
-
-def has_camera(vehicle: VehicleState) -> bool:
-    """Whether a camera (component 100) of the vehicle was ever heard: a heartbeat, a look or
-    an acknowledgement of its own."""
-    return (
-        CAMERA_COMPONENT_ID in vehicle.components
-        or vehicle.latest_look >= 0
-        or any(ack.component == CAMERA_COMPONENT_ID for ack in vehicle.ack_log)
-    )
 
 
 @dataclass
@@ -329,19 +319,8 @@ class DecisionStep:
                 courses[i], speeds[i] = v.course_rad, v.speed_mps  # over ground, from east
             else:
                 courses[i] = int(state.headings[i]) * math.pi / 4
-        aims = state.last_targets_km()
-        late = np.flatnonzero((stale_s >= 1.0) & np.all(np.isfinite(aims), axis=1))
-        if len(late):
-            ahead = predict_paths(
-                self.plane, positions[late], courses[late], aims[late],
-                float(stale_s[late].max()), speed_mps=speeds[late],
-            )  # fmt: skip
-            at = np.round(stale_s[late]).astype(int)
-            here, before = ahead[np.arange(len(late)), at], ahead[np.arange(len(late)), at - 1]
-            positions[late] = here
-            courses[late] = np.arctan2(here[:, 1] - before[:, 1], here[:, 0] - before[:, 0])
-            elapsed_s[late] += at
-        return positions, courses, speeds, elapsed_s
+        flown = fly_on(self.plane, positions, courses, speeds, state.last_targets_km(), stale_s)
+        return positions, courses, speeds, elapsed_s + flown
 
     # ------------------------------------------------------------------ 4. record
 
@@ -410,7 +389,7 @@ class DecisionStep:
                 f"its autopilot answered {command_name(request.command)} for component "
                 f"{CAMERA_COMPONENT_ID} with {result_name(own.result)}"
             )
-        elif request.attempts >= 3 and not has_camera(v):
+        elif request.attempts >= 3 and not v.camera_heard():
             why = f"component {CAMERA_COMPONENT_ID} never heard"
         else:
             return False

@@ -59,7 +59,11 @@ from mavlink_bridge.safety.flight_candidates import (
 )
 from mavlink_bridge.safety.flight_settling import Settling
 from mavlink_bridge.safety.lossy_link_paths import LossyLinkPaths, lossy_link_paths
-from mavlink_bridge.safety.neighbour_flights import NeighbourFlights
+from mavlink_bridge.safety.neighbour_flights import (
+    NeighbourFlights,
+    joined_inputs,
+    model_with_neighbours,
+)
 from mavlink_bridge.safety.safety_envelope import SafetyEnvelope
 from mavlink_bridge.vehicles.flight_prediction import PlaneModel, predict_paths
 from planner.constraints import segment_clearance
@@ -168,11 +172,11 @@ class FlightEnvelope:
             decision_positions_km = positions_km
         elapsed = np.zeros(n) if elapsed_s is None else np.asarray(elapsed_s, dtype=float)
         if neighbours is not None and len(neighbours):
-            joined = replace(self, model=_model_with_neighbours(self.model, n, len(neighbours)))
+            joined = replace(self, model=model_with_neighbours(self.model, n, len(neighbours)))
             own = (positions_km, courses_rad, speeds_mps, cells, headings, proposed_cells,
                    proposed_headings, previous_aims_km, flown_km, home_km, active)  # fmt: skip
             return joined._choose(
-                *_joined_inputs(own, neighbours, home_km), lead,
+                *joined_inputs(own, neighbours, home_km), lead,
                 np.concatenate([decision_positions_km, neighbours.positions_km]),
                 np.concatenate([elapsed, np.zeros(len(neighbours))]), n, neighbours,
             )  # fmt: skip
@@ -486,29 +490,3 @@ class FlightEnvelope:
         ahead = np.arange(1, int(np.ceil(self.escape_s)) + 1, dtype=float)
         straight = paths[:, at, None] + ahead[None, :, None] * velocity[:, None]
         return np.concatenate([apart, straight], axis=1)
-
-
-def _model_with_neighbours(model: PlaneModel, own: int, count: int) -> PlaneModel:
-    """``model`` for ``own`` UAVs and ``count`` neighbours after them, each flying the airframe
-    of UAV 0 (a planner node's own) where the UAVs have airframes of their own."""
-    speeds, turns = model.uav_speed_ranges_mps, model.uav_turn_limits
-    return replace(
-        model,
-        uav_speed_ranges_mps=speeds[:own] + speeds[:1] * count if speeds else (),
-        uav_turn_limits=turns[:own] + turns[:1] * count if turns else (),
-    )
-
-
-def _joined_inputs(own: tuple, neighbours: NeighbourFlights, home_km: np.ndarray) -> tuple:
-    """The per-UAV inputs of ``choose`` (positions .. active) with the neighbours' after the
-    own UAVs' (the range rule counts nothing flown by a neighbour: not said on the link)."""
-    k = len(neighbours)
-    theirs = (
-        neighbours.positions_km, neighbours.courses_rad, neighbours.speeds_mps, neighbours.cells,
-        neighbours.headings, neighbours.claimed_cells, neighbours.claimed_headings,
-        neighbours.previous_aims_km, np.zeros(k), neighbours.homes_km, np.ones(k, dtype=bool),
-    )  # fmt: skip
-    return tuple(
-        np.concatenate([np.asarray(a), np.asarray(b, dtype=np.asarray(a).dtype)])
-        for a, b in zip(own, theirs, strict=True)
-    )

@@ -39,7 +39,7 @@ start, having flown nothing the range rule counts (not said on the link).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -195,4 +195,30 @@ def neighbour_flights(
         claimed_headings=headings[near],
         aims_km=aims[near],
         previous_aims_km=before[near],
+    )
+
+
+def model_with_neighbours(model: PlaneModel, own: int, count: int) -> PlaneModel:
+    """``model`` for ``own`` UAVs and ``count`` neighbours after them, each flying the airframe
+    of UAV 0 (a planner node's own) where the UAVs have airframes of their own."""
+    speeds, turns = model.uav_speed_ranges_mps, model.uav_turn_limits
+    return replace(
+        model,
+        uav_speed_ranges_mps=speeds[:own] + speeds[:1] * count if speeds else (),
+        uav_turn_limits=turns[:own] + turns[:1] * count if turns else (),
+    )
+
+
+def joined_inputs(own: tuple, neighbours: NeighbourFlights, home_km: np.ndarray) -> tuple:
+    """The per-UAV inputs of ``choose`` (positions .. active) with the neighbours' after the
+    own UAVs' (the range rule counts nothing flown by a neighbour: not said on the link)."""
+    k = len(neighbours)
+    theirs = (
+        neighbours.positions_km, neighbours.courses_rad, neighbours.speeds_mps, neighbours.cells,
+        neighbours.headings, neighbours.claimed_cells, neighbours.claimed_headings,
+        neighbours.previous_aims_km, np.zeros(k), neighbours.homes_km, np.ones(k, dtype=bool),
+    )  # fmt: skip
+    return tuple(
+        np.concatenate([np.asarray(a), np.asarray(b, dtype=np.asarray(a).dtype)])
+        for a, b in zip(own, theirs, strict=True)
     )

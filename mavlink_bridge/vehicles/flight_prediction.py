@@ -237,3 +237,29 @@ def predict_paths(
         if (k + 1) % per_sample == 0:
             out[:, (k + 1) // per_sample] = p
     return out
+
+
+def fly_on(
+    plane: PlaneModel,
+    positions_km: np.ndarray,
+    courses_rad: np.ndarray,
+    speeds_mps: np.ndarray,
+    aims_km: np.ndarray,
+    stale_s: np.ndarray,
+) -> np.ndarray:
+    """Each plane whose latest report is ``stale_s`` old (at least 1 s) and that has a target
+    (``aims_km`` finite) flown on toward it for that long, in place (``positions_km`` and
+    ``courses_rad``); returns the whole seconds each was flown on (0 for the others)."""
+    flown = np.zeros(len(positions_km))
+    late = np.flatnonzero((stale_s >= 1.0) & np.all(np.isfinite(aims_km), axis=1))
+    if len(late):
+        ahead = predict_paths(
+            plane, positions_km[late], courses_rad[late], aims_km[late],
+            float(stale_s[late].max()), speed_mps=speeds_mps[late],
+        )  # fmt: skip
+        at = np.round(stale_s[late]).astype(int)
+        here, before = ahead[np.arange(len(late)), at], ahead[np.arange(len(late)), at - 1]
+        positions_km[late] = here
+        courses_rad[late] = np.arctan2(here[:, 1] - before[:, 1], here[:, 0] - before[:, 0])
+        flown[late] = at
+    return flown

@@ -168,6 +168,15 @@ class VehicleState:
         """Where a message to ``component`` of this vehicle goes."""
         return self.component_links.get(component, self.link)
 
+    def camera_heard(self) -> bool:
+        """Whether a camera (component 100) of the vehicle was ever heard: a heartbeat, a look
+        or an acknowledgement of its own."""
+        return (
+            CAMERA_COMPONENT_ID in self.components
+            or self.latest_look >= 0
+            or any(ack.component == CAMERA_COMPONENT_ID for ack in self.ack_log)
+        )
+
     def silent_for(self, now_s: float | None = None) -> float:
         return (time.monotonic() if now_s is None else now_s) - self.last_heard_s
 
