@@ -21,6 +21,7 @@ import argparse
 import json
 import math
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -78,15 +79,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
+#: where the demo's per-vehicle ports are drawn from: below Linux's ephemeral range (32768 and
+#: up), from which every socket bound to port 0 (the simulator's own, the coordinator's ear, any
+#: other program's) takes its port, so none of those can take a vehicle's port between its
+#: choice here and its node's bind (a node was refused its port so in one CI run)
+PORT_RANGE = (20000, 32700)
+
+
 def free_port_block(count: int, host: str = "127.0.0.1") -> int:
-    """A base port with ``count`` consecutive free UDP ports from it (checked by binding)."""
+    """A base port with ``count`` consecutive free UDP ports from it (checked by binding),
+    drawn at random from :data:`PORT_RANGE`."""
+    draw = random.Random()
     for _ in range(200):
-        probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        probe.bind((host, 0))
-        base = probe.getsockname()[1]
-        probe.close()
-        if base + count > 65535:
-            continue
+        base = draw.randrange(PORT_RANGE[0], PORT_RANGE[1] - count)
         held = []
         try:
             for port in range(base, base + count):

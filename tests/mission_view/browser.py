@@ -65,8 +65,21 @@ def heat_pixels(page) -> list[int]:
     )
 
 
-def vehicle_positions(page) -> list[tuple[float, float]]:
-    """Where each vehicle's marker is drawn on the page (centre of its element, pixels)."""
+def vehicle_positions(page, settle_s: float = 5.0) -> list[tuple[float, float]]:
+    """Where each vehicle's marker is drawn on the page (centre of its element, pixels), once
+    two reads 0.2 s apart agree (a marker still gliding to a new step, or the map still
+    panning, is read where it comes to rest; at most ``settle_s``)."""
+    now = _drawn_positions(page)
+    deadline = time.monotonic() + settle_s
+    while time.monotonic() < deadline:
+        page.wait_for_timeout(200)
+        now, before = _drawn_positions(page), now
+        if now == before:
+            break
+    return now
+
+
+def _drawn_positions(page) -> list[tuple[float, float]]:
     boxes = page.evaluate(
         "() => Array.from(document.querySelectorAll('.uav-icon')).map(e => {"
         " const r = e.getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2]; })"
