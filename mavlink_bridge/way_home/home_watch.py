@@ -50,12 +50,13 @@ def watch_flight_home(phase: FlightHomePhase) -> None:
         left_s = limit_s + extra_s - waited_s
         guiding = bool(flight.homing or flight.holding or pending)
         chunk_s = min(period_s, left_s) if guiding else left_s
-        done = phase.listen(event, chunk_s)
+        phase.listen(event, chunk_s)
         waited_s += chunk_s
         if flight.holding:
             extra_s = min(limit_s, extra_s + chunk_s)
         vehicles += [v for v in reach_late(phase, pending, watch) if v not in vehicles]
-        if done and not (flight.homing or flight.holding or pending):
+        # (home judged afresh: a plane heard again has only now been sent home)
+        if not (flight.homing or flight.holding or pending) and watch.home():
             return
         guided = flight.homing.keys() | flight.holding.keys()
         flying = [v for v in vehicles if not v.lost and v.key in guided]
