@@ -202,6 +202,29 @@ class CuttableRelay(threading.Thread):
         self.sock.close()
 
 
+def relayed(daemon: MissionDaemon, vehicle: int, log: Path, seed: int = 2):
+    """Connect ``daemon`` and start paper-10uav's simulator (``seed``) with each vehicle i
+    sending to its own port (``--per-vehicle-ports``), where a relay forwards to the daemon;
+    returns the relay of ``vehicle`` (0-based; cut it to silence that vehicle) and a function
+    that flies the mission and stops the simulator and the relays."""
+    port = daemon.connect().endpoints[0].port
+    base = free_port_block(10)
+    relays = [CuttableRelay(port, base + i) for i in range(10)]
+    for r in relays:
+        r.start()
+    sim = start_sim(port, seed, log, ["--per-vehicle-ports", str(base)])
+
+    def fly():
+        try:
+            return daemon.fly()
+        finally:
+            stop(sim)
+            for r in relays:
+                r.stop()
+
+    return relays[vehicle], fly
+
+
 @pytest.mark.timeout(120)
 def test_cut_link_vehicle_is_lost_and_others_go_on(paper10, tmp_path):
     """Vehicle 3 talks through a relay (the simulator's per-vehicle ports: vehicle i sends to
@@ -225,16 +248,7 @@ def test_cut_link_vehicle_is_lost_and_others_go_on(paper10, tmp_path):
             tlog_path=tmp_path / "m.tlog",
         ),
     )
-    link = daemon.connect()
-    port = link.endpoints[0].port
-    # the simulator's per-vehicle destinations: vehicle i (0-based) sends to BASE + i; a relay on
-    # each forwards to the daemon's one port, and the one of vehicle 3 (index 2) can be cut
-    base = free_port_block(10)
-    relays = [CuttableRelay(port, base + i) for i in range(10)]
-    for r in relays:
-        r.start()
-    relay = relays[2]
-    sim = start_sim(port, 2, tmp_path / "sim.log", ["--per-vehicle-ports", str(base)])
+    relay, fly = relayed(daemon, vehicle=2, log=tmp_path / "sim.log")
 
     cut_at: list[int] = []
 
@@ -247,12 +261,7 @@ def test_cut_link_vehicle_is_lost_and_others_go_on(paper10, tmp_path):
             relay.cut.clear()
 
     daemon.options.on_step = on_step
-    try:
-        report = daemon.fly()
-    finally:
-        stop(sim)
-        for r in relays:
-            r.stop()
+    report = fly()
     result = report.result
     assert result["lost_uavs"] == [2]
     events = [(e.uav, e.event) for e in report.events]
@@ -283,14 +292,7 @@ def test_a_plane_unreachable_when_the_mission_ends_is_sent_home_once_heard_again
             tlog_path=tmp_path / "m.tlog", rtl_watch_s=1500.0, progress=lines.append,
         ),
     )  # fmt: skip
-    link = daemon.connect()
-    base = free_port_block(10)
-    relays = [CuttableRelay(link.endpoints[0].port, base + i) for i in range(10)]
-    for r in relays:
-        r.start()
-    relay = relays[2]
-    sim = start_sim(link.endpoints[0].port, 2, tmp_path / "sim.log",
-                    ["--per-vehicle-ports", str(base)])  # fmt: skip
+    relay, fly = relayed(daemon, vehicle=2, log=tmp_path / "sim.log")
 
     def restore_after_rtl() -> None:
         while not any(line.startswith("RTL sent to") for line in list(lines)):
@@ -308,12 +310,7 @@ def test_a_plane_unreachable_when_the_mission_ends_is_sent_home_once_heard_again
             threading.Thread(target=restore_after_rtl, daemon=True).start()
 
     daemon.options.on_step = on_step
-    try:
-        report = daemon.fly()
-    finally:
-        stop(sim)
-        for r in relays:
-            r.stop()
+    report = fly()
     result = report.result
     text = "\n".join(lines)
     rtl_line = next(line for line in lines if line.startswith("RTL sent to"))
